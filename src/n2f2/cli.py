@@ -1,0 +1,63 @@
+"""The ``n2f2`` command line. Each stage registers its own subcommands in ``<stage>/commands.py``
+(a ``register(subparsers)`` function); this file only assembles them and turns user errors into
+one clear line and a non-zero exit, without a traceback."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from . import __version__
+from .errors import N2F2Error
+
+# In data-flow order; a stage whose commands module does not exist yet is skipped.
+COMMAND_MODULES = (
+    "n2f2.data.commands",
+    "n2f2.gaussians.commands",
+    "n2f2.segments.commands",
+    "n2f2.train.commands",
+    "n2f2.query.commands",
+    "n2f2.eval.commands",
+    "n2f2.viewer.commands",
+    "n2f2.pipeline",
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="n2f2",
+        description="Nested Neural Feature Fields: hierarchical open-vocabulary queries on 3D Gaussian Splatting scenes.",
+    )
+    parser.add_argument("--version", action="version", version=f"n2f2 {__version__}")
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in COMMAND_MODULES:
+        try:
+            module = importlib.import_module(name)
+        except ModuleNotFoundError as e:
+            if e.name and name.startswith(e.name):  # the stage is not there yet
+                continue
+            raise
+        module.register(subparsers)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        result = args.func(args)
+    except N2F2Error as e:
+        print(f"n2f2 {args.command}: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"n2f2 {args.command}: interrupted", file=sys.stderr)
+        return 130
+    return int(result or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
