@@ -1,0 +1,167 @@
+"""Scene loading: every supported format becomes one :class:`~n2f2.data.scene.Scene`.
+
+Formats (``load_scene(..., format=...)``):
+
+* ``"nerfstudio"``: ``SCENE/transforms.json`` (or the path of any ``.json`` file);
+  see :mod:`n2f2.data.nerfstudio`.
+* ``"colmap"``: a COLMAP model in ``SCENE/sparse/0/`` (or ``SCENE/sparse/``, or ``SCENE`` itself
+  being the model folder), binary preferred over text, with images in ``SCENE/images/``;
+  see :mod:`n2f2.data.colmap`. Only ``sparse/0`` is read when COLMAP made several models.
+* ``"auto"`` (default): nerfstudio when ``transforms.json`` exists, else COLMAP. A folder
+  with both (the built-in demo scene writes both, describing the same cameras) loads
+  ``transforms.json``; pass ``format="colmap"`` to read the COLMAP model instead.
+
+Views are ordered by image path relative to the scene folder (for the usual flat
+``images/`` folder that is sorted file-name order), so view index ``i`` is the same whatever
+the format; this matches LangSplat's labels (``frame_00001`` is view 0).
+
+``downscale`` works like 3DGS ``-r``: cameras become :meth:`Camera.downscaled(factor)
+<n2f2.cameras.Camera.downscaled>` (``round(W / factor)`` pixels, intrinsics scaled with the
+pixel-centre convention) and images are resized when loaded. For an integer factor, a
+pre-downscaled sibling folder such as ``images_2/`` (written by 3DGS ``convert.py --resize``
+and ``ns-process-data``) is used instead when it holds every image.
+
+Everything that can be checked without decoding pixels is checked at load time: every
+listed image must exist and have the camera's aspect ratio, so a bad scene fails at once with
+an :class:`~n2f2.errors.InputError` naming the file rather than in the middle of training.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from ..errors import InputError
+from .scene import GroundTruth, Scene, load_image
+
+__all__ = ["FORMATS", "GroundTruth", "Scene", "detect_format", "load_image", "load_scene"]
+
+FORMATS = ("auto", "colmap", "nerfstudio")
+
+
+def _colmap_model_dir(path: Path) -> Optional[Path]:
+    from .colmap import find_model_files
+
+    for candidate in (path / "sparse" / "0", path / "sparse", path):
+        if candidate.is_dir() and find_model_files(candidate) is not None:
+            return candidate
+    return None
+
+
+def detect_format(path: str | Path, format: str = "auto") -> tuple[str, Path]:
+    """``("nerfstudio", transforms_json)`` or ``("colmap", model_dir)`` for scene ``path``."""
+    from .nerfstudio import TRANSFORMS_NAME, transforms_path
+
+    path = Path(path)
+    if format not in FORMATS:
+        raise InputError(None, f"unknown scene format {format!r}; expected one of {', '.join(FORMATS)}")
+    if not path.exists():
+        raise InputError(path, "scene path does not exist")
+    if format == "nerfstudio" or (format == "auto" and (path.suffix.lower() == ".json"
+                                                         or (path / TRANSFORMS_NAME).is_file())):
+        json_path = transforms_path(path)
+        if not json_path.is_file():
+            raise InputError(json_path, "file does not exist (a nerfstudio scene needs transforms.json)")
+        return "nerfstudio", json_path
+    model = _colmap_model_dir(path) if path.is_dir() else None
+    if model is None:
+        if format == "colmap":
+            raise InputError(path / "sparse" / "0", "no COLMAP model found: expected cameras.bin + "
+                                                    "images.bin (or cameras.txt + images.txt)")
+        raise InputError(path, f"no scene found: expected {TRANSFORMS_NAME} (nerfstudio) or sparse/0/ "
+                               f"with cameras.bin|txt and images.bin|txt (COLMAP)")
+    return "colmap", model
+
+
+def _colmap_root(model: Path) -> Path:
+    """The scene folder of a COLMAP model folder: the nearest ancestor holding ``images/``."""
+    for candidate in (model.parent.parent, model.parent, model):
+        if (candidate / "images").is_dir():
+            return candidate
+    return model.parent.parent if model.parent.name == "sparse" else model.parent
+
+
+def load_scene(path: str | Path, downscale: float = 1, format: str = "auto") -> Scene:
+    """Load a scene folder (COLMAP or nerfstudio, see the module docstring) into a Scene.
+
+    ``downscale`` (>= 1 usually, like 3DGS ``-r``) divides the image size; ``format`` is
+    ``"auto"``, ``"colmap"`` or ``"nerfstudio"``. Sets ``scene.ground_truth`` when the folder
+    has ``regions.json`` (the built-in demo scene). Bad input raises :class:`InputError`.
+    """
+    downscale = float(downscale)
+    if not np.isfinite(downscale) or downscale <= 0:
+        raise InputError(None, f"downscale factor must be a positive number, got {downscale}")
+    kind, source = detect_format(path, format)
+
+    if kind == "nerfstudio":
+        from .nerfstudio import read_transforms
+
+        data = read_transforms(source)
+        root = source.parent
+        cameras, image_paths, points, colors = data.cameras, data.image_paths, data.points, data.colors
+        source_format, listing = "nerfstudio", source
+    else:
+        from .colmap import read_colmap_scene
+
+        model = read_colmap_scene(source)
+        root = _colmap_root(source)
+        cameras, points, colors = model.cameras, model.points, model.colors
+        image_paths = [root / "images" / name for name in model.image_names]
+        source_format, listing = f"colmap-{model.kind}", model.files["images"]
+
+    order = sorted(range(len(image_paths)), key=lambda i: _relative(image_paths[i], root))
+    cameras = [cameras[i] for i in order]
+    image_paths = [image_paths[i] for i in order]
+    for a, b in zip(image_paths, image_paths[1:]):
+        if a == b:
+            raise InputError(listing, f"image {_relative(a, root)} is listed twice")
+
+    for image_path in image_paths:
+        if not image_path.is_file():
+            raise InputError(image_path, f"image listed in {listing.name} does not exist")
+    if downscale != 1:
+        cameras = [c.downscaled(downscale) for c in cameras]
+        image_paths = _predownscaled(image_paths, downscale)
+    _check_aspect_ratios(cameras, image_paths, listing)
+
+    scene = Scene(root=root, cameras=cameras, image_paths=image_paths, points=points,
+                  point_colors=colors, downscale=downscale, source_format=source_format)
+    if (root / "regions.json").is_file():
+        scene.ground_truth = GroundTruth(root, scene.image_names)
+    return scene
+
+
+def _relative(path: Path, root: Path) -> str:
+    try:
+        return path.relative_to(root).as_posix()
+    except ValueError:
+        return path.as_posix()
+
+
+def _predownscaled(image_paths: list[Path], factor: float) -> list[Path]:
+    """``images_N/<name>`` for every image when ``factor`` is an integer N and all exist."""
+    if factor != int(factor) or factor <= 1:
+        return image_paths
+    n = int(factor)
+    candidates = [p.parent.with_name(f"{p.parent.name}_{n}") / p.name for p in image_paths]
+    return candidates if all(c.is_file() for c in candidates) else image_paths
+
+
+def _check_aspect_ratios(cameras, image_paths: list[Path], listing: Path) -> None:
+    """Read each image header (not its pixels) and reject one whose aspect ratio differs
+    from its camera's: resizing it would silently distort the image."""
+    from PIL import Image, UnidentifiedImageError
+
+    for cam, image_path in zip(cameras, image_paths):
+        try:
+            with Image.open(image_path) as im:
+                w, h = im.size
+        except (UnidentifiedImageError, OSError) as e:
+            raise InputError(image_path, f"cannot read image ({e})") from None
+        # Rounding to whole pixels (e.g. images_2 written with floor instead of round) moves a
+        # side by at most one pixel; anything more is a different image shape.
+        if abs(h - w * cam.height / cam.width) > 1.0 + 1e-9 and abs(w - h * cam.width / cam.height) > 1.0 + 1e-9:
+            raise InputError(image_path, f"image is {w}x{h} pixels but the camera in {listing.name} is "
+                                         f"{cam.width}x{cam.height} (after downscaling): a different aspect ratio")

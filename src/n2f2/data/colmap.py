@@ -26,7 +26,7 @@ import math
 import struct
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional, Sequence
+from typing import NamedTuple, Optional, Sequence
 
 import numpy as np
 
@@ -137,20 +137,56 @@ def read_colmap_model(sparse_dir: str | Path) -> tuple[dict[int, ColmapCamera], 
     return cameras, images, points, colors
 
 
-def colmap_to_camera(camera: ColmapCamera, image: ColmapImage, source: Path) -> Camera:
-    """Build an n2f2 :class:`Camera` from a COLMAP camera and image (``source`` names the file
-    in error messages). Distorted models raise :class:`InputError` telling the user to undistort."""
+class ColmapScene(NamedTuple):
+    """A COLMAP model as n2f2 cameras, in ``images`` file order."""
+
+    cameras: list[Camera]
+    image_names: list[str]  # relative to the images folder
+    points: Optional[np.ndarray]  # [P, 3] float64, or None
+    colors: Optional[np.ndarray]  # [P, 3] uint8, or None
+    kind: str  # "binary" or "text"
+    files: dict[str, Path]  # "cameras", "images", "points3D"
+
+
+def read_colmap_scene(sparse_dir: str | Path) -> ColmapScene:
+    """Read a model folder and convert it to n2f2 cameras. Errors name the file at fault:
+    a distorted camera model names ``cameras.*``, a bad pose names ``images.*``."""
+    sparse_dir = Path(sparse_dir)
+    raw_cameras, images, points, colors = read_colmap_model(sparse_dir)
+    kind, files = find_model_files(sparse_dir)
+    if not images:
+        raise InputError(files["images"], "lists no images")
+    intrinsics = {cam_id: colmap_intrinsics(cam, files["cameras"]) for cam_id, cam in raw_cameras.items()
+                  if any(im.camera_id == cam_id for im in images)}
+    cameras = [colmap_to_camera(raw_cameras[im.camera_id], im, files["images"], intrinsics[im.camera_id])
+               for im in images]
+    return ColmapScene(cameras, [im.name for im in images], points, colors, kind, files)
+
+
+def colmap_intrinsics(camera: ColmapCamera, source: Path) -> tuple[float, float, float, float]:
+    """``(fx, fy, cx, cy)`` of an undistorted COLMAP camera; a distorted model raises an
+    :class:`InputError` naming ``source`` and telling the user to undistort."""
     model, p = camera.model, camera.params
     if model not in _PERSPECTIVE_MODELS:
         raise InputError(source, f"camera {camera.id} uses the {model} model, which n2f2 cannot "
                                  f"render (only pinhole cameras); {UNDISTORT_HINT}")
     ifx, ify, idist = _PERSPECTIVE_MODELS[model]
+    if not all(math.isfinite(v) for v in p):
+        raise InputError(source, f"camera {camera.id} has NaN or infinite parameters {list(p)}")
     if any(v != 0.0 for v in p[idist:]):
         raise InputError(source, f"camera {camera.id} uses the distorted {model} model with "
                                  f"non-zero distortion {list(p[idist:])}; {UNDISTORT_HINT}")
     fx = p[ifx]
     fy = p[ify] if ify is not None else fx
     cx, cy = (p[1], p[2]) if ify is None else (p[2], p[3])
+    return fx, fy, cx, cy
+
+
+def colmap_to_camera(camera: ColmapCamera, image: ColmapImage, source: Path,
+                     intrinsics: Optional[tuple[float, float, float, float]] = None) -> Camera:
+    """Build an n2f2 :class:`Camera` from a COLMAP camera and image (``source`` names the file
+    in error messages; ``intrinsics`` defaults to :func:`colmap_intrinsics` of ``camera``)."""
+    fx, fy, cx, cy = intrinsics if intrinsics is not None else colmap_intrinsics(camera, source)
     q = np.asarray(image.qvec, dtype=np.float64)
     t = np.asarray(image.tvec, dtype=np.float64)
     if not (np.isfinite(q).all() and np.isfinite(t).all()):
@@ -437,9 +473,3 @@ def write_colmap_binary(sparse_dir: str | Path,
     table["rgb"] = colors
     write_bytes(sparse_dir / "points3D.bin", struct.pack("<Q", len(points)) + table.tobytes())
 
-
-def camera_model_is_pinhole(camera: ColmapCamera) -> bool:
-    """True when ``camera`` projects like an ideal pinhole (no distortion)."""
-    spec = _PERSPECTIVE_MODELS.get(camera.model)
-    return spec is not None and all(v == 0.0 for v in camera.params[spec[2]:]) and all(
-        math.isfinite(v) for v in camera.params)

@@ -19,17 +19,11 @@ from typing import Optional
 import torch
 from torch import Tensor, nn
 
-# Zeroth-order real spherical-harmonic constant, 1 / (2 sqrt(pi)) (3DGS: ``C0``).
-SH_C0 = 0.28209479177387814
+from ..render.sh import SH_C0, num_sh_bases  # noqa: F401 - re-exported: one definition of the SH layout
 
 # Names of the per-Gaussian parameters, in a fixed order (optimiser, checkpoints and densification
 # iterate over this tuple so they always agree on which rows belong together).
 PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh")
-
-
-def num_sh_bases(degree: int) -> int:
-    """K = (degree + 1) ** 2 coefficients per colour channel."""
-    return (int(degree) + 1) ** 2
 
 
 def sh_degree_from_bases(k: int) -> int:

@@ -1,0 +1,88 @@
+"""``n2f2 inspect``: load a scene and print what n2f2 sees in it."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "inspect",
+        help="load a scene (COLMAP or nerfstudio) and print a summary",
+        description="Load a scene folder the way training does (same checks, same downscaling) "
+                    "and print views, image size, intrinsics, sparse points, ground truth and bounds.",
+    )
+    p.add_argument("data", metavar="DATA", help="scene folder (with transforms.json or sparse/0/)")
+    p.add_argument("--downscale", "-r", type=float, default=1.0,
+                   help="image downscale factor, as 3DGS -r (default: 1)")
+    p.add_argument("--format", choices=("auto", "colmap", "nerfstudio"), default="auto",
+                   help="scene format; auto prefers transforms.json over COLMAP (default: auto)")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    p.set_defaults(func=run_inspect)
+
+
+def summarize(scene) -> dict:
+    """Plain-dict summary of a :class:`~n2f2.data.Scene` (what ``n2f2 inspect`` prints)."""
+    import numpy as np
+
+    cams = scene.cameras
+    sizes = sorted({(c.width, c.height) for c in cams})
+
+    def value_range(values) -> list[float]:
+        return [float(min(values)), float(max(values))]
+
+    lo, hi = scene.scene_bounds()
+    return {
+        "root": str(scene.root),
+        "format": scene.source_format,
+        "views": len(scene),
+        "downscale": scene.downscale,
+        "image_sizes": [list(s) for s in sizes],
+        "image_folder": sorted({str(p.parent.relative_to(scene.root)) if p.is_relative_to(scene.root)
+                                else str(p.parent) for p in scene.image_paths}),
+        "first_image": scene.image_paths[0].name,
+        "last_image": scene.image_paths[-1].name,
+        "fx": value_range([c.fx for c in cams]),
+        "fy": value_range([c.fy for c in cams]),
+        "cx": value_range([c.cx for c in cams]),
+        "cy": value_range([c.cy for c in cams]),
+        "points": 0 if scene.points is None else int(len(scene.points)),
+        "point_colors": scene.point_colors is not None,
+        "ground_truth": scene.ground_truth is not None,
+        "bounds_of": "points" if scene.points is not None and len(scene.points) else "camera centres",
+        "bounds_min": np.round(lo, 6).tolist(),
+        "bounds_max": np.round(hi, 6).tolist(),
+        "extent": scene.extent(),
+    }
+
+
+def run_inspect(args: argparse.Namespace) -> int:
+    from . import load_scene
+
+    scene = load_scene(args.data, downscale=args.downscale, format=args.format)
+    info = summarize(scene)
+    if args.json:
+        print(json.dumps(info, indent=2))
+        return 0
+
+    def rng(key: str) -> str:
+        a, b = info[key]
+        return f"{a:.6g}" if a == b else f"{a:.6g} .. {b:.6g}"
+
+    sizes = ", ".join(f"{w}x{h}" for w, h in info["image_sizes"])
+    points = "none" if not info["points"] else (
+        f"{info['points']}" + (" (with colours)" if info["point_colors"] else " (no colours)"))
+    print(f"scene        {info['root']}")
+    print(f"format       {info['format']}")
+    print(f"views        {info['views']}  ({info['first_image']} .. {info['last_image']} "
+          f"in {', '.join(info['image_folder'])})")
+    print(f"image size   {sizes}  (downscale {info['downscale']:g})")
+    print(f"intrinsics   fx {rng('fx')}, fy {rng('fy')}, cx {rng('cx')}, cy {rng('cy')}")
+    print(f"points       {points}")
+    print(f"ground truth {'yes' if info['ground_truth'] else 'no'}")
+    lo = ", ".join(f"{v:.4g}" for v in info["bounds_min"])
+    hi = ", ".join(f"{v:.4g}" for v in info["bounds_max"])
+    print(f"bounds       [{lo}] .. [{hi}]  ({info['bounds_of']})")
+    print(f"extent       {info['extent']:.4g}  (3DGS: 1.1 x max camera distance from their mean)")
+    return 0

@@ -1,0 +1,536 @@
+"""LangSplat's evaluation protocol on the expanded LERF-OVS labels, detail for detail.
+
+The reference is LangSplat's ``eval/evaluate_iou_loc.py`` (with ``eval/utils.py`` and
+``eval/openclip_encoder.py``). Every rule it applies is reproduced here and written down next to
+the code that applies it; where this module differs (bad input, an optional box size), the
+difference is opt-in or only concerns input LangSplat would crash on or silently mis-score.
+
+Inputs are relevancy maps, not features: the query stage renders features and turns them into
+relevancy with the LangSplat formula (:func:`langsplat_relevancy`), so the protocol itself never
+sees a model. Per (frame, category) pair the protocol scores
+
+* **segmentation** (IoU). For each level ``R``: ``R' = 0.5 * (box(R) + R)``; ``R'`` is min-max
+  normalised, mapped to [-1, 1], clipped to [0, 1] and thresholded at 0.4; the binary mask goes
+  through LangSplat's 7x7 majority filter (:func:`majority_filter`); IoU against the union of the
+  category's polygons. The level whose ``R'`` has the highest maximum is the one reported.
+* **localization** (hit). For each level ``box(R)`` (no 0.5 mix); the level with the highest
+  filtered maximum is chosen; a hit is when any pixel equal to that maximum lies inside any of the
+  category's boxes, edges included.
+
+Scene scores: mIoU = mean IoU over all pairs; localization accuracy = hits / pairs.
+
+``box`` is a ``size x size`` mean filter, computed exactly as LangSplat does with
+``cv2.filter2D(R, -1, np.ones((size, size)) / size**2)`` on float32 maps: default anchor (the
+kernel centre, ``size // 2``, so for the even size 30 the window is rows ``i-15 .. i+14``) and
+the default border ``BORDER_REFLECT_101``. LangSplat's size is 30 pixels, chosen for LERF-OVS
+images about 986 px wide (LangSplat evaluates at the label resolution: it loads the rendered maps
+into arrays of the label's ``(height, width)``). On small renders a 30 px box erases small parts,
+so ``box_size="scaled"`` offers ``round(30 * W / 986)`` (W = evaluated width, at least 1). The
+default stays the exact 30; the size used is recorded in every result so both can be reported.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Literal, Optional, Sequence, Union
+
+import numpy as np
+
+from ..errors import InputError
+
+# LangSplat constants (eval/evaluate_iou_loc.py, eval/openclip_encoder.py).
+LANGSPLAT_BOX_SIZE = 30  # mean-filter size, pixels
+LANGSPLAT_THRESHOLD = 0.4  # --mask_thresh default
+LANGSPLAT_MIX = 0.5  # R' = 0.5 * (box(R) + R) for segmentation
+LANGSPLAT_MAJORITY_RADIUS = 3  # utils.smooth: scale = 3
+LANGSPLAT_NEGATIVES = ("object", "things", "stuff", "texture")  # = query.relevancy.DEFAULT_NEGATIVES
+# Width of the LERF-OVS label images LangSplat evaluates at (figurines/teatime labels are
+# 986 x 728; the other scenes are within a few pixels). Reference for box_size="scaled".
+LERF_REFERENCE_WIDTH = 986
+# OpenCV's per-array channel limit (CV_CN_MAX); stacks of maps are filtered in chunks of this.
+_CV_MAX_CHANNELS = 512
+
+BoxSize = Union[int, Literal["scaled"]]
+
+
+@dataclass(frozen=True)
+class ProtocolConfig:
+    """Settings of the LangSplat protocol. The defaults are LangSplat's exact values."""
+
+    box_size: BoxSize = LANGSPLAT_BOX_SIZE  # int pixels, or "scaled": round(30 * W / ref_width)
+    box_ref_width: int = LERF_REFERENCE_WIDTH  # reference width for box_size="scaled"
+    threshold: float = LANGSPLAT_THRESHOLD  # segmentation threshold on the [0, 1]-clipped map
+    majority_radius: int = LANGSPLAT_MAJORITY_RADIUS  # majority filter half-window (3 -> 7x7)
+    # A label whose frame is not among the scene's views: "error" (default) raises an InputError;
+    # "skip" leaves the frame out and counts it in SceneScores.skipped_frames.
+    missing_frames: Literal["error", "skip"] = "error"
+    # Labels drawn at another resolution than the relevancy maps: False (LangSplat) raises;
+    # True scales polygons and boxes by (W / width, H / height) before rasterising (not LangSplat).
+    rescale_labels: bool = False
+
+    def __post_init__(self) -> None:
+        if not (self.box_size == "scaled" or (isinstance(self.box_size, int) and self.box_size >= 1)):
+            raise ValueError(f"box_size must be a positive int or 'scaled', got {self.box_size!r}")
+        if self.box_ref_width < 1:
+            raise ValueError(f"box_ref_width must be positive, got {self.box_ref_width}")
+        if not 0.0 <= self.threshold < 1.0:
+            raise ValueError(f"threshold must be in [0, 1), got {self.threshold}")
+        if self.majority_radius < 0:
+            raise ValueError(f"majority_radius must be >= 0, got {self.majority_radius}")
+        if self.missing_frames not in ("error", "skip"):
+            raise ValueError(f"missing_frames must be 'error' or 'skip', got {self.missing_frames!r}")
+
+
+def resolve_box_size(box_size: BoxSize, width: int, ref_width: int = LERF_REFERENCE_WIDTH) -> int:
+    """The filter size in pixels: ``box_size`` itself, or for ``"scaled"``
+    ``round(30 * width / ref_width)`` (halves round up), at least 1."""
+    if box_size == "scaled":
+        return max(1, int(math.floor(LANGSPLAT_BOX_SIZE * width / ref_width + 0.5)))
+    if not isinstance(box_size, (int, np.integer)) or box_size < 1:
+        raise ValueError(f"box_size must be a positive int or 'scaled', got {box_size!r}")
+    return int(box_size)
+
+
+# ------------------------------------------------------------------------------ relevancy
+def langsplat_relevancy(
+    features,  # [..., E] rendered features (numpy array or torch tensor)
+    texts,  # [K, E] or [E] text embeddings of the queries
+    negatives,  # [N, E] text embeddings of the negative phrases (LANGSPLAT_NEGATIVES)
+    normalize_features: bool = False,  # False: features used as rendered (LangSplat's eval)
+):  # -> [..., K] (or [...] for a single [E] text), numpy in -> numpy out
+    """LangSplat's relevancy (``OpenCLIPNetwork.get_relevancy``): for each negative c,
+    ``softmax(10 * [f.t, f.c])``; the relevancy is the positive probability of the negative
+    that gives the smallest one, ``= sigmoid(10 * (f.t - max_c f.c))`` (the team's
+    :func:`n2f2.query.relevancy.relevancy_from_scores`).
+
+    Text embeddings are L2-normalised (LangSplat normalises them). The features are used as
+    rendered, as LangSplat's evaluation does with its decoder's output; the shared
+    :func:`n2f2.query.relevancy.relevancy` normalises them instead, which
+    ``normalize_features=True`` reproduces. Runs in the features' dtype and device."""
+    import torch
+
+    from ..query.relevancy import inverse_norm, relevancy_from_scores
+
+    is_numpy = isinstance(features, np.ndarray)
+    f = torch.as_tensor(features)
+    if not f.is_floating_point():
+        f = f.float()
+    t = torch.as_tensor(texts).to(device=f.device, dtype=torch.float64)
+    neg = torch.as_tensor(negatives).to(device=f.device, dtype=torch.float64)
+    single = t.dim() == 1
+    t = t.reshape(-1, t.shape[-1])
+    if neg.dim() != 2 or neg.shape[-1] != f.shape[-1] or t.shape[-1] != f.shape[-1]:
+        raise ValueError(f"embedding sizes differ: features {tuple(f.shape)}, texts "
+                         f"{tuple(t.shape)}, negatives {tuple(neg.shape)}")
+    t = (t / t.norm(dim=-1, keepdim=True)).to(f.dtype)
+    neg = (neg / neg.norm(dim=-1, keepdim=True)).to(f.dtype)
+    if normalize_features:
+        f = f * inverse_norm(f)
+    rel = relevancy_from_scores(f @ t.T, (f @ neg.T).amax(dim=-1, keepdim=True))  # [..., K]
+    if single:
+        rel = rel[..., 0]
+    return rel.cpu().numpy() if is_numpy else rel
+
+
+# ------------------------------------------------------------------------------ filters
+def box_filter(
+    relevancy: np.ndarray,  # [H, W] or [..., H, W] relevancy maps
+    size: int = LANGSPLAT_BOX_SIZE,
+) -> np.ndarray:  # float32, same shape
+    """``size x size`` mean filter exactly as LangSplat computes it: ``cv2.filter2D`` on a
+    float32 map with kernel ``np.ones((size, size)) / size**2``, default anchor (kernel centre)
+    and default border (BORDER_REFLECT_101). Stacks are filtered as one multi-channel image
+    (LangSplat's localization filters its [H, W, levels] stack in one call)."""
+    import cv2
+
+    r = np.asarray(relevancy, dtype=np.float32)
+    if r.ndim < 2 or r.shape[-1] < 1 or r.shape[-2] < 1:
+        raise ValueError(f"relevancy must be [..., H, W] with H, W >= 1, got shape {r.shape}")
+    size = int(size)
+    if size < 1:
+        raise ValueError(f"box size must be >= 1, got {size}")
+    kernel = np.ones((size, size)) / (size ** 2)  # float64, as in LangSplat
+    h, w = r.shape[-2:]
+    if r.ndim == 2:
+        return cv2.filter2D(np.ascontiguousarray(r), -1, kernel)
+    lead = r.shape[:-2]
+    stack = r.reshape(-1, h, w).transpose(1, 2, 0)  # [H, W, C]
+    out = np.empty_like(stack)
+    for c0 in range(0, stack.shape[-1], _CV_MAX_CHANNELS):
+        chunk = np.ascontiguousarray(stack[..., c0:c0 + _CV_MAX_CHANNELS])
+        out[..., c0:c0 + _CV_MAX_CHANNELS] = cv2.filter2D(chunk, -1, kernel).reshape(chunk.shape)
+    return out.transpose(2, 0, 1).reshape(*lead, h, w)
+
+
+def smoothed_relevancy(
+    relevancy: np.ndarray,  # [..., H, W]
+    size: int = LANGSPLAT_BOX_SIZE,
+) -> np.ndarray:  # float32 [..., H, W]
+    """LangSplat's segmentation map ``R' = 0.5 * (box(R) + R)`` (float32 arithmetic)."""
+    r = np.asarray(relevancy, dtype=np.float32)
+    return np.float32(LANGSPLAT_MIX) * (box_filter(r, size) + r)
+
+
+def normalized_for_threshold(smoothed: np.ndarray) -> np.ndarray:  # [H, W] -> float32 [H, W]
+    """LangSplat's map before thresholding: subtract the minimum, divide by (max + 1e-9), map
+    [0, 1] to [-1, 1] and clip to [0, 1]. Computed in float32 in LangSplat's order."""
+    out = np.asarray(smoothed, dtype=np.float32)
+    out = out - out.min()
+    out = out / (out.max() + np.float32(1e-9))
+    out = out * np.float32(2.0) + np.float32(-1.0)
+    return np.clip(out, np.float32(0.0), np.float32(1.0))
+
+
+def majority_filter(
+    mask: np.ndarray,  # [H, W] binary (bool or 0/1)
+    radius: int = LANGSPLAT_MAJORITY_RADIUS,
+) -> np.ndarray:  # uint8 [H, W], 0/1
+    """LangSplat's ``utils.smooth``, vectorised with an integral image.
+
+    Pixel (i, j) becomes the majority value of the window rows
+    ``[max(0, i - r), min(i + r + 1, H - 1))`` x cols ``[max(0, j - r), min(j + r + 1, W - 1))``.
+    Kept from LangSplat: the upper bound is ``H - 1`` / ``W - 1``, so the last row and column
+    never take part in any window (an off-by-one at the far edge), and a tie goes to 0
+    (``argmax(bincount)`` returns the first maximum). Needs H, W >= 2 (LangSplat's window is
+    empty otherwise and its code raises)."""
+    m = np.asarray(mask)
+    if m.ndim != 2:
+        raise ValueError(f"mask must be [H, W], got shape {m.shape}")
+    h, w = m.shape
+    if h < 2 or w < 2:
+        raise ValueError(f"majority filter needs an image of at least 2x2 pixels, got {h}x{w}")
+    if m.dtype != bool and not np.isin(m, (0, 1)).all():
+        raise ValueError("majority filter expects a binary mask")
+    ones = (m != 0).astype(np.int64)
+    integral = np.zeros((h + 1, w + 1), dtype=np.int64)
+    integral[1:, 1:] = ones.cumsum(0).cumsum(1)
+    i = np.arange(h)
+    j = np.arange(w)
+    r0, r1 = np.maximum(0, i - radius), np.minimum(i + radius + 1, h - 1)
+    c0, c1 = np.maximum(0, j - radius), np.minimum(j + radius + 1, w - 1)
+    count = (integral[r1[:, None], c1[None, :]] - integral[r0[:, None], c1[None, :]]
+             - integral[r1[:, None], c0[None, :]] + integral[r0[:, None], c0[None, :]])
+    n = (r1 - r0)[:, None] * (c1 - c0)[None, :]
+    return (2 * count > n).astype(np.uint8)  # strictly more ones than zeros; ties -> 0
+
+
+def segmentation_mask(
+    relevancy: np.ndarray,  # [H, W] raw relevancy of one level
+    threshold: float = LANGSPLAT_THRESHOLD,
+    box_size: int = LANGSPLAT_BOX_SIZE,
+    majority_radius: int = LANGSPLAT_MAJORITY_RADIUS,
+) -> np.ndarray:  # uint8 [H, W]
+    """LangSplat's predicted mask for one level: smooth, normalise, threshold (strict ``>``),
+    majority filter."""
+    return mask_from_smoothed(smoothed_relevancy(relevancy, box_size), threshold, majority_radius)
+
+
+def mask_from_smoothed(
+    smoothed: np.ndarray,  # [H, W] R' = smoothed_relevancy(R)
+    threshold: float = LANGSPLAT_THRESHOLD,
+    majority_radius: int = LANGSPLAT_MAJORITY_RADIUS,
+) -> np.ndarray:  # uint8 [H, W]
+    binary = (normalized_for_threshold(smoothed) > threshold).astype(np.uint8)
+    return majority_filter(binary, majority_radius)
+
+
+def mask_iou(pred: np.ndarray, gt: np.ndarray) -> float:  # [H, W], [H, W] -> IoU
+    """|pred & gt| / |pred | gt|. Raises on an empty union (LangSplat would produce NaN; the
+    protocol never scores a pair whose ground truth is empty)."""
+    pred = np.asarray(pred) != 0
+    gt = np.asarray(gt) != 0
+    if pred.shape != gt.shape:
+        raise ValueError(f"mask shapes differ: {pred.shape} vs {gt.shape}")
+    union = int(np.logical_or(pred, gt).sum())
+    if union == 0:
+        raise ValueError("IoU of two empty masks is undefined")
+    return int(np.logical_and(pred, gt).sum()) / union
+
+
+def max_locations(filtered: np.ndarray) -> np.ndarray:  # [H, W] -> int64 [P, 2] as (x, y)
+    """Every pixel equal to the map's maximum, as (x = column, y = row), like LangSplat's
+    ``np.nonzero(map == map.max())`` flipped to x, y."""
+    rows, cols = np.nonzero(filtered == filtered.max())
+    return np.stack([cols, rows], axis=1)
+
+
+def points_in_boxes(
+    points: np.ndarray,  # [P, 2] (x, y) pixel indices
+    boxes: np.ndarray,  # [B, 4] (x1, y1, x2, y2), either corner order
+) -> bool:
+    """True when any point lies inside any box, edges included (LangSplat sorts each box's
+    corners, then tests ``x_min <= x <= x_max and y_min <= y <= y_max``)."""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    b = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
+    if len(pts) == 0 or len(b) == 0:
+        return False
+    x_min = np.minimum(b[:, 0], b[:, 2])
+    x_max = np.maximum(b[:, 0], b[:, 2])
+    y_min = np.minimum(b[:, 1], b[:, 3])
+    y_max = np.maximum(b[:, 1], b[:, 3])
+    x, y = pts[:, 0:1], pts[:, 1:2]  # [P, 1] against [B]
+    inside = (x >= x_min) & (x <= x_max) & (y >= y_min) & (y <= y_max)
+    return bool(inside.any())
+
+
+def localization_hit(
+    relevancy: np.ndarray,  # [H, W] raw relevancy of one level
+    boxes: np.ndarray,  # [B, 4] (x1, y1, x2, y2)
+    box_size: int = LANGSPLAT_BOX_SIZE,
+) -> bool:
+    """LangSplat's localization test for one level: any maximum of ``box(R)`` inside any box."""
+    return points_in_boxes(max_locations(box_filter(relevancy, box_size)), boxes)
+
+
+# ------------------------------------------------------------------------------ one pair
+@dataclass
+class PairResult:
+    """Scores of one (frame, category) pair."""
+
+    iou: float  # IoU of the chosen segmentation level
+    hit: bool  # localization hit on the chosen localization level
+    seg_level: int  # level whose R' has the highest maximum (first one on ties)
+    loc_level: int  # level whose box(R) has the highest maximum (first one on ties)
+    iou_per_level: list[float]  # IoU of every level (the oracle level is max of these)
+    box_size: int  # mean-filter size used, pixels
+
+
+def evaluate_frame_category(
+    relevancy_per_level: np.ndarray,  # [L, H, W] raw relevancy per level (or [H, W] for one)
+    gt_mask: np.ndarray,  # [H, W] union mask of the category, non-empty
+    boxes: np.ndarray,  # [B, 4] (x1, y1, x2, y2) all boxes of the category
+    box_size: int = LANGSPLAT_BOX_SIZE,
+    threshold: float = LANGSPLAT_THRESHOLD,
+    majority_radius: int = LANGSPLAT_MAJORITY_RADIUS,
+) -> PairResult:
+    """Segmentation IoU and localization hit of one pair, LangSplat's way (see module doc)."""
+    rel = np.asarray(relevancy_per_level, dtype=np.float32)
+    if rel.ndim == 2:
+        rel = rel[None]
+    if rel.ndim != 3 or rel.shape[0] < 1:
+        raise ValueError(f"relevancy must be [L, H, W], got shape {np.shape(relevancy_per_level)}")
+    gt = np.asarray(gt_mask) != 0
+    if gt.shape != rel.shape[1:]:
+        raise ValueError(f"ground-truth mask {gt.shape} and relevancy {rel.shape[1:]} differ in size")
+    if not gt.any():
+        raise ValueError("ground-truth mask is empty")
+    if not np.isfinite(rel).all():
+        raise ValueError("relevancy contains NaN or infinite values")
+
+    # Segmentation: R' per level; the reported level is the one with the highest max R'.
+    filtered = box_filter(rel, box_size)  # [L, H, W]; bitwise the same as per-level filtering
+    smoothed = np.float32(LANGSPLAT_MIX) * (filtered + rel)
+    ious = [mask_iou(mask_from_smoothed(s, threshold, majority_radius), gt) for s in smoothed]
+    seg_level = int(np.argmax(smoothed.reshape(len(rel), -1).max(axis=1)))
+
+    # Localization: box(R) without the mix; the level with the highest filtered maximum.
+    loc_level = int(np.argmax(filtered.reshape(len(rel), -1).max(axis=1)))
+    hit = points_in_boxes(max_locations(filtered[loc_level]), boxes)
+    return PairResult(iou=ious[seg_level], hit=hit, seg_level=seg_level, loc_level=loc_level,
+                      iou_per_level=[float(v) for v in ious], box_size=int(box_size))
+
+
+# ------------------------------------------------------------------------------ labels
+@dataclass
+class CategoryTarget:
+    """Ground truth of one category in one frame: union mask and every box."""
+
+    category: str
+    mask: np.ndarray  # bool [H, W] union of the category's polygons
+    boxes: np.ndarray  # float64 [B, 4] (x1, y1, x2, y2), one per kept object
+
+
+def frame_targets(
+    frame: Any,  # n2f2.data.labels.FrameLabels
+    shape: Optional[tuple[int, int]] = None,  # (H, W) of the relevancy maps; None = label size
+    rescale: bool = False,
+) -> tuple[list[CategoryTarget], int]:
+    """Per-category targets of one label frame, in first-appearance order, and the number of
+    objects dropped because their polygon covers no pixel of the image.
+
+    Objects of the same category are unioned and all their boxes kept (LangSplat
+    ``stack_mask`` / box concatenation). An object whose filled polygon is empty (entirely
+    outside the image) is dropped with its box; a category left with no object is dropped."""
+    label_hw = (int(frame.height), int(frame.width))
+    if shape is None:
+        shape = label_hw
+    shape = (int(shape[0]), int(shape[1]))
+    scale = (1.0, 1.0)
+    if shape != label_hw:
+        if not rescale:
+            raise ValueError(f"labels are {label_hw[1]}x{label_hw[0]} but the relevancy maps are "
+                             f"{shape[1]}x{shape[0]}")
+        scale = (shape[1] / label_hw[1], shape[0] / label_hw[0])
+    from ..data.labels import polygon_to_mask  # LangSplat's fill: int32 vertices, cv2.fillPoly
+
+    masks: dict[str, np.ndarray] = {}
+    boxes: dict[str, list[np.ndarray]] = {}
+    dropped = 0
+    for obj in frame.objects:
+        polygon = np.asarray(obj.polygon, dtype=np.float64).reshape(-1, 2)
+        if scale != (1.0, 1.0):
+            polygon = polygon * np.asarray(scale)
+        m = polygon_to_mask(polygon, shape[0], shape[1])  # clipped to the image, like LangSplat
+        if not m.any():
+            dropped += 1
+            continue
+        box = np.asarray(obj.bbox, dtype=np.float64).reshape(4) * np.array([scale[0], scale[1]] * 2)
+        if obj.category in masks:
+            masks[obj.category] |= m
+            boxes[obj.category].append(box)
+        else:
+            masks[obj.category] = m
+            boxes[obj.category] = [box]
+    targets = [CategoryTarget(c, masks[c], np.stack(boxes[c])) for c in masks]
+    return targets, dropped
+
+
+# ------------------------------------------------------------------------------ a scene
+@dataclass
+class PairRecord:
+    """One scored (frame, category) pair."""
+
+    frame: str
+    view_index: int
+    category: str
+    iou: float
+    hit: bool
+    seg_level: int
+    loc_level: int
+    iou_per_level: list[float]
+    box_size: int
+
+
+@dataclass
+class SceneScores:
+    """Scores of one scene under the LangSplat protocol."""
+
+    pairs: list[PairRecord]
+    miou: float  # mean IoU over pairs
+    loc_accuracy: float  # hits / pairs
+    num_pairs: int
+    num_frames: int  # label frames scored
+    skipped_frames: list[str] = field(default_factory=list)  # labels of frames not in the scene
+    skipped_objects: int = 0  # objects whose polygon covers no pixel of the image
+    skipped_categories: int = 0  # (frame, category) pairs left with no object after that
+    box_sizes: list[int] = field(default_factory=list)  # distinct filter sizes used
+    config: dict = field(default_factory=dict)
+
+    @property
+    def oracle_miou(self) -> float:
+        """mIoU with the best level per pair (an upper bound for level selection)."""
+        return float(np.mean([max(p.iou_per_level) for p in self.pairs])) if self.pairs else float("nan")
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["oracle_miou"] = self.oracle_miou
+        return d
+
+
+RelevancyFn = Callable[[int, list], Any]  # (view index, categories) -> [L, K, H, W] relevancy
+
+
+def evaluate_scene(
+    relevancy_fn: RelevancyFn,  # (view_index, categories) -> [L, K, H, W] (numpy or torch)
+    labels: Sequence[Any],  # list[n2f2.data.labels.FrameLabels]
+    num_views: int,  # number of views in the scene (sorted image order)
+    config: ProtocolConfig = ProtocolConfig(),
+    label_dir: Optional[Union[str, Path]] = None,  # named in errors
+    progress: bool = True,
+) -> SceneScores:
+    """Score every (frame, category) pair of a scene's labels.
+
+    ``relevancy_fn(i, categories)`` returns the relevancy maps of view ``i`` for the given
+    categories, ``[L, K, H, W]`` with L levels (L = 1 for a single map) and K = len(categories)
+    in that order. Frame ``frame_XXXXX`` is view ``XXXXX - 1`` (LangSplat)."""
+    from tqdm import tqdm
+
+    from ..data.labels import frame_view_index
+
+    if len(labels) == 0:
+        raise InputError(label_dir, "no label frames to evaluate (empty label folder)")
+    seen: dict[int, str] = {}
+    pairs: list[PairRecord] = []
+    skipped_frames: list[str] = []
+    skipped_objects = 0
+    skipped_categories = 0
+    box_sizes: set[int] = set()
+    for frame in tqdm(labels, desc="eval", unit="frame", disable=not progress):
+        name = str(frame.frame_name)
+        try:
+            idx = frame_view_index(name)
+        except ValueError as e:
+            raise InputError(label_dir, str(e)) from None
+        if idx in seen:
+            raise InputError(label_dir, f"frames {seen[idx]!r} and {name!r} are both view {idx}")
+        seen[idx] = name
+        if not 0 <= idx < num_views:
+            if config.missing_frames == "skip":
+                skipped_frames.append(name)
+                continue
+            raise InputError(label_dir, f"label {name!r} refers to view {idx}, but the scene has "
+                                        f"{num_views} views (frame_00001 is view 0)")
+        categories = list(dict.fromkeys(o.category for o in frame.objects))
+        if not categories:
+            continue
+        rel = _as_numpy(relevancy_fn(idx, categories))
+        if rel.ndim == 3:  # [K, H, W]: a single level
+            rel = rel[None]
+        if rel.ndim != 4 or rel.shape[1] != len(categories):
+            raise ValueError(f"relevancy_fn must return [L, {len(categories)}, H, W] for view "
+                             f"{idx}, got shape {rel.shape}")
+        h, w = rel.shape[-2:]
+        try:
+            targets, dropped = frame_targets(frame, (h, w), config.rescale_labels)
+        except ValueError as e:
+            raise InputError(label_dir, f"{name}: {e}") from None
+        skipped_objects += dropped
+        skipped_categories += len(categories) - len(targets)
+        size = resolve_box_size(config.box_size, w, config.box_ref_width)
+        box_sizes.add(size)
+        for t in targets:
+            k = categories.index(t.category)
+            r = evaluate_frame_category(rel[:, k], t.mask, t.boxes, size, config.threshold,
+                                        config.majority_radius)
+            pairs.append(PairRecord(name, idx, t.category, r.iou, r.hit, r.seg_level, r.loc_level,
+                                    r.iou_per_level, size))
+    if not pairs:
+        raise InputError(label_dir, "no (frame, category) pair left to score "
+                                    f"({len(skipped_frames)} frames skipped, {skipped_objects} "
+                                    "objects outside their image)")
+    return SceneScores(
+        pairs=pairs,
+        miou=float(np.mean([p.iou for p in pairs])),
+        loc_accuracy=sum(p.hit for p in pairs) / len(pairs),
+        num_pairs=len(pairs),
+        num_frames=len({p.frame for p in pairs}),
+        skipped_frames=skipped_frames,
+        skipped_objects=skipped_objects,
+        skipped_categories=skipped_categories,
+        box_sizes=sorted(box_sizes),
+        config=asdict(config),
+    )
+
+
+def evaluate_label_dir(
+    label_dir: Union[str, Path],
+    relevancy_fn: RelevancyFn,
+    num_views: int,
+    config: ProtocolConfig = ProtocolConfig(),
+    progress: bool = True,
+) -> SceneScores:
+    """:func:`evaluate_scene` on the ``frame_XXXXX.json`` files of a folder."""
+    from ..data.labels import read_label_dir
+
+    labels = read_label_dir(label_dir)
+    return evaluate_scene(relevancy_fn, labels, num_views, config, label_dir, progress)
+
+
+def _as_numpy(x: Any) -> np.ndarray:
+    if isinstance(x, np.ndarray):
+        return x
+    if hasattr(x, "detach"):  # torch tensor
+        return x.detach().float().cpu().numpy()
+    return np.asarray(x)

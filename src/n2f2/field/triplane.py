@@ -1,0 +1,90 @@
+"""Backbone encoders of the feature field: the point -> low-dimensional feature part that runs
+*before* the MLP (so its output is what deferred rendering rasterizes).
+
+* :class:`TriPlane` (paper Sec. 3.1, K-Planes style): three axis-aligned feature planes
+  (xy, xz, yz), bilinearly sampled and summed (or multiplied). Paper default 512^2 x 64.
+* :class:`PositionalEncoding` (paper appendix "backbone components", MLP-only backbone):
+  NeRF's frequency encoding ``[x, sin(2^k pi x), cos(2^k pi x)]``, k = 0 .. L-1. No parameters.
+
+Both take points already normalised to ``[-1, 1]^3`` (the field does that with the scene's
+bounding box).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+# Plane i is spanned by these two coordinate axes (xy, xz, yz).
+PLANE_AXES = ((0, 1), (0, 2), (1, 2))
+
+
+class TriPlane(nn.Module):
+    """Three ``channels x resolution x resolution`` planes; a point's feature is the sum
+    (``reduce="sum"``, nerfstudio's default) or product (``"product"``, K-Planes) of its
+    bilinear samples on the three planes.
+
+    Points outside ``[-1, 1]`` read the border texel (``padding_mode="border"``), so a floater
+    outside the bounding box gets the feature of the nearest box face instead of zero.
+    """
+
+    def __init__(self, resolution: int = 512, channels: int = 64, reduce: str = "sum",
+                 init_scale: float = 0.1) -> None:
+        super().__init__()
+        if resolution < 2 or channels < 1:
+            raise ValueError(f"TriPlane needs resolution >= 2 and channels >= 1, got {resolution}, {channels}")
+        if reduce not in ("sum", "product"):
+            raise ValueError(f"TriPlane reduce must be 'sum' or 'product', got {reduce!r}")
+        self.resolution = int(resolution)
+        self.channels = int(channels)
+        self.reduce = reduce
+        if reduce == "sum":
+            # Small random values (nerfstudio TriplaneEncoding): sum of three ~N(0, 0.1^2).
+            init = init_scale * torch.randn(3, channels, resolution, resolution)
+        else:
+            # K-Planes: values near 1 so the product of three planes starts well away from zero.
+            init = torch.empty(3, channels, resolution, resolution).uniform_(0.1, 0.5) + 0.5
+        self.planes = nn.Parameter(init)  # [3, C, R, R]
+
+    @property
+    def out_dim(self) -> int:
+        return self.channels
+
+    def forward(self, xyz: Tensor) -> Tensor:  # xyz [N, 3] in [-1, 1] -> [N, C]
+        # grid_sample reads grid[..., 0] as the column (width) and grid[..., 1] as the row.
+        coords = torch.stack([xyz[:, list(a)] for a in PLANE_AXES], dim=0)  # [3, N, 2]
+        samples = F.grid_sample(self.planes, coords.unsqueeze(2).to(self.planes.dtype),
+                                mode="bilinear", padding_mode="border", align_corners=True)  # [3, C, N, 1]
+        samples = samples.squeeze(-1)  # [3, C, N]
+        out = samples.sum(0) if self.reduce == "sum" else samples.prod(0)  # [C, N]
+        return out.t()  # [N, C]
+
+    def extra_repr(self) -> str:
+        return f"resolution={self.resolution}, channels={self.channels}, reduce={self.reduce}"
+
+
+class PositionalEncoding(nn.Module):
+    """``[x, sin(2^0 pi x), cos(2^0 pi x), ..., sin(2^(L-1) pi x), cos(2^(L-1) pi x)]`` per
+    coordinate; output dim ``3 + 6 L``."""
+
+    def __init__(self, num_frequencies: int = 8) -> None:
+        super().__init__()
+        if num_frequencies < 0:
+            raise ValueError(f"number of PE frequencies must be >= 0, got {num_frequencies}")
+        self.num_frequencies = int(num_frequencies)
+        self.register_buffer("freqs", math.pi * 2.0 ** torch.arange(num_frequencies, dtype=torch.float32),
+                             persistent=False)
+
+    @property
+    def out_dim(self) -> int:
+        return 3 + 6 * self.num_frequencies
+
+    def forward(self, xyz: Tensor) -> Tensor:  # xyz [N, 3] in [-1, 1] -> [N, 3 + 6L]
+        angles = (xyz.unsqueeze(-1) * self.freqs.to(xyz.dtype)).flatten(1)  # [N, 3L]
+        return torch.cat([xyz, torch.sin(angles), torch.cos(angles)], dim=-1)
+
+    def extra_repr(self) -> str:
+        return f"num_frequencies={self.num_frequencies}"

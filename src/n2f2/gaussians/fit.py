@@ -1,0 +1,633 @@
+"""Fit a 3D Gaussian Splatting model to posed RGB images (3DGS, Kerbl et al. 2023).
+
+Loss ``(1 - lambda) L1 + lambda (1 - SSIM)``; Adam with the 3DGS per-parameter learning rates
+(exponentially decaying position rate, scaled by the scene extent); adaptive density control
+(clone small / split large Gaussians with a large view-space positional gradient, prune
+transparent and huge ones, periodic opacity reset), capped at ``max_gaussians``; active SH
+degree raised every ``sh_degree_interval`` steps.
+
+Robustness: a step whose loss or gradients are not finite, or whose update would make a
+parameter non-finite, is skipped (nothing changes and it is counted in the report).
+Checkpoints hold everything needed to continue bit-for-bit (parameters, optimiser moments,
+densification statistics, RNG state, the view order) and are written atomically, and only from
+finite state.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import asdict, dataclass, field, fields, replace
+from pathlib import Path
+from typing import Optional, Union
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from ..data.scene import Scene
+from ..errors import InputError
+from ..io import save_torch, write_json
+from .init import init_from_points, init_random_in_frusta
+from .model import PARAM_NAMES, Gaussians, inverse_sigmoid
+from .ply import write_ply
+from ..render.torch_backend import quat_to_rotmat
+
+CHECKPOINT_NAME = "checkpoint.pt"
+PLY_NAME = "gaussians.ply"
+REPORT_NAME = "fit_report.json"
+_CHECKPOINT_FORMAT = "n2f2-gaussians-checkpoint-v1"
+
+
+# ------------------------------------------------------------------------------------ config
+@dataclass
+class FitConfig:
+    """Hyper-parameters of :func:`fit_gaussians`. Defaults are the 3DGS paper's
+    (``arguments/__init__.py`` of the reference code); see :meth:`cpu` and :meth:`paper`.
+
+    Step counters are 1-based as in 3DGS: an event "every n steps" happens after step n, 2n..."""
+
+    steps: int = 30_000
+    sh_degree: int = 3  # maximum SH degree of the model
+    sh_degree_interval: int = 1000  # raise the active SH degree by one every this many steps
+    lambda_dssim: float = 0.2
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)  # colour behind the Gaussians
+
+    # Adam learning rates. Positions are scaled by the scene extent and decay exponentially
+    # from means_lr_init to means_lr_final over means_lr_max_steps.
+    means_lr_init: float = 1.6e-4
+    means_lr_final: float = 1.6e-6
+    means_lr_max_steps: int = 30_000
+    sh_dc_lr: float = 2.5e-3
+    sh_rest_lr: float = 2.5e-3 / 20.0
+    opacity_lr: float = 0.05
+    scaling_lr: float = 5e-3
+    rotation_lr: float = 1e-3
+    adam_eps: float = 1e-15
+
+    # Adaptive density control.
+    densify_from: int = 500
+    densify_until: int = 15_000
+    densify_every: int = 100
+    densify_grad_threshold: float = 2e-4  # on the NDC-space positional gradient, as 3DGS
+    percent_dense: float = 0.01  # clone below / split above this fraction of the extent
+    opacity_reset_every: int = 3000
+    prune_opacity: float = 0.005
+    prune_world_size: float = 0.1  # prune Gaussians larger than this x extent (after 1st reset)
+    max_gaussians: Optional[int] = None  # cap; densification keeps the largest gradients
+
+    # Initialisation when the scene has no sparse points (random inside the frusta).
+    random_init_count: int = 100_000
+    random_init_depth: tuple[float, float] = (0.2, 1.6)  # z-depth range, x extent
+
+    # Evaluation and bookkeeping.
+    test_every: int = 8  # hold out every n-th view when scene.json lists no test views; 0: none
+    checkpoint_every: int = 1000  # 0: only at the end
+    seed: int = 0
+    device: str = "cpu"
+    log_every: int = 10  # loss-curve sampling and progress-bar refresh
+
+    @staticmethod
+    def paper() -> "FitConfig":
+        """The 30k-step schedule of the 3DGS paper (for GPU users)."""
+        return FitConfig()
+
+    @staticmethod
+    def cpu() -> "FitConfig":
+        """A short schedule for small scenes on a CPU (the built-in demo scene in a few
+        minutes on 2 cores): fewer steps, earlier and capped densification, faster SH schedule;
+        the decay of the position learning rate is compressed to the shorter run."""
+        return FitConfig(
+            steps=2000,
+            sh_degree_interval=400,
+            means_lr_max_steps=2000,
+            densify_from=200,
+            densify_until=1500,
+            densify_every=100,
+            opacity_reset_every=1000,
+            max_gaussians=20_000,
+            random_init_count=5000,
+            checkpoint_every=500,
+        )
+
+    @staticmethod
+    def preset(name: str) -> "FitConfig":
+        presets = {"cpu": FitConfig.cpu, "paper": FitConfig.paper}
+        if name not in presets:
+            raise ValueError(f"unknown preset {name!r}; choose from {sorted(presets)}")
+        return presets[name]()
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @staticmethod
+    def from_dict(d: dict) -> "FitConfig":
+        known = {f.name for f in fields(FitConfig)}
+        kw = {k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items() if k in known}
+        return FitConfig(**kw)
+
+
+@dataclass
+class FitReport:
+    """What :func:`fit_gaussians` writes to ``fit_report.json``."""
+
+    steps: int
+    wall_time_s: float  # this invocation, including evaluation
+    train_time_s: float  # optimisation time summed over resumed runs
+    num_gaussians: int
+    train_psnr: float
+    test_psnr: Optional[float]
+    test_views: list[int]
+    skipped_steps: int
+    resumed_from: Optional[int]
+    extent: float
+    depth_median_abs: Optional[float] = None  # median |expected depth - GT| over alpha > 0.5
+    depth_median_rel_extent: Optional[float] = None  # the same divided by ``extent``
+    loss_curve: list[tuple[int, float]] = field(default_factory=list)  # (step, loss), subsampled
+    threads: int = 1
+    config: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+# ------------------------------------------------------------------------------------ losses
+def _gaussian_window(size: int, sigma: float, channels: int, device, dtype) -> Tensor:  # [C, 1, s, s]
+    x = torch.arange(size, dtype=dtype, device=device) - (size - 1) / 2
+    g = torch.exp(-x ** 2 / (2 * sigma ** 2))
+    g = g / g.sum()
+    return (g[:, None] * g[None, :]).expand(channels, 1, size, size).contiguous()
+
+
+def ssim(
+    img1: Tensor,  # [H, W, C]
+    img2: Tensor,  # [H, W, C]
+    window_size: int = 11,
+    sigma: float = 1.5,
+) -> Tensor:  # [] mean SSIM
+    """Mean SSIM with an 11x11 Gaussian window (sigma 1.5), zero padding, as 3DGS's ``ssim``."""
+    c = img1.shape[-1]
+    a = img1.permute(2, 0, 1)[None]
+    b = img2.permute(2, 0, 1)[None]
+    w = _gaussian_window(window_size, sigma, c, a.device, a.dtype)
+    pad = window_size // 2
+    conv = lambda x: F.conv2d(x, w, padding=pad, groups=c)  # noqa: E731
+    mu1, mu2 = conv(a), conv(b)
+    mu1_sq, mu2_sq, mu12 = mu1 * mu1, mu2 * mu2, mu1 * mu2
+    s1 = conv(a * a) - mu1_sq
+    s2 = conv(b * b) - mu2_sq
+    s12 = conv(a * b) - mu12
+    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    m = ((2 * mu12 + c1) * (2 * s12 + c2)) / ((mu1_sq + mu2_sq + c1) * (s1 + s2 + c2))
+    return m.mean()
+
+
+def psnr(img1: Tensor, img2: Tensor) -> float:  # [H, W, C] each, values in [0, 1]
+    mse = float(((img1 - img2) ** 2).mean())
+    return float("inf") if mse == 0 else -10.0 * math.log10(mse)
+
+
+def photometric_loss(render: Tensor, target: Tensor, lambda_dssim: float) -> Tensor:  # [H, W, 3] each
+    """3DGS's ``(1 - lambda) L1 + lambda (1 - SSIM)``."""
+    l1 = (render - target).abs().mean()
+    return (1.0 - lambda_dssim) * l1 + lambda_dssim * (1.0 - ssim(render, target))
+
+
+# ------------------------------------------------------------------------------------ optimiser
+class GaussianAdam:
+    """Adam over the named per-Gaussian parameters, with state kept as plain row-aligned tensors
+    so densification can index, extend and reset it (as 3DGS edits ``optimizer.state``).
+
+    Learning rates may be tensors broadcastable to the parameter (the SH tensor uses one rate
+    for the DC coefficient and one for the rest). Matches ``torch.optim.Adam`` (no weight decay).
+    An update is committed only when every new value is finite."""
+
+    def __init__(self, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-15) -> None:
+        self.betas = betas
+        self.eps = eps
+        self.exp_avg: dict[str, Tensor] = {}
+        self.exp_avg_sq: dict[str, Tensor] = {}
+        self.step_count: dict[str, int] = {}
+
+    @torch.no_grad()
+    def step(self, params: dict[str, Tensor], lrs: dict[str, Union[float, Tensor]]) -> bool:
+        b1, b2 = self.betas
+        updates = {}
+        for name, p in params.items():
+            if p.grad is None:
+                continue
+            g = p.grad
+            m = self.exp_avg.get(name, torch.zeros_like(p)) * b1 + (1 - b1) * g
+            v = self.exp_avg_sq.get(name, torch.zeros_like(p)) * b2 + (1 - b2) * g * g
+            t = self.step_count.get(name, 0) + 1
+            bc1, bc2 = 1 - b1 ** t, 1 - b2 ** t
+            new_p = p - (lrs[name] / bc1) * m / (v.sqrt() / math.sqrt(bc2) + self.eps)
+            if not (torch.isfinite(new_p).all() and torch.isfinite(v).all()):
+                return False
+            updates[name] = (new_p, m, v, t)
+        for name, (new_p, m, v, t) in updates.items():
+            params[name].copy_(new_p)
+            self.exp_avg[name], self.exp_avg_sq[name], self.step_count[name] = m, v, t
+        return True
+
+    def _moments(self) -> list[dict[str, Tensor]]:
+        return [self.exp_avg, self.exp_avg_sq]
+
+    def index_rows(self, rows: Tensor) -> None:  # [M] long or [N] bool
+        """Keep (or gather) rows of every state tensor, as the parameters were."""
+        for d in self._moments():
+            for name in d:
+                d[name] = d[name][rows]
+
+    def append_zero_rows(self, n: int) -> None:
+        """New Gaussians start with zero moments (3DGS ``cat_tensors_to_optimizer``)."""
+        for d in self._moments():
+            for name, t in d.items():
+                d[name] = torch.cat([t, t.new_zeros((n,) + tuple(t.shape[1:]))])
+
+    def reset(self, name: str) -> None:
+        for d in self._moments():
+            if name in d:
+                d[name] = torch.zeros_like(d[name])
+
+    def state_dict(self) -> dict:
+        return {"exp_avg": dict(self.exp_avg), "exp_avg_sq": dict(self.exp_avg_sq),
+                "step_count": dict(self.step_count), "betas": self.betas, "eps": self.eps}
+
+    def load_state_dict(self, s: dict, device) -> None:
+        self.exp_avg = {k: v.to(device) for k, v in s["exp_avg"].items()}
+        self.exp_avg_sq = {k: v.to(device) for k, v in s["exp_avg_sq"].items()}
+        self.step_count = dict(s["step_count"])
+        self.betas, self.eps = tuple(s["betas"]), float(s["eps"])
+
+
+def means_lr(config: FitConfig, step: int, extent: float) -> float:
+    """3DGS ``get_expon_lr_func`` (no delay): log-linear from init to final, times the extent."""
+    t = min(max(step / max(config.means_lr_max_steps, 1), 0.0), 1.0)
+    return extent * math.exp((1 - t) * math.log(config.means_lr_init) + t * math.log(config.means_lr_final))
+
+
+def learning_rates(config: FitConfig, step: int, extent: float, k: int, device) -> dict[str, Union[float, Tensor]]:
+    sh_lr = torch.full((1, k, 1), config.sh_rest_lr, device=device)
+    sh_lr[:, 0] = config.sh_dc_lr
+    return {"means": means_lr(config, step, extent), "quats": config.rotation_lr,
+            "log_scales": config.scaling_lr, "opacity_logits": config.opacity_lr, "sh": sh_lr}
+
+
+# ------------------------------------------------------------------------------------ densification
+@dataclass
+class DensifyStats:
+    """Per-Gaussian statistics accumulated between densifications (3DGS
+    ``xyz_gradient_accum``, ``denom``, ``max_radii2D``)."""
+
+    grad_accum: Tensor  # [N] sum of ||d loss / d NDC mean||
+    count: Tensor  # [N] views in which the Gaussian was visible
+    max_radii: Tensor  # [N] largest screen radius seen (pixels)
+
+    @staticmethod
+    def zeros(n: int, device) -> "DensifyStats":
+        return DensifyStats(torch.zeros(n, device=device), torch.zeros(n, device=device),
+                            torch.zeros(n, device=device))
+
+    @torch.no_grad()
+    def add(self, means2d_grad: Tensor, radii: Tensor, width: int, height: int) -> None:  # [N, 2], [N]
+        visible = radii > 0
+        # Pixel-space gradient -> NDC-space (pixel = ((ndc + 1) W - 1) / 2), the space in
+        # which 3DGS's threshold of 2e-4 is defined.
+        g = means2d_grad[visible] * torch.tensor([width / 2.0, height / 2.0], device=means2d_grad.device)
+        self.grad_accum[visible] += g.norm(dim=-1)
+        self.count[visible] += 1
+        self.max_radii[visible] = torch.maximum(self.max_radii[visible], radii[visible].float())
+
+    def state_dict(self) -> dict:
+        return asdict(self)
+
+
+@torch.no_grad()
+def densify_and_prune(
+    g: Gaussians,
+    adam: GaussianAdam,
+    stats: DensifyStats,
+    config: FitConfig,
+    extent: float,
+    prune_big: bool,  # also prune Gaussians larger than prune_world_size x extent
+    generator: torch.Generator,  # CPU generator for the split samples
+) -> dict[str, int]:
+    """Clone small and split large Gaussians whose mean NDC gradient exceeds the threshold, then
+    prune transparent (and, after the first opacity reset, huge) ones; rebuild the optimiser
+    state to match (zeros for new rows). Returns counts of what happened."""
+    n = g.num
+    grads = stats.grad_accum / stats.count.clamp_min(1)
+    grads[stats.count == 0] = 0.0
+    candidates = grads >= config.densify_grad_threshold
+    if config.max_gaussians is not None:
+        budget = max(0, config.max_gaussians - n)
+        if int(candidates.sum()) > budget:
+            # Keep the largest gradients: each clone or split adds exactly one Gaussian.
+            order = torch.argsort(torch.where(candidates, grads, torch.full_like(grads, -1.0)), descending=True,
+                                  stable=True)
+            keep = torch.zeros_like(candidates)
+            keep[order[:budget]] = True
+            candidates &= keep
+    big = g.scales.max(dim=1).values > config.percent_dense * extent
+    clone = candidates & ~big
+    split = candidates & big
+
+    p = g.params()
+    new = {name: [t, t[clone]] for name, t in p.items()}
+    n_split = int(split.sum())
+    if n_split:
+        scales = g.scales[split].repeat(2, 1)  # [2S, 3]
+        samples = torch.normal(torch.zeros_like(scales, device="cpu"), scales.cpu(), generator=generator)
+        rots = quat_to_rotmat(p["quats"][split]).repeat(2, 1, 1)
+        new["means"].append(torch.bmm(rots, samples.to(scales.device)[..., None])[..., 0]
+                            + p["means"][split].repeat(2, 1))
+        new["log_scales"].append(torch.log(scales / (0.8 * 2)))
+        for name in ("quats", "opacity_logits", "sh"):
+            t = p[name][split]
+            new[name].append(t.repeat((2,) + (1,) * (t.ndim - 1)))
+    merged = {name: torch.cat(parts) for name, parts in new.items()}
+    n_added = merged["means"].shape[0] - n
+    adam.append_zero_rows(n_added)
+
+    prune = torch.cat([split, torch.zeros(n_added, dtype=torch.bool, device=split.device)])
+    prune |= torch.sigmoid(merged["opacity_logits"]) < config.prune_opacity
+    if prune_big:
+        prune |= torch.exp(merged["log_scales"]).max(dim=1).values > config.prune_world_size * extent
+    keep = ~prune
+    g.set_params(**{name: t[keep] for name, t in merged.items()})
+    adam.index_rows(keep)
+    return {"cloned": int(clone.sum()), "split": n_split, "pruned": int(prune.sum()) - n_split}
+
+
+@torch.no_grad()
+def reset_opacity(g: Gaussians, adam: GaussianAdam, value: float = 0.01) -> None:
+    """Clamp every opacity to at most ``value`` and forget its Adam moments (3DGS)."""
+    g.set_params(opacity_logits=inverse_sigmoid(torch.clamp(g.opacities, max=value)))
+    adam.reset("opacity_logits")
+
+
+# ------------------------------------------------------------------------------------ data
+def split_views(scene: Scene, test_every: int) -> tuple[list[int], list[int]]:
+    """(train, test) view indices: scene.json's ``test_views`` when present, else every
+    ``test_every``-th view (3DGS ``llffhold``: indices 0, 8, 16, ...); no test views if 0."""
+    n = len(scene)
+    test: list[int] = []
+    meta = Path(scene.root) / "scene.json"
+    listed = None
+    if meta.is_file():
+        try:
+            listed = json.loads(meta.read_text()).get("test_views")
+        except (json.JSONDecodeError, AttributeError):
+            raise InputError(meta, "not a valid JSON object") from None
+    if listed is not None:
+        if not all(isinstance(i, int) and 0 <= i < n for i in listed):
+            raise InputError(meta, f"test_views must be view indices in [0, {n})")
+        test = sorted(set(listed))
+    elif test_every > 0 and n > 1:
+        test = list(range(0, n, test_every))
+    train = [i for i in range(n) if i not in set(test)]
+    if not train:
+        raise InputError(scene.root, "no training views left after holding out the test views")
+    return train, test
+
+
+def initial_gaussians(scene: Scene, config: FitConfig, init: Union[None, str, Gaussians]) -> Gaussians:
+    if isinstance(init, Gaussians):
+        return init.clone().to(config.device)
+    kind = init or ("points" if scene.points is not None and len(scene.points) else "random")
+    if kind == "points":
+        if scene.points is None or not len(scene.points):
+            raise InputError(scene.root, "--init points: the scene has no sparse points (use --init random)")
+        colors = scene.point_colors if scene.point_colors is not None else np.full_like(scene.points, 128, np.uint8)
+        return init_from_points(scene.points, colors, sh_degree=config.sh_degree, device=config.device)
+    if kind == "random":
+        ext = scene.extent()
+        near, far = (d * ext for d in config.random_init_depth)
+        return init_random_in_frusta(scene.cameras, config.random_init_count, near, far, seed=config.seed,
+                                     sh_degree=config.sh_degree, device=config.device)
+    raise ValueError(f"unknown init {kind!r}: use 'points', 'random' or a Gaussians model")
+
+
+class _ViewSampler:
+    """Random permutations of the training views, one per epoch (3DGS's viewpoint stack)."""
+
+    def __init__(self, views: list[int], generator: torch.Generator) -> None:
+        self.views, self.generator, self.stack = list(views), generator, []
+
+    def next(self) -> int:
+        if not self.stack:
+            self.stack = [self.views[i] for i in torch.randperm(len(self.views), generator=self.generator).tolist()]
+        return self.stack.pop()
+
+
+# ------------------------------------------------------------------------------------ fitting
+def _render(g: Gaussians, camera, config: FitConfig):
+    from ..render import render_rgb
+
+    return render_rgb(g, camera, sh_degree=g.sh_degree,
+                      background=torch.tensor(config.background, dtype=torch.float32, device=config.device))
+
+
+def _checkpoint(step: int, g: Gaussians, adam: GaussianAdam, stats: DensifyStats, config: FitConfig,
+                generator: torch.Generator, sampler: _ViewSampler, loss_curve: list, skipped: int,
+                train_time: float) -> dict:
+    return {
+        "format": _CHECKPOINT_FORMAT, "step": step, "sh_degree": g.sh_degree,
+        "params": {k: v.detach().cpu().clone() for k, v in g.params().items()},
+        "optimizer": adam.state_dict(), "densify": stats.state_dict(), "config": config.to_dict(),
+        "rng": generator.get_state(), "view_stack": list(sampler.stack), "loss_curve": list(loss_curve),
+        "skipped": skipped, "train_time": train_time,
+    }
+
+
+def _state_finite(g: Gaussians, adam: GaussianAdam) -> bool:
+    return g.finite() and all(bool(torch.isfinite(t).all()) for d in adam._moments() for t in d.values())
+
+
+def load_checkpoint(path: Path) -> dict:
+    try:
+        ck = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as e:  # noqa: BLE001 - any unreadable file is the user's input problem
+        raise InputError(path, f"cannot read checkpoint ({e})") from None
+    if not isinstance(ck, dict) or ck.get("format") != _CHECKPOINT_FORMAT:
+        raise InputError(path, "not an n2f2 fit-gaussians checkpoint")
+    return ck
+
+
+def saved_config(out_dir: Union[str, Path]) -> Optional[FitConfig]:
+    """The config of the checkpoint in ``out_dir``, or None when there is none."""
+    path = Path(out_dir) / CHECKPOINT_NAME
+    return FitConfig.from_dict(load_checkpoint(path)["config"]) if path.is_file() else None
+
+
+def fit_gaussians(
+    scene: Scene,
+    config: FitConfig,
+    out_dir: Union[str, Path],
+    resume: bool = False,
+    init: Union[None, str, Gaussians] = None,  # None: sparse points when the scene has them
+    progress: bool = True,
+    stop_after: Optional[int] = None,  # end early after this step (checkpointed), for tests/tools
+) -> FitReport:
+    """Fit Gaussians to ``scene``'s training views; write ``gaussians.ply``, ``fit_report.json``
+    and ``checkpoint.pt`` to ``out_dir``. With ``resume`` and a checkpoint in ``out_dir``,
+    continue from it (its config is used, except ``steps`` and ``checkpoint_every``)."""
+    from tqdm.auto import tqdm
+
+    t_start = time.perf_counter()
+    out_dir = Path(out_dir)
+    ck_path = out_dir / CHECKPOINT_NAME
+    extent = scene.extent()
+    device = torch.device(config.device)
+
+    ck = load_checkpoint(ck_path) if resume and ck_path.is_file() else None
+    if resume and ck is None and progress:
+        print(f"fit-gaussians: no checkpoint in {out_dir}, starting from scratch")
+    if ck is not None:
+        config = replace(FitConfig.from_dict(ck["config"]), steps=config.steps,
+                         checkpoint_every=config.checkpoint_every, device=config.device)
+    train_views, test_views = split_views(scene, config.test_every)
+
+    generator = torch.Generator().manual_seed(config.seed)
+    sampler = _ViewSampler(train_views, generator)
+    adam = GaussianAdam(eps=config.adam_eps)
+    if ck is None:
+        g = initial_gaussians(scene, config, init)
+        g.sh_degree = 0
+        start, loss_curve, skipped, train_time = 0, [], 0, 0.0
+        stats = DensifyStats.zeros(g.num, device)
+    else:
+        g = Gaussians(**ck["params"], sh_degree=ck["sh_degree"]).to(device)
+        adam.load_state_dict(ck["optimizer"], device)
+        stats = DensifyStats(**{k: v.to(device) for k, v in ck["densify"].items()})
+        generator.set_state(ck["rng"])
+        sampler.stack = list(ck["view_stack"])
+        start, loss_curve, skipped, train_time = ck["step"], list(ck["loss_curve"]), ck["skipped"], ck["train_time"]
+
+    targets = {i: torch.from_numpy(scene.image(i)).to(device) for i in train_views}
+    k = g.sh.shape[1]
+
+    def save_checkpoint(step: int) -> None:
+        if _state_finite(g, adam):  # never persist a broken state
+            save_torch(ck_path, _checkpoint(step, g, adam, stats, config, generator, sampler,
+                                            loss_curve, skipped, train_time))
+
+    end = config.steps if stop_after is None else min(config.steps, stop_after)
+    bar = tqdm(total=config.steps, initial=start, disable=not progress, desc="fit-gaussians", dynamic_ncols=True)
+    t_train = time.perf_counter()
+    ema = None
+    step = start
+    for step in range(start + 1, end + 1):
+        if step % config.sh_degree_interval == 0 and g.sh_degree < g.max_sh_degree:
+            g.sh_degree += 1
+        view = sampler.next()
+        camera = scene.cameras[view]
+        out = _render(g, camera, config)
+        out.means2d.retain_grad()
+        image = out.features  # not clamped: 3DGS trains on the raw composite
+        loss = photometric_loss(image, targets[view], config.lambda_dssim)
+        g.zero_grad(set_to_none=True)
+        loss.backward()
+        grads_ok = bool(torch.isfinite(loss)) and all(
+            p.grad is None or bool(torch.isfinite(p.grad).all()) for p in g.params().values()
+        ) and (out.means2d.grad is None or bool(torch.isfinite(out.means2d.grad).all()))
+        ok = grads_ok and adam.step(g.params(), learning_rates(config, step, extent, k, device))
+        g.zero_grad(set_to_none=True)
+        if not ok:
+            skipped += 1
+        else:
+            if step < config.densify_until and out.means2d.grad is not None:
+                stats.add(out.means2d.grad, out.radii, camera.width, camera.height)
+            lv = float(loss.detach())
+            ema = lv if ema is None else 0.9 * ema + 0.1 * lv
+            if step % config.log_every == 0 or step == 1:
+                loss_curve.append((step, lv))
+            if step % config.log_every == 0 and progress:
+                bar.set_postfix(loss=f"{ema:.4f}", psnr=f"{psnr(image.detach().clamp(0, 1), targets[view]):.2f}",
+                                G=g.num, refresh=False)
+        if step < config.densify_until:
+            if step > config.densify_from and step % config.densify_every == 0:
+                densify_and_prune(g, adam, stats, config, extent,
+                                  prune_big=step > config.opacity_reset_every, generator=generator)
+                stats = DensifyStats.zeros(g.num, device)
+            if step % config.opacity_reset_every == 0:
+                reset_opacity(g, adam)
+        bar.update(1)
+        if config.checkpoint_every and step % config.checkpoint_every == 0:
+            train_time += time.perf_counter() - t_train
+            t_train = time.perf_counter()
+            save_checkpoint(step)
+    bar.close()
+    train_time += time.perf_counter() - t_train
+    final = max(step, start)
+    save_checkpoint(final)
+
+    report = evaluate(g, scene, train_views, test_views, config, extent)
+    report.update(steps=final, train_time_s=train_time, skipped_steps=skipped,
+                  resumed_from=None if ck is None else int(ck["step"]),
+                  loss_curve=_subsample(loss_curve, 200), config=config.to_dict(),
+                  threads=torch.get_num_threads())
+    if g.finite():
+        write_ply(out_dir / PLY_NAME, g)
+    report["wall_time_s"] = time.perf_counter() - t_start
+    result = FitReport(**report)
+    write_json(out_dir / REPORT_NAME, result.to_dict())
+    return result
+
+
+def _subsample(curve: list, n: int) -> list:
+    if len(curve) <= n:
+        return [tuple(c) for c in curve]
+    idx = np.linspace(0, len(curve) - 1, n).round().astype(int)
+    return [tuple(curve[i]) for i in idx]
+
+
+@torch.no_grad()
+def evaluate(g: Gaussians, scene: Scene, train_views: list[int], test_views: list[int],
+             config: FitConfig, extent: float) -> dict:
+    """Mean PSNR over train and test views; with ground truth, the median absolute error of the
+    rendered expected depth over pixels with alpha > 0.5 of the test views (train views if none)."""
+    device = torch.device(config.device)
+
+    def view_psnr(i: int):
+        out = _render(g, scene.cameras[i], config)
+        return psnr(out.features.clamp(0, 1), torch.from_numpy(scene.image(i)).to(device)), out
+
+    train_psnr = float(np.mean([view_psnr(i)[0] for i in train_views]))
+    test_psnr, errors = None, []
+    depth_views = test_views or train_views
+    outs = {}
+    if test_views:
+        vals = []
+        for i in test_views:
+            v, outs[i] = view_psnr(i)
+            vals.append(v)
+        test_psnr = float(np.mean(vals))
+    gt = scene.ground_truth
+    depth_abs = depth_rel = None
+    if gt is not None:
+        for i in depth_views:
+            out = outs.get(i) or _render(g, scene.cameras[i], config)
+            err = _depth_errors(gt.depth(i), out.depth[..., 0].cpu().numpy(), out.alpha[..., 0].cpu().numpy())
+            errors.append(err)
+        errors = np.concatenate(errors) if errors else np.zeros(0)
+        if len(errors):
+            depth_abs = float(np.median(errors))
+            depth_rel = depth_abs / extent
+    return {"num_gaussians": g.num, "train_psnr": train_psnr, "test_psnr": test_psnr, "test_views": list(test_views),
+            "extent": extent, "depth_median_abs": depth_abs, "depth_median_rel_extent": depth_rel}
+
+
+def _depth_errors(gt: np.ndarray, depth: np.ndarray, alpha: np.ndarray) -> np.ndarray:  # [Hg, Wg], [H, W], [H, W]
+    """|depth - gt| at pixels with alpha > 0.5 and a valid GT depth; GT (full resolution) is
+    resized to the render size with nearest-neighbour sampling at the render's pixel centres."""
+    h, w = depth.shape
+    if gt.shape != (h, w):
+        rows = np.minimum(((np.arange(h) + 0.5) * gt.shape[0] / h).astype(int), gt.shape[0] - 1)
+        cols = np.minimum(((np.arange(w) + 0.5) * gt.shape[1] / w).astype(int), gt.shape[1] - 1)
+        gt = gt[rows][:, cols]
+    valid = (alpha > 0.5) & np.isfinite(gt) & (gt > 0)
+    return np.abs(depth[valid] - gt[valid])

@@ -1,0 +1,613 @@
+"""The query engine: per-view caches, the four modes, and 3D queries on the Gaussians.
+
+Modes (all scored by :mod:`n2f2.query.relevancy`, the one relevancy definition):
+
+* ``composite`` (default, paper Sec. 3.3): one relevancy map per query from the composite
+  embedding ``W Theta~``. ``Theta~`` (premultiplied by ``revcumsum(gamma^3D)``) is computed once
+  per trained field; a view renders it once; a query is one pass over that cache.
+* ``explicit``: relevancy at every scale of the nested field (the ``floor(D / k)`` supervised
+  prefix lengths) and, per query, the scale with the highest selection score (LERF / LangSplat).
+* ``levels``: the 3-level baseline field (variant ``"levels"``), explicit selection over its 3
+  levels (part, object, group).
+* ``oracle``: the best scale per query given ground truth (a mask per query, or a scorer callback
+  supplied by the evaluation stage): the upper bound of scale selection.
+
+Fast path. Everything works on flat "points" (the pixels of a rendered view, or the Gaussians
+for 3D queries) laid out points-last, so a batch of ``Q`` queries is a single matmul with the
+cached features. Because the relevancy normalises features, each cache also holds, per point
+(and per scale), ``1 / max(|phi|, eps)`` and the negatives' term ``max_c phi^ . c``. With
+``q = W^T t`` a composite query is ``sigmoid(10 ((q^T theta~) / |phi| - negmax))``: one
+``[Q, D] x [D, P]`` product plus elementwise work, nothing re-rendered. Explicit mode gets all
+prefix dot products from block sums + a cumulative sum over scales (``P x D x Q``), and all prefix
+norms once per view from ``G = W^T W`` (see :func:`n2f2.query.composite.prefix_sq_norms`).
+
+Selection score of explicit / levels in 2D (``QueryConfig.selection``): ``"smoothed"`` (default)
+is the maximum of LangSplat's ``R' = 0.5 (box(R) + R)`` from :mod:`n2f2.eval.protocol`, the rule
+the evaluation protocol uses to pick the reported segmentation level; ``"max"`` is the maximum of
+the raw relevancy (LERF). For 3D queries on Gaussians there is no image grid: always ``"max"``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field as dc_field
+from pathlib import Path
+from typing import Any, Callable, Optional, Protocol, Sequence, Union
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..errors import InputError
+from .composite import DEFAULT_CANONICAL, premultiply, prefix_dot, prefix_sq_norms, supervised_dims
+from .relevancy import (DEFAULT_NEGATIVES, check_texts, inverse_norm, inverse_norm_from_sq,
+                        relevancy_from_scores)
+
+MODES = ("composite", "explicit", "levels", "oracle")
+SELECTIONS = ("smoothed", "max")
+LEVEL_NAMES = ("part", "object", "group")  # order of NestedField.level_features
+
+# (view index, relevancy at every scale [S, H, W] for one query, query index) -> scores [S]
+OracleScorer = Callable[[Tensor, int], Union[Tensor, np.ndarray, Sequence[float]]]
+
+
+@dataclass
+class QueryConfig:
+    """Settings of the query stage (the defaults are the paper's and LERF/LangSplat's)."""
+
+    canonical: tuple[str, ...] = DEFAULT_CANONICAL  # phrases of gamma^3D (paper Eq. 6)
+    negatives: tuple[str, ...] = DEFAULT_NEGATIVES  # negatives of the relevancy (LERF)
+    temperature: float = 1.0  # gamma = softmax(score / T); 1 = paper (near-uniform gamma)
+    selection: str = "smoothed"  # explicit/levels 2D scale choice: "smoothed" (LangSplat) | "max"
+    box_size: Union[int, str] = 30  # protocol mean-filter size (px) or "scaled"; for smoothing
+    chunk: int = 65536  # points per block when building caches (bounds [chunk, E] memory)
+
+    def __post_init__(self) -> None:
+        if not self.canonical:
+            raise ValueError("need at least one canonical phrase")
+        if not self.negatives:
+            raise ValueError("need at least one negative phrase")
+        if not self.temperature > 0:
+            raise ValueError(f"composite temperature must be positive, got {self.temperature}")
+        if self.selection not in SELECTIONS:
+            raise ValueError(f"selection must be one of {SELECTIONS}, got {self.selection!r}")
+        self.canonical = tuple(self.canonical)
+        self.negatives = tuple(self.negatives)
+
+
+# ---------------------------------------------------------------------------------- caches
+class ScoreCache(Protocol):
+    """Per-point data that turns text embeddings into relevancy at every scale of a mode."""
+
+    labels: list[str]  # one per scale
+
+    def relevancy(self, texts: Tensor) -> Tensor:  # texts [Q, E] -> [S, Q, P]
+        ...
+
+
+@dataclass
+class CompositeCache:
+    """Composite mode: ``Theta~`` at the points and its normalisation/negatives terms."""
+
+    features: Tensor  # [P, D] Theta~ (rendered per pixel, or per Gaussian)
+    W: Tensor  # [E, D]
+    inv_norm: Tensor  # [P] 1 / max(|W Theta~|, eps)
+    neg_max: Tensor  # [P] max_c (W Theta~)^ . c
+    labels: list[str] = dc_field(default_factory=lambda: ["composite"])
+
+    def relevancy(self, texts: Tensor) -> Tensor:  # [Q, E] -> [1, Q, P]
+        q = texts @ self.W  # [Q, D]: the text in field space, once per query
+        raw = q @ self.features.T  # [Q, P]: one pass over the cache (BLAS reads the transpose)
+        raw.mul_(self.inv_norm)  # cosine similarity
+        return relevancy_from_scores(raw, self.neg_max, inplace=True).unsqueeze(0)
+
+
+@dataclass
+class PrefixCache:
+    """Explicit / oracle modes on a nested (or flat) field: all prefix scales at the points."""
+
+    blocks: Tensor  # [S, k, P] raw theta in block layout (dimension j in block j // k)
+    W: Tensor  # [E, D]
+    dims: list[int]  # [S] prefix length of each scale
+    inv_norm: Tensor  # [S, 1, P] 1 / max(|phi_d|, eps)
+    neg_max: Tensor  # [S, 1, P] max_c phi_d^ . c
+    labels: list[str] = dc_field(default_factory=list)
+
+    def relevancy(self, texts: Tensor) -> Tensor:  # [Q, E] -> [S, Q, P]
+        S, k, _ = self.blocks.shape
+        q = (texts @ self.W[:, : S * k]).T  # [D', Q]
+        raw = prefix_dot(self.blocks, q)  # [S, Q, P]
+        raw.mul_(self.inv_norm)
+        return relevancy_from_scores(raw, self.neg_max, inplace=True)
+
+
+@dataclass
+class LinearCache:
+    """Levels mode (and oracle on a "levels" field): ``S`` fixed linear maps of theta."""
+
+    features: Tensor  # [P, D] raw theta
+    maps: Tensor  # [S, E, D] phi_s = maps[s] @ theta
+    inv_norm: Tensor  # [S, 1, P]
+    neg_max: Tensor  # [S, 1, P]
+    labels: list[str] = dc_field(default_factory=list)
+
+    def relevancy(self, texts: Tensor) -> Tensor:  # [Q, E] -> [S, Q, P]
+        S = self.maps.shape[0]
+        q = torch.einsum("sed,qe->sqd", self.maps, texts).reshape(S * texts.shape[0], -1)  # [S Q, D]
+        raw = (q @ self.features.T).view(S, texts.shape[0], -1)  # [S, Q, P]
+        raw.mul_(self.inv_norm)
+        return relevancy_from_scores(raw, self.neg_max, inplace=True)
+
+
+def build_composite_cache(
+    features: Tensor,  # [P, D] Theta~ at the points
+    W: Tensor,  # [E, D]
+    negatives: Tensor,  # [C, E] unit embeddings of the negative phrases
+    chunk: int = 65536,
+) -> CompositeCache:
+    P = features.shape[0]
+    inv = features.new_empty(P)
+    neg = features.new_empty(P)
+    for a in range(0, P, chunk):
+        phi = features[a:a + chunk] @ W.T  # [p, E]
+        i = inverse_norm(phi)  # [p, 1]
+        inv[a:a + chunk] = i[:, 0]
+        neg[a:a + chunk] = ((phi @ negatives.T) * i).amax(dim=-1)
+    return CompositeCache(features.contiguous(), W, inv, neg)
+
+
+def build_prefix_cache(
+    theta: Tensor,  # [P, D] raw theta at the points
+    W: Tensor,  # [E, D]
+    negatives: Tensor,  # [C, E]
+    step: int,  # scales are the prefixes k, 2k, ..., k floor(D / k)
+    chunk: int = 65536,
+) -> PrefixCache:
+    P, D = theta.shape
+    dims = supervised_dims(D, step)
+    S = len(dims)
+    blocks = theta[:, : S * step].T.reshape(S, step, P).contiguous()  # [S, k, P]
+    gram = W.T @ W  # [D, D]
+    negdir = (negatives @ W).T  # [D, C]
+    inv = theta.new_empty(S, 1, P)
+    neg = theta.new_empty(S, 1, P)
+    for a in range(0, P, chunk):
+        b = blocks[:, :, a:a + chunk]
+        i = inverse_norm_from_sq(prefix_sq_norms(b, gram))  # [S, p]
+        inv[:, 0, a:a + chunk] = i
+        neg[:, 0, a:a + chunk] = (prefix_dot(b, negdir[: S * step]) * i[:, None, :]).amax(dim=1)
+    return PrefixCache(blocks, W, dims, inv, neg, labels=[f"d={d}" for d in dims])
+
+
+def build_linear_cache(
+    theta: Tensor,  # [P, D]
+    maps: Tensor,  # [S, E, D]
+    negatives: Tensor,  # [C, E]
+    labels: Sequence[str],
+    chunk: int = 65536,
+) -> LinearCache:
+    P, D = theta.shape
+    S = maps.shape[0]
+    grams = torch.einsum("sed,sef->sdf", maps, maps)  # [S, D, D]
+    gram_cat = grams.permute(1, 0, 2).reshape(D, S * D)  # [D, S D]
+    negdir = torch.einsum("sed,ce->sdc", maps, negatives)  # [S, D, C]
+    inv = theta.new_empty(S, 1, P)
+    neg = theta.new_empty(S, 1, P)
+    for a in range(0, P, chunk):
+        t = theta[a:a + chunk]  # [p, D]
+        sq = ((t @ gram_cat).view(-1, S, D) * t[:, None, :]).sum(-1).clamp_(min=0.0)  # [p, S]
+        i = inverse_norm_from_sq(sq).T  # [S, p]
+        inv[:, 0, a:a + chunk] = i
+        neg[:, 0, a:a + chunk] = (torch.einsum("pd,sdc->spc", t, negdir) * i[..., None]).amax(-1)
+    return LinearCache(theta.contiguous(), maps, inv, neg, labels=list(labels))
+
+
+# ---------------------------------------------------------------------------------- results
+@dataclass
+class ViewCache:
+    """Everything a view needs to answer queries without rendering again."""
+
+    camera: Any  # n2f2.cameras.Camera
+    index: Optional[int]  # view index in the scene, None for a free camera
+    name: str  # image name (e.g. frame_00001) or "camera"
+    caches: dict[str, ScoreCache]  # by cache kind: "composite" | "prefix" | "levels"
+    alpha: Tensor  # [H, W] accumulated opacity
+    rgb: Optional[Tensor] = None  # [H, W, 3] rendered colour in [0, 1]
+    seconds: dict[str, float] = dc_field(default_factory=dict)  # render / cache timings
+
+    @property
+    def height(self) -> int:
+        return int(self.alpha.shape[0])
+
+    @property
+    def width(self) -> int:
+        return int(self.alpha.shape[1])
+
+
+@dataclass
+class QueryResult:
+    """Relevancy of a batch of queries in one view (or over the Gaussians)."""
+
+    texts: list[str]
+    mode: str
+    relevancy: Tensor  # [Q, H, W] (2D) or [Q, N] (Gaussians), in (0, 1)
+    scale_labels: list[str]  # the candidate scales of the mode (["composite"] for composite)
+    chosen: list[Optional[int]]  # per query: index into scale_labels (None for composite)
+    scale_scores: Optional[Tensor] = None  # [Q, S] selection score of every scale
+    seconds: float = 0.0  # wall time of the query pass
+
+    @property
+    def chosen_labels(self) -> list[Optional[str]]:
+        return [None if c is None else self.scale_labels[c] for c in self.chosen]
+
+
+# ---------------------------------------------------------------------------------- engine
+class QueryEngine:
+    """Open-vocabulary queries on a trained run. Importing this module has no side effects; the
+    engine builds its per-field data (Theta, Theta~, text embeddings) lazily and keeps it.
+
+    Args:
+        field: a :class:`n2f2.field.NestedField` (``W [E, D]``, ``field(xyz) -> theta``).
+        gaussians: the run's :class:`n2f2.gaussians.Gaussians`.
+        encoder: text encoder with ``encode_text(list[str]) -> [Q, E]`` and ``description``.
+        meta: the field's metadata (``config`` with ``dim``, ``step_size``, ``variant``).
+        config: :class:`QueryConfig`.
+        device: torch device for every tensor.
+        scene: optional :class:`n2f2.data.scene.Scene` giving the cameras for view indices.
+    """
+
+    def __init__(self, field: Any, gaussians: Any, encoder: Any, meta: dict,
+                 config: Optional[QueryConfig] = None, device: Union[str, torch.device] = "cpu",
+                 scene: Any = None, run_dir: Optional[Path] = None) -> None:
+        self.field = field
+        self.gaussians = gaussians
+        self.encoder = encoder
+        self.meta = meta
+        self.config = config or QueryConfig()
+        self.device = torch.device(device)
+        self.scene = scene
+        self.run_dir = run_dir
+        cfg = meta.get("config", {})
+        self.variant: str = str(cfg.get("variant", meta.get("variant", "nested")))
+        self.dim: int = int(field.W.shape[1])
+        # The flat field has a single scale (all D dims); nested fields have floor(D / k).
+        self.step: int = self.dim if self.variant == "flat" else int(cfg.get("step_size", 1))
+        self._text_cache: dict[str, Tensor] = {}
+        self._theta: Optional[Tensor] = None
+        self._theta_tilde: Optional[Tensor] = None
+        self._gaussian_caches: dict[str, ScoreCache] = {}
+
+    # ------------------------------------------------------------------ construction
+    @staticmethod
+    def from_run(run_dir: Union[str, Path], device: Union[str, torch.device] = "cpu",
+                 scene: Any = None, config: Optional[QueryConfig] = None,
+                 encoder: Any = None) -> "QueryEngine":
+        """Load ``RUN_DIR/field.pt`` and ``RUN_DIR/gaussians.ply`` (and the field's text encoder).
+
+        ``scene`` is a Scene, a scene folder, or None (then the scene recorded in the run's
+        metadata is used when it exists; views can still be given as cameras)."""
+        from ..field import load_field
+        from ..gaussians import read_ply
+
+        run_dir = Path(run_dir)
+        if not run_dir.is_dir():
+            raise InputError(run_dir, "run directory does not exist")
+        field_path = run_dir / "field.pt"
+        if not field_path.is_file():
+            raise InputError(run_dir, "no field.pt in the run directory: not a trained run "
+                                      "(run `n2f2 train` first)")
+        ply_path = run_dir / "gaussians.ply"
+        if not ply_path.is_file():
+            raise InputError(run_dir, "no gaussians.ply in the run directory")
+        field, meta = load_field(field_path, device)
+        field.requires_grad_(False)
+        gaussians = read_ply(ply_path, device=device)
+        if encoder is None:
+            from ..segments.encoders import get_encoder
+
+            spec = meta.get("encoder_spec")
+            if spec is None:
+                raise InputError(field_path, "field metadata names no text encoder (encoder_spec)")
+            encoder = get_encoder(spec, device)
+        if scene is None or isinstance(scene, (str, Path)):
+            scene = _load_run_scene(run_dir, meta, scene)
+        return QueryEngine(field, gaussians, encoder, meta, config, device, scene, run_dir)
+
+    # ------------------------------------------------------------------ field data
+    @property
+    def W(self) -> Tensor:  # [E, D]
+        return self.field.W.detach()
+
+    @property
+    def scale_dims(self) -> list[int]:
+        """Prefix lengths of the scales (nested / flat fields)."""
+        return supervised_dims(self.dim, self.step)
+
+    def modes(self) -> tuple[str, ...]:
+        """Modes this field supports."""
+        if self.variant == "levels":
+            return ("levels", "oracle")
+        return ("composite", "explicit", "oracle")
+
+    def _check_mode(self, mode: str) -> None:
+        if mode not in MODES:
+            raise InputError(None, f"unknown query mode {mode!r}; choose one of {', '.join(MODES)}")
+        if mode not in self.modes():
+            hint = ("it was trained as the 3-level baseline: use --mode levels" if self.variant == "levels"
+                    else "mode 'levels' needs a field trained with variant 'levels'")
+            raise InputError(self.run_dir / "field.pt" if self.run_dir else None,
+                             f"mode {mode!r} does not apply to this {self.variant!r} field ({hint})")
+
+    def _cache_kind(self, mode: str) -> str:
+        if mode == "composite":
+            return "composite"
+        if mode == "levels" or (mode == "oracle" and self.variant == "levels"):
+            return "levels"
+        return "prefix"
+
+    @torch.no_grad()
+    def encode(self, texts: Sequence[str]) -> Tensor:  # -> [Q, E] unit vectors
+        """Text embeddings (cached per string), re-normalised so every dot product is a cosine."""
+        missing = [t for t in dict.fromkeys(texts) if t not in self._text_cache]
+        if missing:
+            emb = torch.as_tensor(self.encoder.encode_text(list(missing)))
+            emb = torch.nn.functional.normalize(emb.to(self.device, torch.float32), dim=-1)
+            if emb.shape[-1] != self.W.shape[0]:
+                raise InputError(None, f"text encoder gives {emb.shape[-1]}-dim embeddings but the "
+                                       f"field's W expects E = {self.W.shape[0]}")
+            for t, e in zip(missing, emb):
+                self._text_cache[t] = e
+        return torch.stack([self._text_cache[t] for t in texts])
+
+    @property
+    def theta(self) -> Tensor:  # [N, D] Theta_i at the Gaussian centres
+        if self._theta is None:
+            from ..field import gaussian_features
+
+            self._theta = gaussian_features(self.field, self.gaussians.means.detach()).float()
+        return self._theta
+
+    @property
+    def theta_tilde(self) -> Tensor:  # [N, D] revcumsum(gamma^3D) * Theta, computed once
+        if self._theta_tilde is None:
+            canon = self.encode(self.config.canonical)
+            with torch.no_grad():
+                self._theta_tilde = premultiply(self.theta, self.W, canon, self.step,
+                                                self.config.temperature, self.config.chunk)
+        return self._theta_tilde
+
+    def level_maps(self) -> Tensor:  # [3, E, D] the "levels" field's three linear projections
+        """The level projections of a "levels" field, read off ``field.level_features`` applied to
+        the identity (it is linear: each level is a column block of W)."""
+        eye = torch.eye(self.dim, device=self.device)
+        with torch.no_grad():
+            maps = self.field.level_features(eye)  # [D, 3, E]
+        return maps.permute(1, 2, 0).contiguous()
+
+    def _build_cache(self, kind: str, points: Tensor) -> ScoreCache:
+        """``points`` is Theta~ for "composite" and raw Theta otherwise ([P, D])."""
+        negs = self.encode(self.config.negatives)
+        if kind == "composite":
+            return build_composite_cache(points, self.W, negs, self.config.chunk)
+        if kind == "prefix":
+            return build_prefix_cache(points, self.W, negs, self.step, self.config.chunk)
+        return build_linear_cache(points, self.level_maps(), negs, LEVEL_NAMES, self.config.chunk)
+
+    # ------------------------------------------------------------------ views
+    def camera(self, view: Any) -> tuple[Any, Optional[int], str]:
+        """A view index (into the scene) or a Camera -> (camera, index, name)."""
+        if isinstance(view, (int, np.integer)):
+            if self.scene is None:
+                raise InputError(self.run_dir, "no scene is known for this run: pass --scene, or give cameras")
+            n = len(self.scene.cameras)
+            if not 0 <= int(view) < n:
+                raise InputError(getattr(self.scene, "root", None),
+                                 f"view index {int(view)} out of range: the scene has {n} views (0..{n - 1})")
+            i = int(view)
+            return self.scene.cameras[i], i, self.scene.image_names[i]
+        return view, None, "camera"
+
+    @torch.no_grad()
+    def render_view(self, view: Any, modes: Sequence[str] = ("composite",), rgb: bool = True) -> ViewCache:
+        """Render what ``modes`` need for ``view`` (an index or a Camera) once, and cache it.
+
+        Θ~ and Θ are rasterized in one pass when both are needed (rendering is linear)."""
+        from ..render import rasterize, render_rgb
+
+        for m in modes:
+            self._check_mode(m)
+        cam, index, name = self.camera(view)
+        kinds = list(dict.fromkeys(self._cache_kind(m) for m in modes))
+        sources = {k: (self.theta_tilde if k == "composite" else self.theta) for k in kinds}
+        # Distinct per-Gaussian feature blocks: Theta~ and/or Theta (prefix and levels share Theta).
+        blocks = list(dict.fromkeys(id(v) for v in sources.values()))
+        feats = {id(v): v for v in sources.values()}
+        stacked = torch.cat([feats[b] for b in blocks], dim=1)
+        g = self.gaussians
+        t0 = time.perf_counter()
+        out = rasterize(g.means, g.normalized_quats, g.scales, g.opacities, stacked, cam)
+        t1 = time.perf_counter()
+        H, W_ = out.features.shape[:2]
+        flat = out.features.reshape(H * W_, -1)
+        caches = {}
+        for k in kinds:
+            j = blocks.index(id(sources[k]))
+            caches[k] = self._build_cache(k, flat[:, j * self.dim:(j + 1) * self.dim])
+        t2 = time.perf_counter()
+        image = None
+        if rgb:
+            r = render_rgb(g, cam)
+            image = (r.features if hasattr(r, "features") else r).clamp(0.0, 1.0)
+        return ViewCache(cam, index, name, caches, out.alpha.reshape(H, W_), image,
+                         {"render": t1 - t0, "cache": t2 - t1})
+
+    @torch.no_grad()
+    def query(self, view: ViewCache, texts: Sequence[str], mode: str = "composite",
+              gt_masks: Optional[Any] = None, scorer: Optional[OracleScorer] = None) -> QueryResult:
+        """Relevancy maps ``[Q, H, W]`` of ``texts`` in a rendered view.
+
+        Oracle mode needs ``gt_masks`` (``[Q, H, W]`` bool, scored by protocol IoU at every scale)
+        or ``scorer(relevancy_per_scale [S, H, W], query_index) -> [S]`` (higher is better)."""
+        texts = check_texts(texts)
+        self._check_mode(mode)
+        kind = self._cache_kind(mode)
+        if kind not in view.caches:
+            raise InputError(None, f"view {view.name} was not rendered for mode {mode!r}: "
+                                   f"render_view(..., modes=[{mode!r}])")
+        if mode == "oracle" and gt_masks is None and scorer is None:
+            raise InputError(None, "oracle mode needs ground-truth masks or a scorer")
+        t0 = time.perf_counter()
+        emb = self.encode(texts)
+        cache = view.caches[kind]
+        H, W_ = view.height, view.width
+        if kind == "composite":
+            rel = cache.relevancy(emb)[0].view(len(texts), H, W_)
+            return QueryResult(texts, mode, rel, cache.labels, [None] * len(texts),
+                               seconds=time.perf_counter() - t0)
+        S = len(cache.labels)
+        out = emb.new_empty(len(texts), H, W_)
+        scores = emb.new_empty(len(texts), S)
+        chosen: list[Optional[int]] = []
+        # Queries in groups so the [S, Q, H, W] block stays around 16M floats.
+        group = max(1, (1 << 24) // max(1, S * H * W_))
+        for a in range(0, len(texts), group):
+            rel = cache.relevancy(emb[a:a + group]).view(S, -1, H, W_)  # [S, q, H, W]
+            for j in range(rel.shape[1]):
+                qi = a + j
+                if mode == "oracle":
+                    s = _oracle_scores(rel[:, j], qi, gt_masks, scorer, self.config)
+                else:
+                    s = self._selection_scores(rel[:, j], image=True)
+                scores[qi] = s
+                best = int(torch.argmax(s))
+                chosen.append(best)
+                out[qi] = rel[best, j]
+        return QueryResult(texts, mode, out, cache.labels, chosen, scores, time.perf_counter() - t0)
+
+    def _selection_scores(self, rel: Tensor, image: bool) -> Tensor:  # [S, ...] -> [S]
+        """Per-scale selection score (see module docstring)."""
+        if image and self.config.selection == "smoothed":
+            from ..eval.protocol import resolve_box_size, smoothed_relevancy
+
+            size = resolve_box_size(self.config.box_size, rel.shape[-1])
+            sm = smoothed_relevancy(rel.float().cpu().numpy(), size)
+            return torch.from_numpy(sm.reshape(len(sm), -1).max(axis=1)).to(rel.device)
+        return rel.reshape(rel.shape[0], -1).amax(dim=1)
+
+    # ------------------------------------------------------------------ 3D
+    def gaussian_cache(self, mode: str = "composite") -> ScoreCache:
+        """Score cache whose points are the Gaussians (built once per mode kind)."""
+        self._check_mode(mode)
+        kind = self._cache_kind(mode)
+        if kind not in self._gaussian_caches:
+            pts = self.theta_tilde if kind == "composite" else self.theta
+            with torch.no_grad():
+                self._gaussian_caches[kind] = self._build_cache(kind, pts)
+        return self._gaussian_caches[kind]
+
+    @torch.no_grad()
+    def query_gaussians(self, texts: Sequence[str], mode: str = "composite") -> QueryResult:
+        """Relevancy ``[Q, N]`` of every Gaussian from its own feature (``W Theta~_i`` in composite
+        mode), without rendering. Explicit / levels pick per query the scale with the highest
+        maximum over the Gaussians."""
+        texts = check_texts(texts)
+        if mode == "oracle":
+            raise InputError(None, "oracle mode is a 2D evaluation bound; use composite, explicit or levels in 3D")
+        t0 = time.perf_counter()
+        cache = self.gaussian_cache(mode)
+        rel = cache.relevancy(self.encode(texts))  # [S, Q, N]
+        if rel.shape[0] == 1 and mode == "composite":
+            return QueryResult(texts, mode, rel[0], cache.labels, [None] * len(texts),
+                               seconds=time.perf_counter() - t0)
+        scores = rel.amax(dim=-1).T  # [Q, S]
+        chosen = scores.argmax(dim=1)
+        out = rel[chosen, torch.arange(len(texts), device=rel.device)]  # [Q, N]
+        return QueryResult(texts, mode, out, cache.labels, chosen.tolist(), scores,
+                           time.perf_counter() - t0)
+
+    def select(self, text: str, threshold: Optional[float] = None, mode: str = "composite") -> Tensor:
+        """Boolean ``[N]`` selection of the Gaussians relevant to ``text``.
+
+        ``threshold`` is an absolute relevancy; ``None`` applies the evaluation protocol's rule
+        to the Gaussians' relevancy (min-max normalise, map to [-1, 1], clip, ``> 0.4``; no box
+        filter since Gaussians have no pixel grid)."""
+        rel = self.query_gaussians([text], mode).relevancy[0]
+        if threshold is not None:
+            return rel >= float(threshold)
+        from ..eval.protocol import LANGSPLAT_THRESHOLD, normalized_for_threshold
+
+        norm = normalized_for_threshold(rel.float().cpu().numpy())
+        return torch.from_numpy(norm > LANGSPLAT_THRESHOLD).to(rel.device)
+
+    @torch.no_grad()
+    def render_selection(self, mask: Tensor, view: Any) -> Tensor:  # mask [N] bool -> [H, W]
+        """Fraction of each pixel's colour that comes from the selected Gaussians (occlusion by
+        unselected Gaussians respected): render the selection indicator as a 1-channel feature."""
+        from ..render import rasterize
+
+        cam, _, _ = self.camera(view) if not isinstance(view, ViewCache) else (view.camera, None, "")
+        g = self.gaussians
+        ind = mask.to(self.device, torch.float32).reshape(-1, 1)
+        out = rasterize(g.means, g.normalized_quats, g.scales, g.opacities, ind, cam)
+        return out.features[..., 0]
+
+    def export_selection(self, mask: Tensor, path: Union[str, Path]) -> int:
+        """Write the selected Gaussians as an INRIA 3DGS PLY; returns how many were written."""
+        from ..gaussians import write_ply
+
+        n = int(mask.sum())
+        if n == 0:
+            raise InputError(path, "the selection is empty: nothing to export (lower the threshold)")
+        write_ply(path, self.gaussians.subset(mask.to(self.gaussians.device)))
+        return n
+
+
+def export_selection_ply(gaussians: Any, mask: Tensor, path: Union[str, Path]) -> int:
+    """Functional form: write ``gaussians.subset(mask)`` ([N] bool) as an INRIA PLY."""
+    from ..gaussians import write_ply
+
+    n = int(mask.sum())
+    if n == 0:
+        raise InputError(path, "the selection is empty: nothing to export (lower the threshold)")
+    write_ply(path, gaussians.subset(mask.to(gaussians.device)))
+    return n
+
+
+def _oracle_scores(rel: Tensor, qi: int, gt_masks: Any, scorer: Optional[OracleScorer],
+                   config: QueryConfig) -> Tensor:  # rel [S, H, W] -> [S]
+    if scorer is not None:
+        return torch.as_tensor(np.asarray(scorer(rel, qi), dtype=np.float64)).to(rel.device, torch.float32)
+    from ..eval.protocol import mask_iou, resolve_box_size, segmentation_mask
+
+    gt = np.asarray(gt_masks[qi].cpu() if isinstance(gt_masks, Tensor) else gt_masks[qi]) != 0
+    if gt.shape != tuple(rel.shape[1:]):
+        raise InputError(None, f"ground-truth mask {gt.shape} does not match the view {tuple(rel.shape[1:])}")
+    size = resolve_box_size(config.box_size, rel.shape[-1])
+    maps = rel.float().cpu().numpy()
+    ious = [mask_iou(segmentation_mask(m, box_size=size), gt) if gt.any() else 0.0 for m in maps]
+    return torch.tensor(ious, dtype=torch.float32, device=rel.device)
+
+
+def _load_run_scene(run_dir: Path, meta: dict, scene: Optional[Union[str, Path]]) -> Any:
+    """The scene a run was trained on: ``scene`` if given, else the path its metadata records."""
+    import json
+
+    from ..data import load_scene
+
+    if scene is None:
+        candidates = [meta.get("scene"), meta.get("scene_path")]
+        report = run_dir / "train_report.json"
+        if report.is_file():
+            try:
+                r = json.loads(report.read_text())
+                candidates += [r.get("scene"), r.get("scene_path")]
+            except (json.JSONDecodeError, OSError):
+                pass
+        scene = next((c for c in candidates if c), None)
+        if scene is None:
+            return None
+    path = Path(scene)
+    if not path.is_dir():
+        raise InputError(path, "scene folder does not exist")
+    downscale = float(meta.get("downscale", 1.0) or 1.0)
+    return load_scene(path, downscale=downscale)

@@ -1,0 +1,136 @@
+"""Differentiable Gaussian splatting: features of any width, alpha and expected z-depth.
+
+Backends:
+
+* ``"torch"``: pure PyTorch, tiled, custom backward (:mod:`n2f2.render.torch_backend`); any device.
+* ``"gsplat"``: CUDA kernels of gsplat (:mod:`n2f2.render.gsplat_backend`); CUDA tensors only.
+* ``"auto"`` (default): gsplat for CUDA tensors when gsplat imports, the torch backend otherwise
+  (gsplat is never imported on CPU, so no JIT CUDA build is attempted).
+
+Conventions are those of :mod:`n2f2.cameras` (OpenCV axes, pixel centres at +0.5, z-depth).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import torch
+from torch import Tensor
+
+from n2f2.cameras import Camera
+from n2f2.errors import N2F2Error
+from n2f2.render.sh import eval_sh, num_sh_bases
+
+__all__ = ["RenderOutput", "rasterize", "render_rgb", "eval_sh", "num_sh_bases"]
+
+BACKENDS = ("auto", "torch", "gsplat")
+
+
+@dataclass
+class RenderOutput:
+    """One rendered view."""
+
+    features: Tensor  # [H, W, C] composited features (+ background * (1 - alpha) if given)
+    alpha: Tensor  # [H, W, 1] accumulated opacity 1 - T_final
+    depth: Tensor  # [H, W, 1] expected z-depth sum(w z) / sum(w); 0 where alpha == 0
+    means2d: Tensor  # [N, 2] projected centres (u, v); non-leaf, on the autograd path
+    radii: Tensor  # [N] int32 screen radius in pixels, 0 = culled / touches no pixel
+    n_pairs: int | None = None  # pixel-Gaussian pairs evaluated (torch backend; benchmarks)
+
+
+def _check_inputs(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, features: Tensor) -> None:
+    n = means.shape[0] if means.dim() == 2 else -1
+    expected = {"means": (means, (n, 3)), "quats": (quats, (n, 4)), "scales": (scales, (n, 3)),
+                "opacities": (opacities, (n,))}
+    for name, (x, shape) in expected.items():
+        if tuple(x.shape) != shape:
+            raise ValueError(f"rasterize: {name} must have shape {shape} with N = len(means), got {tuple(x.shape)}")
+    if features.dim() != 2 or features.shape[0] != n:
+        raise ValueError(f"rasterize: features must have shape [N, C] with N = {n}, got {tuple(features.shape)}")
+    for name, x in (("quats", quats), ("scales", scales), ("opacities", opacities), ("features", features)):
+        if x.device != means.device or x.dtype != means.dtype:
+            raise ValueError(f"rasterize: {name} is {x.dtype} on {x.device}, means is {means.dtype} on {means.device}")
+
+
+def rasterize(
+    means: Tensor,  # [N, 3] world-space centres
+    quats: Tensor,  # [N, 4] wxyz rotations (normalised inside)
+    scales: Tensor,  # [N, 3] standard deviations (actual scales, not log)
+    opacities: Tensor,  # [N] in (0, 1)
+    features: Tensor,  # [N, C] any C
+    camera: Camera | Sequence[Camera],
+    *,
+    backend: str = "auto",
+    near: float = 0.01,
+    far: float = 1e10,
+    eps2d: float = 0.3,  # low-pass dilation added to the 2D covariance (pixels^2)
+    alpha_clamp: float = 0.99,  # per-Gaussian alpha cap (3DGS; gsplat has 0.999 built in)
+    alpha_min: float = 1.0 / 255.0,  # alphas below are skipped
+    transmittance_min: float = 1e-4,  # early termination threshold
+    tile_size: int = 8,  # torch backend only
+    background: Tensor | Sequence[float] | None = None,  # [C]
+) -> RenderOutput | list[RenderOutput]:
+    """Render Gaussians carrying ``features`` from ``camera`` (a list of cameras -> a list).
+
+    Works in float32 and float64 on the inputs' device; gradients reach means, quats, scales,
+    opacities and features. ``out.means2d.retain_grad()`` before ``backward`` gives the
+    screen-space positional gradient used for densification."""
+    if not isinstance(camera, Camera):
+        return [rasterize(means, quats, scales, opacities, features, cam, backend=backend, near=near, far=far,
+                          eps2d=eps2d, alpha_clamp=alpha_clamp, alpha_min=alpha_min,
+                          transmittance_min=transmittance_min, tile_size=tile_size, background=background)
+                for cam in camera]
+    if backend not in BACKENDS:
+        raise N2F2Error(f"unknown render backend {backend!r}; choose one of {', '.join(BACKENDS)}")
+    if not 0.0 < alpha_min <= alpha_clamp < 1.0:
+        raise ValueError(f"need 0 < alpha_min <= alpha_clamp < 1, got {alpha_min}, {alpha_clamp}")
+    _check_inputs(means, quats, scales, opacities, features)
+    cam = camera.to_torch(device=means.device, dtype=means.dtype)
+    if backend == "auto":
+        from n2f2.render.gsplat_backend import gsplat_usable
+
+        backend = "gsplat" if gsplat_usable(means.device) else "torch"
+    if backend == "gsplat":
+        from n2f2.render.gsplat_backend import rasterize_gsplat
+
+        raw = rasterize_gsplat(means, quats, scales, opacities, features, cam["viewmat"], cam["K"],
+                               camera.width, camera.height, near=near, far=far, eps2d=eps2d)
+    else:
+        from n2f2.render.torch_backend import rasterize_torch
+
+        raw = rasterize_torch(means, quats, scales, opacities, features, cam["viewmat"], cam["K"],
+                              camera.width, camera.height, near=near, far=far, eps2d=eps2d,
+                              alpha_clamp=alpha_clamp, alpha_min=alpha_min,
+                              transmittance_min=transmittance_min, tile_size=tile_size)
+    alpha = raw["alpha"]
+    dsum = raw["depth_sum"]
+    # Expected depth; where nothing was blended alpha is exactly 0 and so is the depth sum.
+    depth = torch.where(alpha > 0, dsum / alpha.clamp_min(1e-30), torch.zeros_like(dsum))
+    feats = raw["features"]
+    if background is not None:
+        bg = torch.as_tensor(background, dtype=feats.dtype, device=feats.device)
+        feats = feats + bg * (1.0 - alpha)
+    return RenderOutput(features=feats, alpha=alpha, depth=depth, means2d=raw["means2d"],
+                        radii=raw["radii"], n_pairs=raw.get("n_pairs"))
+
+
+def render_rgb(
+    gaussians: Any,  # has means [N,3], quats [N,4], scales [N,3], opacities [N], sh [N,K,3], sh_degree
+    camera: Camera,
+    *,
+    sh_degree: int | None = None,  # default: gaussians.sh_degree (or the largest K allows)
+    background: Tensor | Sequence[float] | None = (0.0, 0.0, 0.0),
+    **kw: Any,  # passed to rasterize (backend, eps2d, alpha_clamp, ...)
+) -> RenderOutput:
+    """Render colours from spherical harmonics (view direction = camera centre -> Gaussian)."""
+    sh = gaussians.sh
+    if sh_degree is None:
+        sh_degree = getattr(gaussians, "sh_degree", None)
+    if sh_degree is None:
+        sh_degree = int(round(sh.shape[1] ** 0.5)) - 1
+    means = gaussians.means
+    center = torch.as_tensor(camera.center, dtype=means.dtype, device=means.device)
+    colors = eval_sh(sh, means - center, int(sh_degree))
+    return rasterize(means, gaussians.quats, gaussians.scales, gaussians.opacities, colors, camera,
+                     background=background, **kw)

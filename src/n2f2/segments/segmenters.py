@@ -1,0 +1,549 @@
+"""Segmenters: an image in, class-agnostic multi-granularity segments out.
+
+Every segmenter is a callable ``segmenter(image, view=None) -> SegmentSet`` with a ``name`` and
+a ``settings`` dict (stored in ``bank.json``). A :class:`SegmentSet` keeps the segments of one
+image as stacked *non-overlapping* id layers ``[L, H, W]`` (each segment lives in exactly one
+layer, ids are local segment indices, -1 = none), which is also how the segment bank stores
+them: compact, and the overlap SAM produces between a part and its object is kept because the
+two go to different layers.
+
+* ``sam``: SAM automatic mask generation as used by the paper and LangSplat (32 x 32 point grid,
+  predicted-IoU threshold 0.7, min region area 100) through ``transformers.SamModel``, with
+  SAM's preprocessing and mask post-processing re-implemented in torch (``transformers``' SAM
+  image processor needs torchvision, which has no CPU build here) and a vectorised version of
+  LangSplat's mask NMS (theirs is a Python double loop over mask pairs).
+* ``classical``: multi-scale Felzenszwalb (scikit-image), for real photos without SAM weights.
+* ``ground-truth``: the demo scene's part / object / group regions, with their captions.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+from typing import Optional, Sequence
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from ..errors import InputError, MissingModelError
+
+DEFAULT_SAM_MODEL = "facebook/sam-vit-huge"
+SEGMENTER_NAMES = ("sam", "classical", "ground-truth")
+
+# SAM's input normalisation (ImageNet statistics, images in [0, 1]).
+SAM_PIXEL_MEAN = (0.485, 0.456, 0.406)
+SAM_PIXEL_STD = (0.229, 0.224, 0.225)
+
+
+# ----------------------------------------------------------------------------- segment sets
+@dataclass
+class SegmentSet:
+    """The segments of one image.
+
+    ``layers`` are non-overlapping id maps; segment ``i`` is the pixels where
+    ``layers[layer_of[i]] == i``. Optional per-segment ``captions`` (ground truth) and
+    ``source_ids`` (e.g. ground-truth region ids) travel along.
+    """
+
+    layers: np.ndarray  # [L, H, W] int32, -1 = none
+    scores: np.ndarray  # [S] float32 segmenter confidence (1 where it has none)
+    captions: Optional[list[str]] = None  # [S]
+    source_ids: Optional[np.ndarray] = None  # [S] int64
+
+    def __post_init__(self) -> None:
+        self.layers = np.asarray(self.layers, dtype=np.int32)
+        if self.layers.ndim != 3:
+            raise ValueError(f"segment layers must be [L, H, W], got shape {self.layers.shape}")
+        self.scores = np.asarray(self.scores, dtype=np.float32).reshape(-1)
+        if self.captions is not None and len(self.captions) != self.num_segments:
+            raise ValueError("need one caption per segment")
+
+    @property
+    def num_segments(self) -> int:
+        return int(self.scores.shape[0])
+
+    @property
+    def height(self) -> int:
+        return int(self.layers.shape[1])
+
+    @property
+    def width(self) -> int:
+        return int(self.layers.shape[2])
+
+    def layer_of(self) -> np.ndarray:
+        """[S] int64 layer index of each segment (-1 for a segment with no pixels)."""
+        return segment_layers(self.layers, self.num_segments)
+
+    def areas(self) -> np.ndarray:
+        """[S] int64 pixel count of each segment."""
+        return segment_areas(self.layers, self.num_segments)
+
+    def masks(self, ids: Optional[Sequence[int]] = None) -> np.ndarray:
+        """Boolean masks [len(ids), H, W] of the given segments (default: all)."""
+        return layers_to_masks(self.layers, self.num_segments if ids is None else ids,
+                               layer_of=self.layer_of())
+
+    @staticmethod
+    def from_masks(masks: np.ndarray,  # [S, H, W] bool, may overlap
+                   scores: Optional[np.ndarray] = None,  # [S]
+                   captions: Optional[list[str]] = None) -> "SegmentSet":
+        """Pack (possibly overlapping) masks into layers; segment i is ``masks[i]``."""
+        masks = np.asarray(masks, dtype=bool)
+        scores = np.ones(len(masks), np.float32) if scores is None else np.asarray(scores, np.float32)
+        return SegmentSet(pack_layers(masks), scores, captions)
+
+    @staticmethod
+    def empty(height: int, width: int) -> "SegmentSet":
+        return SegmentSet(np.full((0, height, width), -1, np.int32), np.zeros(0, np.float32))
+
+
+def segment_areas(layers: np.ndarray,  # [L, H, W] int, -1 = none
+                  num_segments: int) -> np.ndarray:
+    """[S] int64 pixel count per segment id (ids are unique across layers)."""
+    ids = layers[layers >= 0]
+    return np.bincount(ids.ravel(), minlength=num_segments)[:num_segments].astype(np.int64)
+
+
+def segment_layers(layers: np.ndarray,  # [L, H, W] int, -1 = none
+                   num_segments: int) -> np.ndarray:
+    """[S] int64 layer holding each segment, -1 for an empty segment. Raises ValueError when a
+    segment id appears in two layers or exceeds ``num_segments``."""
+    out = np.full(num_segments, -1, np.int64)
+    for l, layer in enumerate(layers):
+        ids = layer[layer >= 0]
+        present = np.bincount(ids.ravel(), minlength=num_segments) > 0
+        if present.size > num_segments:
+            raise ValueError(f"segment id {int(ids.max())} in layer {l} exceeds the {num_segments} segments")
+        clash = present & (out >= 0)
+        if clash.any():
+            raise ValueError(f"segment {int(np.flatnonzero(clash)[0])} appears in more than one layer")
+        out[present] = l
+    return out
+
+
+def layers_to_masks(layers: np.ndarray,  # [L, H, W] int32
+                    ids,  # int S (all segments) or a sequence of segment ids
+                    layer_of: Optional[np.ndarray] = None,  # [S]
+                    ) -> np.ndarray:
+    """Boolean masks [n, H, W] of segments ``ids`` (one vectorised comparison)."""
+    if isinstance(ids, (int, np.integer)):
+        ids = np.arange(int(ids))
+    ids = np.asarray(ids, dtype=np.int64)
+    if layer_of is None:
+        layer_of = segment_layers(layers, int(ids.max()) + 1 if ids.size else 0)
+    if ids.size == 0:
+        return np.zeros((0,) + layers.shape[1:], dtype=bool)
+    lay = np.maximum(layer_of[ids], 0)  # empty segments compare against layer 0 and match nothing
+    return layers[lay] == np.where(layer_of[ids] >= 0, ids, -2)[:, None, None]
+
+
+def pack_layers(masks: np.ndarray) -> np.ndarray:  # [S, H, W] bool -> [L, H, W] int32
+    """Greedy packing of possibly-overlapping masks into non-overlapping id layers.
+
+    Masks are placed largest first, each into the first layer where it overlaps nothing
+    already there (so nested SAM masks - object, then its parts - end up on different layers).
+    The loop is over masks, each step a vectorised test on the mask's own pixels."""
+    masks = np.asarray(masks, dtype=bool)
+    S, H, W = masks.shape
+    flat = masks.reshape(S, -1)
+    areas = flat.sum(axis=1)
+    layers: list[np.ndarray] = []  # each [H * W] int32
+    for i in np.argsort(-areas, kind="stable"):
+        pix = np.flatnonzero(flat[i])
+        for layer in layers:
+            if (layer[pix] < 0).all():
+                layer[pix] = i
+                break
+        else:
+            layer = np.full(H * W, -1, np.int32)
+            layer[pix] = i
+            layers.append(layer)
+    if not layers:
+        return np.full((0, H, W), -1, np.int32)
+    return np.stack(layers).reshape(len(layers), H, W)
+
+
+def relabel_label_maps(label_maps: np.ndarray,  # [L, H, W] int, -1 = none, any ids
+                       min_area: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Turn per-level label maps (each already a partition) into bank layers with local ids
+    0..S-1, numbered level by level. Labels with fewer than ``min_area`` pixels are dropped.
+
+    Returns ``(layers [L, H, W] int32, source_ids [S] int64)`` where ``source_ids[i]`` is the
+    original label of local segment i."""
+    layers = np.full(label_maps.shape, -1, np.int32)
+    sources = []
+    offset = 0
+    for l, lab in enumerate(label_maps):
+        ids, inverse, counts = np.unique(lab, return_inverse=True, return_counts=True)
+        keep = (ids >= 0) & (counts >= max(min_area, 1))
+        local = np.full(ids.shape, -1, np.int64)
+        local[keep] = offset + np.arange(int(keep.sum()))
+        layers[l] = local[inverse.reshape(lab.shape)]
+        sources.append(ids[keep].astype(np.int64))
+        offset += int(keep.sum())
+    return layers, (np.concatenate(sources) if sources else np.zeros(0, np.int64))
+
+
+# ----------------------------------------------------------------------------- mask NMS
+def mask_overlaps(masks: Tensor,  # [S, H, W] bool
+                  chunk_pixels: int = 1 << 20) -> tuple[Tensor, Tensor]:
+    """Pairwise intersections [S, S] and areas [S] (float64) of boolean masks, as a matrix
+    product of the flattened masks, accumulated over pixel chunks to bound memory."""
+    S = masks.shape[0]
+    flat = masks.reshape(S, -1)
+    inter = torch.zeros(S, S, dtype=torch.float64, device=masks.device)
+    for start in range(0, flat.shape[1], chunk_pixels):
+        f = flat[:, start:start + chunk_pixels].float()
+        inter += (f @ f.T).double()  # counts per chunk <= chunk_pixels < 2^24: exact in float32
+    return inter, torch.diagonal(inter).clone()
+
+
+def mask_nms(masks: Tensor,  # [S, H, W] bool
+             scores: Tensor,  # [S]
+             iou_thr: float = 0.7,
+             score_thr: float = 0.1,
+             inner_thr: float = 0.2) -> Tensor:
+    """LangSplat's mask NMS (``preprocess.py: mask_nms``), vectorised; returns kept indices
+    [K] into ``masks``, in descending score order. Same defaults as LangSplat's function.
+
+    Sort by score; a mask is dropped when (a) its IoU with a higher-scored mask exceeds
+    ``iou_thr``, (b) its score is at most ``score_thr``, or (c) it lies mostly inside another
+    mask (>= 85 % of it covered, while covering < 50 % of the other) and the product of the
+    two coverage ratios is below ``inner_thr``. As in LangSplat, suppression is "fast NMS"
+    (a suppressed mask still suppresses others), and if a criterion would drop every mask the
+    three best-scored masks pass it.
+    """
+    S = int(scores.shape[0])
+    if S == 0:
+        return torch.zeros(0, dtype=torch.long, device=scores.device)
+    scores_sorted, idx = torch.sort(scores, descending=True, stable=True)
+    inter, area = mask_overlaps(masks[idx])
+    union = area[:, None] + area[None, :] - inter
+    iou = inter / union.clamp_min(1e-12)
+    cover = inter / area[:, None].clamp_min(1e-12)  # cover[a, b]: fraction of a inside b
+    cover_t = cover.T
+    product = 1.0 - cover * cover_t
+    upper = torch.ones(S, S, dtype=torch.bool, device=scores.device).triu(1)  # pairs i < j
+    # LangSplat's loop over i < j writes [i, j] when j lies inside i, and [j, i] when i lies
+    # inside j: element [a, b] is set exactly when b lies inside a.
+    b_inside_a = (cover < 0.5) & (cover_t >= 0.85)
+    inner = torch.where(b_inside_a & (upper | upper.T), product, torch.zeros_like(product))
+    iou_max = torch.triu(iou, diagonal=1).max(dim=0).values
+    inner_max_u = torch.triu(inner, diagonal=1).max(dim=0).values
+    inner_max_l = torch.tril(inner, diagonal=1).max(dim=0).values  # diagonal=1 as in LangSplat
+
+    def at_least_top3(keep: Tensor) -> Tensor:
+        if not keep.any():
+            keep = keep.clone()
+            keep[: min(3, S)] = True  # scores are sorted: the first three are the top three
+        return keep
+
+    keep = iou_max <= iou_thr
+    keep &= at_least_top3(scores_sorted > score_thr)
+    keep &= at_least_top3(inner_max_u <= 1 - inner_thr)
+    keep &= at_least_top3(inner_max_l <= 1 - inner_thr)
+    return idx[keep]
+
+
+def greedy_mask_nms(masks: Tensor,  # [S, H, W] bool
+                    scores: Tensor,  # [S]
+                    iou_thr: float = 0.7) -> Tensor:
+    """Classic greedy NMS on mask IoU (SAM's ``box_nms_thresh`` step, on masks instead of
+    boxes): returns kept indices [K] in descending score order. The loop runs over kept masks,
+    each step one vectorised row of the IoU matrix."""
+    S = int(scores.shape[0])
+    if S == 0:
+        return torch.zeros(0, dtype=torch.long, device=scores.device)
+    order = torch.argsort(scores, descending=True, stable=True)
+    inter, area = mask_overlaps(masks[order])
+    iou = (inter / (area[:, None] + area[None, :] - inter).clamp_min(1e-12)).cpu().numpy()
+    suppressed = np.zeros(S, dtype=bool)
+    keep = []
+    for i in range(S):
+        if suppressed[i]:
+            continue
+        keep.append(i)
+        suppressed |= iou[i] > iou_thr
+    return order[torch.as_tensor(keep, dtype=torch.long, device=order.device)]
+
+
+def remove_small_regions(mask: np.ndarray,  # [H, W] bool
+                         min_area: int) -> np.ndarray:
+    """SAM's ``min_mask_region_area`` post-processing: fill holes and remove islands smaller
+    than ``min_area`` pixels (the largest island is kept if all are small)."""
+    import cv2
+
+    if min_area <= 0:
+        return mask
+    # Holes: small connected components of the background become foreground.
+    n, labels, stats, _ = cv2.connectedComponentsWithStats((~mask).astype(np.uint8), connectivity=8)
+    small = np.flatnonzero(stats[1:, cv2.CC_STAT_AREA] < min_area) + 1
+    if small.size:
+        mask = mask | np.isin(labels, small)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+    sizes = stats[1:, cv2.CC_STAT_AREA]
+    if sizes.size and (sizes < min_area).any():
+        big = np.flatnonzero(sizes >= min_area) + 1
+        if big.size == 0:
+            big = np.array([int(np.argmax(sizes)) + 1])
+        mask = np.isin(labels, big)
+    return mask
+
+
+# ----------------------------------------------------------------------------- helpers
+def check_image(image: np.ndarray, path=None) -> np.ndarray:
+    """Validate an image [H, W, 3] (float in [0, 1] or uint8); returns float32 [H, W, 3]."""
+    image = np.asarray(image)
+    if image.ndim != 3 or image.shape[2] != 3:
+        raise InputError(path, f"expected an RGB image [H, W, 3], got shape {image.shape}")
+    if image.shape[0] == 0 or image.shape[1] == 0:
+        raise InputError(path, "image is empty (zero width or height)")
+    if image.dtype == np.uint8:
+        return image.astype(np.float32) / 255.0
+    return image.astype(np.float32, copy=False)
+
+
+def resize_nearest(labels: np.ndarray,  # [L, H0, W0] int
+                   height: int, width: int) -> np.ndarray:
+    """Nearest-neighbour resize of label maps to [L, height, width], sampling at pixel centres
+    (consistent with :mod:`n2f2.cameras`)."""
+    L, H0, W0 = labels.shape
+    if (H0, W0) == (height, width):
+        return labels
+    rows = np.minimum(((np.arange(height) + 0.5) * H0 / height).astype(np.int64), H0 - 1)
+    cols = np.minimum(((np.arange(width) + 0.5) * W0 / width).astype(np.int64), W0 - 1)
+    return labels[:, rows[:, None], cols[None, :]]
+
+
+# ----------------------------------------------------------------------------- SAM
+@dataclass
+class SamSettings:
+    """SAM automatic mask generation, with the paper's / LangSplat's settings as defaults."""
+
+    points_per_side: int = 32  # 32 x 32 grid of point prompts
+    points_per_batch: int = 64  # prompts decoded together (memory vs speed)
+    pred_iou_thresh: float = 0.7  # paper: "IoU threshold of 0.7"
+    stability_score_thresh: float = 0.85  # LangSplat
+    stability_score_offset: float = 1.0  # SAM default
+    box_nms_thresh: float = 0.7  # SAM/LangSplat; applied to mask IoU here
+    min_mask_region_area: int = 100  # paper: minimum mask region area 100
+    mask_threshold: float = 0.0  # logit threshold for binarising masks
+    # LangSplat's extra pass (``masks_update``): mask NMS on predicted IoU x stability.
+    nms_iou_thr: float = 0.8
+    nms_score_thr: float = 0.7
+    nms_inner_thr: float = 0.5
+
+
+class SamSegmenter:
+    """SAM automatic mask generation with a ``transformers.SamModel`` (no crop layers)."""
+
+    name = "sam"
+
+    def __init__(self, model, settings: Optional[SamSettings] = None, model_id: str = "",
+                 device: str | torch.device = "cpu") -> None:
+        self.model = model.to(device).eval()
+        self.settings = settings or SamSettings()
+        self.model_id = model_id
+        self.device = torch.device(device)
+
+    @staticmethod
+    def from_pretrained(model_id: str = DEFAULT_SAM_MODEL, device: str | torch.device = "cpu",
+                        settings: Optional[SamSettings] = None) -> "SamSegmenter":
+        from transformers import SamModel
+
+        from .encoders import load_pretrained
+
+        model = load_pretrained(SamModel, model_id, what="SAM", alternative="--segmenter classical")
+        return SamSegmenter(model, settings, model_id=model_id, device=device)
+
+    @property
+    def spec(self) -> dict:
+        return {"name": self.name, "model_id": self.model_id, **asdict(self.settings)}
+
+    # -- geometry of SAM's input frame
+    def _input_size(self) -> int:
+        return int(self.model.config.vision_config.image_size)
+
+    def preprocess(self, image: np.ndarray) -> tuple[Tensor, tuple[int, int]]:
+        """float [H, W, 3] in [0, 1] -> normalised, padded [1, 3, T, T] and the resized (h, w):
+        SAM's ResizeLongestSide to T = model input size, ImageNet normalisation, zero pad
+        bottom/right."""
+        T = self._input_size()
+        H, W = image.shape[:2]
+        scale = T / max(H, W)
+        h, w = int(H * scale + 0.5), int(W * scale + 0.5)
+        x = torch.as_tensor(image, dtype=torch.float32, device=self.device).permute(2, 0, 1)[None]
+        x = F.interpolate(x, size=(h, w), mode="bilinear", align_corners=False, antialias=True)
+        mean = torch.tensor(SAM_PIXEL_MEAN, device=self.device).view(1, 3, 1, 1)
+        std = torch.tensor(SAM_PIXEL_STD, device=self.device).view(1, 3, 1, 1)
+        x = (x - mean) / std
+        return F.pad(x, (0, T - w, 0, T - h)), (h, w)
+
+    def postprocess_masks(self, low_res: Tensor,  # [N, h0, w0] mask logits in SAM's frame
+                          resized: tuple[int, int], original: tuple[int, int]) -> Tensor:
+        """SAM's ``postprocess_masks``: upsample low-res logits to the padded input size, crop
+        the padding, upsample to the original image size. Returns logits [N, H, W]."""
+        T = self._input_size()
+        x = F.interpolate(low_res[:, None], size=(T, T), mode="bilinear", align_corners=False)
+        x = x[..., : resized[0], : resized[1]]
+        return F.interpolate(x, size=original, mode="bilinear", align_corners=False)[:, 0]
+
+    def point_grid(self, height: int, width: int) -> np.ndarray:
+        """[n * n, 2] (x, y) prompts in image pixels, SAM's ``build_point_grid`` layout."""
+        n = self.settings.points_per_side
+        offset = 1.0 / (2 * n)
+        side = np.linspace(offset, 1 - offset, n)
+        xs, ys = np.meshgrid(side, side)
+        return np.stack([xs.ravel() * width, ys.ravel() * height], axis=-1)
+
+    @torch.no_grad()
+    def __call__(self, image: np.ndarray, view: Optional[int] = None) -> SegmentSet:
+        image = check_image(image)
+        H, W = image.shape[:2]
+        st = self.settings
+        pixel_values, (h, w) = self.preprocess(image)
+        embeddings = self.model.get_image_embeddings(pixel_values)
+        points = torch.as_tensor(self.point_grid(H, W), dtype=torch.float32, device=self.device)
+        points = points * torch.tensor([w / W, h / H], device=self.device)  # into SAM's frame
+
+        all_masks, all_iou, all_stab = [], [], []
+        for start in range(0, points.shape[0], st.points_per_batch):
+            pts = points[start:start + st.points_per_batch]
+            out = self.model(image_embeddings=embeddings, input_points=pts[None, :, None, :],
+                             input_labels=torch.ones(1, pts.shape[0], 1, dtype=torch.long, device=self.device),
+                             multimask_output=True)
+            iou = out.iou_scores[0].reshape(-1)  # [B * 3]
+            low = out.pred_masks[0].reshape(-1, *out.pred_masks.shape[-2:])  # [B * 3, h0, w0]
+            keep = iou > st.pred_iou_thresh
+            if not keep.any():
+                continue
+            logits = self.postprocess_masks(low[keep], (h, w), (H, W))
+            # Stability: IoU of the masks thresholded at +- offset around the mask threshold.
+            hi = (logits > st.mask_threshold + st.stability_score_offset).flatten(1).sum(1)
+            lo = (logits > st.mask_threshold - st.stability_score_offset).flatten(1).sum(1)
+            stability = hi.float() / lo.float().clamp_min(1)
+            stable = stability >= st.stability_score_thresh
+            masks = logits[stable] > st.mask_threshold
+            nonempty = masks.flatten(1).any(1)
+            all_masks.append(masks[nonempty].cpu())
+            all_iou.append(iou[keep][stable][nonempty].cpu())
+            all_stab.append(stability[stable][nonempty].cpu())
+        if not all_masks or sum(len(m) for m in all_masks) == 0:
+            return SegmentSet.empty(H, W)
+        masks, iou, stability = torch.cat(all_masks), torch.cat(all_iou), torch.cat(all_stab)
+
+        kept = greedy_mask_nms(masks, iou, st.box_nms_thresh)
+        masks, iou, stability = masks[kept], iou[kept], stability[kept]
+        if st.min_mask_region_area > 0:
+            cleaned = np.stack([remove_small_regions(m, st.min_mask_region_area) for m in masks.numpy()])
+            big = cleaned.reshape(len(cleaned), -1).sum(1) >= st.min_mask_region_area
+            masks, iou, stability = torch.from_numpy(cleaned[big]), iou[big], stability[big]
+        if len(masks) == 0:
+            return SegmentSet.empty(H, W)
+        score = iou * stability
+        kept = mask_nms(masks, score, st.nms_iou_thr, st.nms_score_thr, st.nms_inner_thr)
+        return SegmentSet.from_masks(masks[kept].numpy(), score[kept].numpy())
+
+
+# ----------------------------------------------------------------------------- classical
+@dataclass
+class ClassicalSettings:
+    """Multi-scale Felzenszwalb graph segmentation: one partition per scale, fine to coarse."""
+
+    scales: tuple[float, ...] = (100.0, 400.0, 1600.0)  # Felzenszwalb's k: larger = coarser
+    sigma: float = 0.8  # Gaussian pre-smoothing (scikit-image default)
+    min_area: int = 100  # regions below this many pixels are merged (min_size) and dropped
+
+
+class ClassicalSegmenter:
+    """Segments from Felzenszwalb's algorithm at several scales; each scale is one layer."""
+
+    name = "classical"
+
+    def __init__(self, settings: Optional[ClassicalSettings] = None) -> None:
+        self.settings = settings or ClassicalSettings()
+
+    @property
+    def spec(self) -> dict:
+        d = asdict(self.settings)
+        d["scales"] = list(d["scales"])
+        return {"name": self.name, **d}
+
+    def __call__(self, image: np.ndarray, view: Optional[int] = None) -> SegmentSet:
+        from skimage.segmentation import felzenszwalb
+
+        image = check_image(image)
+        st = self.settings
+        labels = np.stack([felzenszwalb(image, scale=s, sigma=st.sigma, min_size=st.min_area)
+                           for s in st.scales])
+        layers, _ = relabel_label_maps(labels, min_area=st.min_area)
+        S = int(layers.max()) + 1 if layers.size else 0
+        return SegmentSet(layers, np.ones(S, np.float32))
+
+
+# ----------------------------------------------------------------------------- ground truth
+class GroundTruthSegmenter:
+    """The demo scene's ground-truth regions: layer 0 = parts, 1 = objects, 2 = groups, each
+    segment carrying its caption (``regions.json``) and region id."""
+
+    name = "ground-truth"
+
+    def __init__(self, scene) -> None:
+        if scene.ground_truth is None:
+            raise InputError(scene.root, "--segmenter ground-truth needs a scene with ground-truth "
+                             "regions (regions/ and regions.json, as the built-in demo scene has)")
+        self.scene = scene
+        gt = scene.ground_truth
+        regions = gt.regions
+        self.levels = list(regions.get("levels", ["part", "object", "group"]))
+        self.captions = {int(r["id"]): str(r.get("caption") or r.get("name") or "") for r in regions["regions"]}
+
+    @property
+    def spec(self) -> dict:
+        return {"name": self.name, "levels": self.levels}
+
+    def __call__(self, image: np.ndarray, view: Optional[int] = None) -> SegmentSet:
+        if view is None:
+            raise ValueError("the ground-truth segmenter needs the view index")
+        gt = self.scene.ground_truth
+        path = gt.root / "regions" / f"{gt.image_names[view]}.npy"
+        image = check_image(image)
+        try:
+            regions = np.asarray(gt.region_ids(view))
+        except (OSError, ValueError) as e:
+            raise InputError(path, f"cannot read ground-truth regions ({e})") from None
+        if regions.ndim != 3:
+            raise InputError(path, f"expected region ids [levels, H, W], got shape {regions.shape}")
+        H, W = image.shape[:2]
+        if regions.shape[1:] != (H, W):
+            # Ground truth is stored at full resolution; the scene may be downscaled. Only an
+            # aspect-preserving resize is legitimate.
+            rh, rw = regions.shape[1:]
+            if abs(rh / rw - H / W) > 0.02:
+                raise InputError(path, f"region map size {rw}x{rh} does not match the image size {W}x{H}")
+            regions = resize_nearest(regions, H, W)
+        layers, source_ids = relabel_label_maps(regions)
+        missing = [int(r) for r in source_ids if int(r) not in self.captions]
+        if missing:
+            raise InputError(gt.root / "regions.json", f"region ids {missing[:5]} used in {path.name} have no entry")
+        captions = [self.captions[int(r)] for r in source_ids]
+        return SegmentSet(layers, np.ones(len(source_ids), np.float32), captions=captions, source_ids=source_ids)
+
+
+def get_segmenter(name: str, scene=None, model_id: Optional[str] = None,
+                  device: str | torch.device = "cpu", **settings):
+    """Build a segmenter by name: ``sam`` (``model_id`` default ``facebook/sam-vit-huge``,
+    ``settings`` are :class:`SamSettings` fields), ``classical`` (:class:`ClassicalSettings`
+    fields) or ``ground-truth`` (needs ``scene``)."""
+    if name == "sam":
+        return SamSegmenter.from_pretrained(model_id or DEFAULT_SAM_MODEL, device=device,
+                                            settings=SamSettings(**settings))
+    if name == "classical":
+        return ClassicalSegmenter(ClassicalSettings(**settings))
+    if name == "ground-truth":
+        if scene is None:
+            raise ValueError("the ground-truth segmenter needs the scene")
+        return GroundTruthSegmenter(scene)
+    raise ValueError(f"unknown segmenter {name!r}; choose one of {', '.join(SEGMENTER_NAMES)}")

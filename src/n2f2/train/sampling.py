@@ -1,0 +1,124 @@
+"""Training-sample selection (paper Sec. 3.2, "Hierarchical Loss Supervision"):
+
+* pixels ``u`` are sampled uniformly across the training images (among pixels that at least
+  one valid segment covers: the others carry no supervision);
+* for each pixel, one of the segments covering it is sampled with probability proportional to
+  ``1 / log(area)`` (small segments are preferred, so fine parts are not drowned by the large
+  segments that cover every pixel).
+
+A bank record stores an image's segments as non-overlapping id layers ``[L, H, W]``; the
+segments covering pixel p are ``layers[:, p]`` (those >= 0 and valid).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+import torch
+from torch import Tensor
+
+# log(area) is clamped below at log(MIN_AREA) so a one-pixel segment does not get infinite weight.
+MIN_AREA = 2.0
+
+
+def segment_weights(areas: Tensor,  # [S] pixel areas
+                    valid: Optional[Tensor] = None,  # [S] bool, invalid segments get weight 0
+                    ) -> Tensor:  # [S] float64 unnormalised weights 1 / log(area)
+    """The paper's per-segment sampling weight ``1 / log(area)``."""
+    w = 1.0 / torch.log(areas.double().clamp(min=MIN_AREA))
+    if valid is not None:
+        w = torch.where(valid.bool(), w, torch.zeros_like(w))
+    return w
+
+
+def covering_probabilities(candidates: Tensor,  # [P, L] segment id per layer, -1 = none
+                           weights: Tensor,  # [S] from segment_weights
+                           ) -> Tensor:  # [P, L] row-normalised probabilities (0 rows stay 0)
+    """Probability of choosing each covering segment of each pixel (layer order)."""
+    w = torch.where(candidates >= 0, weights[candidates.clamp(min=0)], torch.zeros((), dtype=weights.dtype))
+    total = w.sum(dim=1, keepdim=True)
+    return w / total.clamp(min=torch.finfo(w.dtype).tiny)
+
+
+@dataclass
+class ViewSegments:
+    """One training view's segments in the flat form sampling needs (built once)."""
+
+    view: int  # scene view index
+    layers: Tensor  # [L, H*W] long segment id, -1 = none (invalid segments already removed)
+    weights: Tensor  # [S] float64, 1 / log(area), 0 for invalid segments
+    covered: Tensor  # [K] long flat pixel indices with at least one valid segment
+    quantized: Tensor  # [S] float32 quantized scale s in [0, 1)
+    embeddings: Tensor  # [S, E] float32 teacher embeddings
+
+    @staticmethod
+    def from_record(view: int, record) -> "ViewSegments":
+        """From a bank record (``layers [L, H, W]``, ``embeddings``, ``quantized``, ``areas``,
+        ``valid``)."""
+        layers = torch.as_tensor(np.asarray(record.layers)).long()  # [L, H, W]
+        L = layers.shape[0]
+        layers = layers.reshape(L, -1)
+        S = int(np.asarray(record.areas).shape[0])
+        valid = torch.as_tensor(np.asarray(record.valid, dtype=bool)) if record.valid is not None \
+            else torch.ones(S, dtype=torch.bool)
+        weights = segment_weights(torch.as_tensor(np.asarray(record.areas)), valid)
+        # Drop ids of invalid segments so every remaining candidate has a positive weight.
+        if S:
+            keep = layers >= 0
+            keep &= weights[layers.clamp(min=0)] > 0
+            layers = torch.where(keep, layers, torch.full_like(layers, -1))
+        covered = torch.nonzero((layers >= 0).any(dim=0)).squeeze(1) if L else torch.zeros(0, dtype=torch.long)
+        return ViewSegments(
+            view=view, layers=layers, weights=weights, covered=covered,
+            quantized=torch.as_tensor(np.asarray(record.quantized, dtype=np.float32)),
+            embeddings=torch.as_tensor(np.asarray(record.embeddings, dtype=np.float32)),
+        )
+
+
+@dataclass
+class PixelBatch:
+    """Sampled supervision: for pixel ``pixel[i]`` of rendered view ``slot[i]`` (index into
+    the views rendered this step), the chosen segment's quantized scale and teacher embedding."""
+
+    slot: Tensor  # [P] long, index into the step's views
+    pixel: Tensor  # [P] long, flat pixel index (row * W + col)
+    segment: Tensor  # [P] long, local segment id within that view
+    scale: Tensor  # [P] float32 quantized scale
+    target: Tensor  # [P, E] float32 teacher embedding
+
+
+def sample_segments(candidates: Tensor,  # [P, L]
+                    weights: Tensor,  # [S]
+                    generator: torch.Generator) -> Tensor:  # [P] chosen segment id
+    """One covering segment per pixel, with probability ∝ 1 / log(area) (every row must have
+    at least one candidate)."""
+    probs = covering_probabilities(candidates, weights)  # [P, L]
+    choice = torch.multinomial(probs.float(), 1, generator=generator).squeeze(1)  # [P]
+    return candidates.gather(1, choice[:, None]).squeeze(1)
+
+
+def sample_pixels(views: list[ViewSegments], num_pixels: int, generator: torch.Generator) -> PixelBatch:
+    """``num_pixels`` pixels uniform over the covered pixels of ``views`` (with replacement),
+    each with one covering segment chosen ∝ 1 / log(area)."""
+    counts = torch.tensor([len(v.covered) for v in views], dtype=torch.long)
+    total = int(counts.sum())
+    if total == 0:
+        raise ValueError("no pixel of the selected views is covered by a valid segment")
+    flat = torch.randint(total, (num_pixels,), generator=generator)  # uniform over covered pixels
+    offsets = torch.cumsum(counts, 0) - counts
+    slot = torch.searchsorted(torch.cumsum(counts, 0), flat, right=True)  # [P]
+    slots, pixels, segs, scales, targets = [], [], [], [], []
+    for k, v in enumerate(views):
+        sel = slot == k
+        if not bool(sel.any()):
+            continue
+        pix = v.covered[flat[sel] - offsets[k]]  # [p]
+        seg = sample_segments(v.layers[:, pix].t(), v.weights, generator)  # [p]
+        slots.append(torch.full_like(pix, k))
+        pixels.append(pix)
+        segs.append(seg)
+        scales.append(v.quantized[seg])
+        targets.append(v.embeddings[seg])
+    return PixelBatch(torch.cat(slots), torch.cat(pixels), torch.cat(segs), torch.cat(scales), torch.cat(targets))
