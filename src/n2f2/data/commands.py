@@ -81,8 +81,8 @@ def run_inspect(args: argparse.Namespace) -> int:
     print(f"intrinsics   fx {rng('fx')}, fy {rng('fy')}, cx {rng('cx')}, cy {rng('cy')}")
     print(f"points       {points}")
     print(f"ground truth {'yes' if info['ground_truth'] else 'no'}")
-    lo = ", ".join(f"{v:.4g}" for v in info["bounds_min"])
-    hi = ", ".join(f"{v:.4g}" for v in info["bounds_max"])
+    lo = ", ".join(f"{v + 0.0:.4g}" for v in info["bounds_min"])
+    hi = ", ".join(f"{v + 0.0:.4g}" for v in info["bounds_max"])
     print(f"bounds       [{lo}] .. [{hi}]  ({info['bounds_of']})")
     print(f"extent       {info['extent']:.4g}  (3DGS: 1.1 x max camera distance from their mean)")
     return 0

@@ -91,15 +91,20 @@ class GroundTruth:
 
     @property
     def regions(self) -> dict:
-        return _read_json_cached(str(self.root / "regions.json"))
+        return _read_json(self.root / "regions.json")
 
     @property
     def queries(self) -> list[dict]:
-        return _read_json_cached(str(self.root / "queries.json"))["queries"]
+        return _read_json(self.root / "queries.json")["queries"]
+
+
+def _read_json(path: Path) -> dict:
+    # Keyed on the modification time too, so a scene regenerated in place is read again.
+    return _read_json_cached(str(path), path.stat().st_mtime_ns)
 
 
 @lru_cache(maxsize=16)
-def _read_json_cached(path: str) -> dict:
+def _read_json_cached(path: str, mtime_ns: int) -> dict:
     import json
 
     return json.loads(Path(path).read_text())

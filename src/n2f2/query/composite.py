@@ -28,8 +28,6 @@ cumulative sum over blocks: ``N x D x C`` work for ``C`` directions, never ``N x
 
 from __future__ import annotations
 
-from typing import Sequence
-
 import torch
 from torch import Tensor
 
@@ -45,45 +43,50 @@ def supervised_dims(dim: int, step: int = 1) -> list[int]:
     return list(range(step, step * (dim // step) + 1, step))
 
 
-def prefix_dot(
-    theta: Tensor,  # [P, D] point or pixel features
-    directions: Tensor,  # [D, C] per-dimension terms, e.g. W^T t for text embeddings t [E, C]
+def to_blocks(
+    theta: Tensor,  # [P, D] features, one row per point
     step: int = 1,
-) -> Tensor:  # [P, S, C], S = floor(D / step)
-    """``out[p, s, c] = sum_{j <= d_s} theta[p, j] * directions[j, c]`` for the scales
-    ``d_s = (s + 1) * step``: the dot products ``phi_{d_s} . t_c`` of every prefix feature with
-    every direction whose field-space image is ``directions = W^T t``.
-
-    Computed as per-block sums (one batched matmul, ``P x D x C`` work) and a cumulative sum
-    over the ``S`` blocks."""
+) -> Tensor:  # [S, k, P] contiguous, S = floor(D / k); dims past S k are dropped
+    """Block layout of prefix computations: dimension ``j`` goes to block ``j // k``, points
+    last, so scale sums are batched matmuls whose results are already ``[S, C, P]``."""
     P, D = theta.shape
     S = D // step
-    used = S * step
-    blocks = torch.bmm(
-        theta[:, :used].reshape(P, S, step).transpose(0, 1),  # [S, P, k]
-        directions[:used].reshape(S, step, -1),  # [S, k, C]
-    )  # [S, P, C]
-    return blocks.cumsum_(dim=0).transpose(0, 1)  # [P, S, C]
+    return theta[:, : S * step].T.reshape(S, step, P).contiguous()
+
+
+def prefix_dot(
+    blocks: Tensor,  # [S, k, P] features in block layout (:func:`to_blocks`)
+    directions: Tensor,  # [S k, C] per-dimension terms, e.g. W^T t for text embeddings t
+) -> Tensor:  # [S, C, P]
+    """``out[s, c, p] = sum_{j < (s + 1) k} theta[p, j] * directions[j, c]``: the dot products
+    ``phi_{d_s} . t_c`` of every prefix feature with every direction whose field-space image is
+    ``directions = W^T t``.
+
+    Per-block sums are one batched matmul (``P x D x C`` work); a cumulative sum over the ``S``
+    blocks turns them into prefix sums."""
+    S, k, _ = blocks.shape
+    d = directions[: S * k].reshape(S, k, -1).transpose(1, 2)  # [S, C, k]
+    return torch.bmm(d, blocks).cumsum_(dim=0)  # [S, C, P]
 
 
 def prefix_sq_norms(
-    theta: Tensor,  # [P, D]
-    gram: Tensor,  # [D, D] W^T W
-    step: int = 1,
-) -> Tensor:  # [P, S] |phi_{d_s}|^2
+    blocks: Tensor,  # [S, k, P] features in block layout
+    gram: Tensor,  # [D, D] W^T W (only the first S k rows / columns are used)
+) -> Tensor:  # [S, P] |phi_{d_s}|^2
     """Squared norms of all prefix features ``|W[:, :d] theta[:d]|^2`` for the scales
-    ``d_s = (s + 1) * step``, without forming any ``E``-dimensional vector.
+    ``d_s = (s + 1) k``, without forming any ``E``-dimensional vector.
 
     ``|phi_d|^2 = sum_{j <= d} theta_j (2 sum_{i < j} G_ji theta_i + G_jj theta_j)`` with
-    ``G = W^T W``: the inner sum for all ``j`` is one ``[P, D] x [D, D]`` matmul, the outer sum
-    a cumulative sum. Clamped at 0 against rounding."""
-    lower = torch.tril(gram, diagonal=-1)  # L[j, i] = G[j, i] for i < j
-    inner = theta @ lower.T  # [P, D]: sum_{i<j} G_ji theta_i
-    terms = theta * (2.0 * inner + theta * torch.diagonal(gram))  # [P, D]
-    P, D = theta.shape
-    S = D // step
-    sums = terms[:, : S * step].reshape(P, S, step).sum(dim=-1).cumsum_(dim=-1)  # [P, S]
-    return sums.clamp_(min=0.0)
+    ``G = W^T W`` (the recurrence ``n_d = n_{d-1} + 2 theta_d G[d, :d] theta[:d] + G_dd theta_d^2``):
+    the inner sums for all ``j`` are one ``[D, D] x [D, P]`` matmul, the outer sum a cumulative
+    sum. Clamped at 0 against rounding."""
+    S, k, P = blocks.shape
+    n = S * k
+    g = gram[:n, :n]
+    theta = blocks.reshape(n, P)  # [D', P] dimension-major
+    inner = torch.tril(g, diagonal=-1) @ theta  # [D', P]: sum_{i<j} G_ji theta_i
+    terms = theta * (2.0 * inner + torch.diagonal(g)[:, None] * theta)  # [D', P]
+    return terms.reshape(S, k, P).sum(dim=1).cumsum_(dim=0).clamp_(min=0.0)
 
 
 def canonical_scores(
@@ -93,7 +96,8 @@ def canonical_scores(
     step: int = 1,
 ) -> Tensor:  # [N, S] max_k phi_{i,d_s} . phi_canon_k
     """The argument of the softmax in paper Eq. 6, for every scale at once (``N x D x K``)."""
-    return prefix_dot(theta, W.T @ canonical.T, step).amax(dim=-1)
+    dots = prefix_dot(to_blocks(theta, step), (canonical @ W).T)  # [S, K, N]
+    return dots.amax(dim=1).T
 
 
 def composite_weights(
@@ -140,8 +144,3 @@ def premultiply(
         gamma = composite_weights(block, W, canonical, step, temperature)
         out[start:start + chunk] = prefix_weights(gamma, D, step) * block
     return out
-
-
-def scale_names(dims: Sequence[int]) -> list[str]:
-    """Human-readable scale labels, e.g. ``d=16``."""
-    return [f"d={d}" for d in dims]

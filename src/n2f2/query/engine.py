@@ -39,7 +39,9 @@ import torch
 from torch import Tensor
 
 from ..errors import InputError
-from .composite import DEFAULT_CANONICAL, premultiply, prefix_dot, prefix_sq_norms, supervised_dims
+from ..eval.protocol import LANGSPLAT_BOX_SIZE
+from .composite import (DEFAULT_CANONICAL, premultiply, prefix_dot, prefix_sq_norms, supervised_dims,
+                        to_blocks)
 from .relevancy import (DEFAULT_NEGATIVES, check_texts, inverse_norm, inverse_norm_from_sq,
                         relevancy_from_scores)
 
@@ -59,7 +61,7 @@ class QueryConfig:
     negatives: tuple[str, ...] = DEFAULT_NEGATIVES  # negatives of the relevancy (LERF)
     temperature: float = 1.0  # gamma = softmax(score / T); 1 = paper (near-uniform gamma)
     selection: str = "smoothed"  # explicit/levels 2D scale choice: "smoothed" (LangSplat) | "max"
-    box_size: Union[int, str] = 30  # protocol mean-filter size (px) or "scaled"; for smoothing
+    box_size: Union[int, str] = LANGSPLAT_BOX_SIZE  # protocol mean filter (px) or "scaled"
     chunk: int = 65536  # points per block when building caches (bounds [chunk, E] memory)
 
     def __post_init__(self) -> None:
@@ -166,7 +168,7 @@ def build_prefix_cache(
     P, D = theta.shape
     dims = supervised_dims(D, step)
     S = len(dims)
-    blocks = theta[:, : S * step].T.reshape(S, step, P).contiguous()  # [S, k, P]
+    blocks = to_blocks(theta, step)  # [S, k, P]
     gram = W.T @ W  # [D, D]
     negdir = (negatives @ W).T  # [D, C]
     inv = theta.new_empty(S, 1, P)
@@ -261,7 +263,7 @@ class QueryEngine:
                  scene: Any = None, run_dir: Optional[Path] = None) -> None:
         self.field = field
         self.gaussians = gaussians
-        self.encoder = encoder
+        self._encoder = encoder  # None: built from meta["encoder_spec"] on first use
         self.meta = meta
         self.config = config or QueryConfig()
         self.device = torch.device(device)
@@ -302,18 +304,22 @@ class QueryEngine:
         field, meta = load_field(field_path, device)
         field.requires_grad_(False)
         gaussians = read_ply(ply_path, device=device)
-        if encoder is None:
-            from ..segments.encoders import get_encoder
-
-            spec = meta.get("encoder_spec")
-            if spec is None:
-                raise InputError(field_path, "field metadata names no text encoder (encoder_spec)")
-            encoder = get_encoder(spec, device)
+        if encoder is None and meta.get("encoder_spec") is None:
+            raise InputError(field_path, "field metadata names no text encoder (encoder_spec)")
         if scene is None or isinstance(scene, (str, Path)):
             scene = _load_run_scene(run_dir, meta, scene)
         return QueryEngine(field, gaussians, encoder, meta, config, device, scene, run_dir)
 
     # ------------------------------------------------------------------ field data
+    @property
+    def encoder(self) -> Any:
+        """The field's text encoder, loaded on first use (so opening a run is cheap)."""
+        if self._encoder is None:
+            from ..segments.encoders import get_encoder
+
+            self._encoder = get_encoder(self.meta["encoder_spec"], self.device)
+        return self._encoder
+
     @property
     def W(self) -> Tensor:  # [E, D]
         return self.field.W.detach()

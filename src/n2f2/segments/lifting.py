@@ -1,0 +1,170 @@
+"""Lift segments to 3D and measure their physical scale (paper Sec. 3.2, following GARField).
+
+Each segment's pixels are unprojected with the view's depth (the fitted 3DGS's expected depth,
+or the demo scene's exact depth with ``--depth-source gt``); its scale is the largest
+eigenvalue of the covariance of those 3D points (units: scene length squared). The mask is
+eroded once with a 3 x 3 kernel first, so pixels on depth discontinuities at the segment's
+boundary (which belong to the background as often as to the segment) do not inflate it.
+
+Everything works on the bank's non-overlapping id layers: per layer, one ``np.bincount`` per
+moment gives the point count, sums and second moments of every segment at once.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Optional
+
+import numpy as np
+
+from ..cameras import Camera
+from ..errors import InputError
+
+# A depth provider returns, for view i, z-depth [H, W] and a validity mask [H, W].
+DepthProvider = Callable[[int], tuple[np.ndarray, np.ndarray]]
+
+
+@dataclass
+class LiftSettings:
+    erode: bool = True  # erode each mask once with a 3 x 3 kernel before lifting (GARField)
+    min_points: int = 10  # fewer valid 3D points -> degenerate segment (scale NaN, dropped)
+    min_alpha: float = 0.5  # rendered pixels with less accumulated opacity have no depth
+
+
+def erode_layers(layers: np.ndarray) -> np.ndarray:  # [L, H, W] int -> [L, H, W] int32
+    """Erode every segment of every id layer with a 3 x 3 square kernel, as ``cv2.erode`` does
+    on each segment's binary mask (pixels outside the image count as inside the mask).
+
+    A pixel keeps its id iff all 8 neighbours carry the same id. Replicate-padding the border
+    equals ignoring out-of-image neighbours, which is cv2's default border for erosion."""
+    layers = np.asarray(layers, dtype=np.int32)
+    if layers.size == 0:
+        return layers.copy()
+    padded = np.pad(layers, ((0, 0), (1, 1), (1, 1)), mode="edge")
+    H, W = layers.shape[1:]
+    same = np.ones(layers.shape, dtype=bool)
+    for dy in (0, 1, 2):
+        for dx in (0, 1, 2):
+            same &= padded[:, dy:dy + H, dx:dx + W] == layers
+    return np.where(same, layers, -1).astype(np.int32)
+
+
+def _moments(layers: np.ndarray,  # [L, H, W] int32
+             points: np.ndarray,  # [H, W, 3] float64, centred
+             valid: np.ndarray,  # [H, W] bool
+             S: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per segment: count [S], sum of points [S, 3], sum of outer products [S, 3, 3]."""
+    count = np.zeros(S)
+    first = np.zeros((S, 3))
+    second = np.zeros((S, 3, 3))
+    p = points[valid]  # [P, 3]
+    outer = (p[:, :, None] * p[:, None, :]).reshape(-1, 9)  # [P, 9]
+    for layer in layers:
+        ids = layer[valid]
+        sel = ids >= 0
+        ids = ids[sel]
+        if ids.size == 0:
+            continue
+        count += np.bincount(ids, minlength=S)[:S]
+        for c in range(3):
+            first[:, c] += np.bincount(ids, weights=p[sel, c], minlength=S)[:S]
+        for c in range(9):
+            second.reshape(S, 9)[:, c] += np.bincount(ids, weights=outer[sel, c], minlength=S)[:S]
+    return count, first, second
+
+
+def segment_scales(layers: np.ndarray,  # [L, H, W] int32 segment ids, -1 = none
+                   points: np.ndarray,  # [H, W, 3] world points at the pixel centres
+                   valid: np.ndarray,  # [H, W] bool: pixel has a trustworthy depth
+                   num_segments: int,
+                   settings: Optional[LiftSettings] = None) -> tuple[np.ndarray, np.ndarray]:
+    """Physical scale of every segment: the largest eigenvalue of the covariance of its lifted
+    (eroded) pixels. Returns ``(scales [S] float32, NaN for degenerate segments,
+    num_points [S] int64)``.
+
+    Erosion falls back to the un-eroded mask for a segment whose eroded mask keeps fewer than
+    ``min_points`` valid pixels (thin segments would otherwise vanish); a segment with fewer
+    than ``min_points`` valid pixels either way is degenerate."""
+    st = settings or LiftSettings()
+    S = int(num_segments)
+    if S == 0:
+        return np.zeros(0, np.float32), np.zeros(0, np.int64)
+    valid = np.asarray(valid, dtype=bool) & np.isfinite(points).all(axis=-1)
+    pts = np.asarray(points, dtype=np.float64)
+    pts = pts - (pts[valid].mean(axis=0) if valid.any() else 0.0)  # centring keeps E[xx^T] - mu mu^T accurate
+    count, first, second = _moments(layers, pts, valid, S)
+    if st.erode:
+        e_count, e_first, e_second = _moments(erode_layers(layers), pts, valid, S)
+        use = e_count >= st.min_points
+        count = np.where(use, e_count, count)
+        first = np.where(use[:, None], e_first, first)
+        second = np.where(use[:, None, None], e_second, second)
+    ok = count >= max(st.min_points, 2)
+    n = np.maximum(count, 1)[:, None]
+    mean = first / n
+    cov = second / n[..., None] - mean[:, :, None] * mean[:, None, :]
+    cov = 0.5 * (cov + cov.transpose(0, 2, 1))
+    largest = np.linalg.eigvalsh(cov)[:, -1]
+    scales = np.where(ok, np.maximum(largest, 0.0), np.nan).astype(np.float32)
+    return scales, count.astype(np.int64)
+
+
+def lift_view(layers: np.ndarray,  # [L, H, W]
+              depth: np.ndarray,  # [H, W] z-depth
+              valid: np.ndarray,  # [H, W] bool
+              camera: Camera,
+              num_segments: int,
+              settings: Optional[LiftSettings] = None) -> tuple[np.ndarray, np.ndarray]:
+    """Unproject one view's depth with its camera and measure every segment's scale."""
+    depth = np.asarray(depth, dtype=np.float64)
+    if depth.shape != (camera.height, camera.width) or layers.shape[1:] != depth.shape:
+        raise ValueError(f"depth {depth.shape}, segments {layers.shape[1:]} and camera "
+                         f"{camera.height}x{camera.width} sizes differ")
+    valid = np.asarray(valid, dtype=bool) & np.isfinite(depth) & (depth > 0)
+    points = camera.depth_to_points(np.where(valid, depth, 0.0))
+    return segment_scales(layers, points, valid, num_segments, settings)
+
+
+# ----------------------------------------------------------------------------- depth sources
+def render_depth_provider(gaussians, cameras: list[Camera], min_alpha: float = 0.5,
+                          **render_kw) -> DepthProvider:
+    """Expected z-depth of fitted Gaussians (``n2f2.render``); pixels with accumulated opacity
+    <= ``min_alpha`` have no trustworthy depth."""
+    import torch
+
+    from ..render import render_rgb
+
+    def provide(i: int) -> tuple[np.ndarray, np.ndarray]:
+        with torch.no_grad():
+            out = render_rgb(gaussians, cameras[i], **render_kw)
+        depth = out.depth[..., 0].detach().cpu().numpy().astype(np.float64)
+        alpha = out.alpha[..., 0].detach().cpu().numpy()
+        return depth, alpha > min_alpha
+
+    return provide
+
+
+def gt_depth_provider(scene) -> DepthProvider:
+    """The demo scene's exact depth (``depth/<stem>.npy``), resized to the scene's cameras
+    (nearest, at pixel centres); 0 / non-finite depth = background."""
+    if scene.ground_truth is None:
+        raise InputError(scene.root, "--depth-source gt needs a scene with exact depth maps "
+                         "(depth/*.npy, as the built-in demo scene has)")
+    from .segmenters import resize_nearest
+
+    def provide(i: int) -> tuple[np.ndarray, np.ndarray]:
+        gt = scene.ground_truth
+        path = gt.root / "depth" / f"{gt.image_names[i]}.npy"
+        try:
+            depth = np.asarray(gt.depth(i), dtype=np.float64)
+        except (OSError, ValueError) as e:
+            raise InputError(path, f"cannot read depth ({e})") from None
+        cam = scene.cameras[i]
+        if depth.ndim != 2:
+            raise InputError(path, f"expected a depth map [H, W], got shape {depth.shape}")
+        if depth.shape != (cam.height, cam.width):
+            depth = resize_nearest(depth[None], cam.height, cam.width)[0]
+        valid = np.isfinite(depth) & (depth > 0)
+        return depth, valid
+
+    return provide

@@ -1,0 +1,172 @@
+"""``n2f2 train``: optimise the nested feature field of a scene (3DGS frozen), and
+``n2f2 eval-field``: per-level cosine similarity to the teacher on held-out views (demo scene)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+# Field options: name -> (type, help). None = keep the preset's (or the checkpoint's) value.
+_FIELD_OPTIONS = {
+    "backbone": (str, "triplane: TriPlane + 3-layer MLP (paper); mlp: positional encoding + MLP"),
+    "dim": (int, "D, feature-field dims = number of quantized scales (cpu 128, paper 512)"),
+    "plane_resolution": (int, "TriPlane resolution (cpu 128, paper 512)"),
+    "plane_channels": (int, "TriPlane channels, rasterized by deferred rendering (cpu 32, paper 64)"),
+    "hidden": (int, "MLP hidden width (256)"),
+    "pe_frequencies": (int, "positional-encoding frequencies of the MLP backbone (8)"),
+    "variant": (str, "nested (N2F2), flat (non-nested ablation), levels (3 scale groups, LangSplat-like)"),
+    "step_size": (int, "k of the dimension-scale mapping, paper Table 6 (1)"),
+}
+_TRAIN_OPTIONS = {
+    "iterations": (int, "optimisation steps (cpu 1500, paper 30000)"),
+    "views_per_step": (int, "views rendered per step (1)"),
+    "pixels_per_step": (int, "sampled pixels per step (cpu 2048, paper 4096)"),
+    "checkpoint_every": (int, "write checkpoint.pt every N steps; 0: only at the end"),
+    "cos_weight": (float, "lambda of the cosine loss (0.001)"),
+}
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "train", help="train the nested feature field (writes field.pt and train_report.json)",
+        description="Optimise N2F2's nested feature field on a scene with frozen 3D Gaussians and a "
+                    "segment bank: TriPlane+MLP at the Gaussian centres, deferred rendering, "
+                    "scale-masked projection W, L2 + 0.001 cosine loss. Writes DIR/field.pt, "
+                    "DIR/train_report.json, DIR/checkpoint.pt and DIR/gaussians.ply.")
+    p.add_argument("data", metavar="DATA", help="scene folder (COLMAP sparse/0 or nerfstudio transforms.json)")
+    p.add_argument("--gaussians", required=True, metavar="PLY", help="fitted 3DGS (gaussians.ply or its folder)")
+    p.add_argument("--segments", required=True, metavar="BANK", help="segment bank folder (`n2f2 segments`)")
+    p.add_argument("--out", required=True, metavar="DIR", help="run folder")
+    p.add_argument("--preset", choices=["cpu", "paper"], default=None,
+                   help="cpu: small field, 1500 steps (default without CUDA); paper: D=512, 512^2x64 "
+                        "planes, 30k steps (default with --device cuda)")
+    for name, (typ, text) in {**_FIELD_OPTIONS, **_TRAIN_OPTIONS}.items():
+        flag = "--" + name.replace("_", "-")
+        kw = {"choices": {"backbone": ["triplane", "mlp"], "variant": ["nested", "flat", "levels"]}[name]} \
+            if name in ("backbone", "variant") else {}
+        p.add_argument(flag, type=typ, default=None, help=text, **kw)
+    p.add_argument("--no-deferred", action="store_true",
+                   help="rasterize D-dim features (MLP per Gaussian) instead of deferred rendering")
+    p.add_argument("--train-on-all", action="store_true",
+                   help="also train on the views scene.json lists as test_views (held out by default)")
+    p.add_argument("--resume", action="store_true", help="continue from DIR/checkpoint.pt")
+    p.add_argument("--downscale", type=float, default=1.0, help="image downscale factor, as 3DGS -r (default 1)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--device", default=None, help="torch device (default: cuda when available, else cpu)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=run_train)
+
+    e = subparsers.add_parser(
+        "eval-field", help="per-level cosine similarity of a trained field to the teacher (demo scene)",
+        description="For each hierarchy level (part, object, group) of a scene with ground-truth regions, "
+                    "the mean cosine similarity between phi(u, s) and the teacher embedding of the "
+                    "segment covering u, on the held-out views of the run.")
+    e.add_argument("run", metavar="RUN", help="run folder of `n2f2 train`")
+    e.add_argument("--data", metavar="DATA", default=None, help="scene folder (default: the one the run used)")
+    e.add_argument("--segments", metavar="BANK", default=None, help="segment bank (default: the run's)")
+    e.add_argument("--views", choices=["heldout", "train", "all"], default="heldout",
+                   help="which views to score (default: held-out)")
+    e.add_argument("--out", metavar="JSON", default=None, help="write the result here (default RUN/eval_field.json)")
+    e.add_argument("--device", default="cpu", help="torch device (default cpu)")
+    e.set_defaults(func=run_eval_field)
+
+
+def _gaussians_path(path: str) -> Path:
+    from ..errors import InputError
+
+    p = Path(path)
+    if p.is_dir():
+        p = p / "gaussians.ply"
+    if not p.is_file():
+        raise InputError(p, "Gaussians file does not exist (run `n2f2 fit-gaussians` first)")
+    return p
+
+
+def run_train(args: argparse.Namespace) -> int:
+    from dataclasses import replace
+
+    import torch
+
+    from ..data import load_scene
+    from ..errors import InputError
+    from ..gaussians import read_ply
+    from ..segments import SegmentBank
+    from .trainer import TrainConfig, field_preset, saved_configs, train_field
+
+    device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
+    preset = args.preset or ("paper" if str(device).startswith("cuda") else "cpu")
+    for name in list(_FIELD_OPTIONS) + list(_TRAIN_OPTIONS):
+        value = getattr(args, name)
+        if isinstance(value, (int, float)) and not isinstance(value, bool) and value < 0:
+            raise InputError(None, f"--{name.replace('_', '-')} must be >= 0, got {value}")
+    if args.downscale <= 0:
+        raise InputError(None, f"--downscale must be > 0, got {args.downscale}")
+
+    field_over = {k: getattr(args, k) for k in _FIELD_OPTIONS if getattr(args, k) is not None}
+    train_over = {k: getattr(args, k) for k in _TRAIN_OPTIONS if getattr(args, k) is not None}
+    saved = saved_configs(args.out) if args.resume else None
+    try:
+        if saved is not None:  # a resumed run keeps the checkpoint's settings; flags may change them
+            field_config = replace(saved[0], **field_over)
+            config = saved[1]
+        else:
+            field_config = field_preset(preset, **field_over)
+            config = replace(TrainConfig.preset(preset), seed=args.seed)
+        config = replace(config, device=device, **train_over)
+        if args.no_deferred:
+            config = replace(config, deferred=False)
+        if args.train_on_all:
+            config = replace(config, holdout=False)
+    except ValueError as e:
+        raise InputError(None, str(e)) from None
+
+    gpath = _gaussians_path(args.gaussians)
+    scene = load_scene(args.data, downscale=args.downscale)
+    bank = SegmentBank.open(args.segments)
+    gaussians = read_ply(gpath)
+    report = train_field(scene, gaussians, bank, args.out, field_config=field_config, config=config,
+                         resume=args.resume, progress=not args.quiet,
+                         paths={"scene": str(Path(args.data).resolve()), "gaussians": str(gpath.resolve()),
+                                "bank": str(Path(args.segments).resolve())})
+    print(f"train: {report['steps']} steps ({field_config.variant}, D={field_config.dim}, "
+          f"{'deferred' if config.deferred else 'non-deferred'}), final loss {report['final_loss']:.5f}, "
+          f"{report['time_per_iteration_s'] * 1000:.0f} ms/step, peak RSS {report['peak_rss_mb']:.0f} MB "
+          f"-> {args.out}" if report["time_per_iteration_s"] else f"train: already at step {report['steps']} -> {args.out}")
+    return 0
+
+
+def run_eval_field(args: argparse.Namespace) -> int:
+    from ..data import load_scene
+    from ..errors import InputError
+    from ..field import load_field
+    from ..gaussians import read_ply
+    from ..io import write_json
+    from ..segments import SegmentBank
+    from .evaluate import evaluate_cosine_by_level
+    from .trainer import FIELD_NAME
+
+    run = Path(args.run)
+    field, meta = load_field(run / FIELD_NAME, device=args.device)
+    data = args.data or meta.get("scene")
+    bank_path = args.segments or meta.get("bank")
+    if not data or not bank_path:
+        raise InputError(run / FIELD_NAME, "the run does not record its scene / bank; pass --data and --segments")
+    scene = load_scene(data)
+    if scene.ground_truth is None:
+        raise InputError(data, "eval-field needs a scene with ground-truth regions (the demo scene)")
+    bank = SegmentBank.open(bank_path)
+    bank.validate_against(scene)
+    if bank.embed_dim != field.embed_dim:
+        raise InputError(bank_path, f"bank embeddings are {bank.embed_dim}-d but the field was trained for "
+                                    f"E = {field.embed_dim}")
+    gaussians = read_ply(_gaussians_path(meta.get("gaussians") or str(run)))
+    views = {"heldout": meta.get("heldout_views") or [], "train": meta.get("train_views") or [],
+             "all": list(range(len(scene)))}[args.views]
+    if not views:
+        raise InputError(run / FIELD_NAME, f"the run has no {args.views} views (use --views all)")
+    result = evaluate_cosine_by_level(field, gaussians, scene, bank, views, device=args.device)
+    result["run"] = str(run)
+    write_json(args.out or run / "eval_field.json", result)
+    cells = ", ".join(f"{k} {v['cosine']:.4f}" for k, v in result["levels"].items() if v["cosine"] is not None)
+    print(f"eval-field: mean cosine on {len(views)} {args.views} views: {cells}")
+    return 0

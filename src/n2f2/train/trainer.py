@@ -1,0 +1,372 @@
+"""Feature-field optimisation with hierarchical supervision (paper Sec. 3.2, appendix
+"Feature Field Optimization" and "Deferred rendering").
+
+One step:
+
+1. pick ``views_per_step`` training views; sample ``pixels_per_step`` pixels uniformly over
+   their segment-covered pixels and, per pixel, one covering segment with probability
+   ∝ 1 / log(area) (:mod:`n2f2.train.sampling`);
+2. **deferred rendering** (default): query the backbone at the (frozen) Gaussian centres,
+   rasterize those low-dimensional features (F = TriPlane channels), gather the sampled pixels
+   and run the MLP there, giving ``theta(u) [P, D]``. Without deferral the MLP runs per
+   Gaussian and D channels are rasterized (what test time does);
+3. ``phi = W (B(s) * theta)`` with the variant's mask B(s); loss ``L2 + lambda * (1 - cos)``;
+   Adam, TriPlane at ``0.0016 x scene extent``, MLP and W at ``0.00125``.
+
+Checkpoints (``RUN/checkpoint.pt``: field + W + config + optimiser + step + sampler RNG + loss
+curve) are written atomically every ``checkpoint_every`` steps; ``resume=True`` continues from
+the saved step with exactly the saved state, so an interrupted run ends where an uninterrupted
+one would.
+"""
+
+from __future__ import annotations
+
+import resource
+import shutil
+import time
+from dataclasses import asdict, dataclass, fields, replace
+from pathlib import Path
+from typing import Any, Callable, Optional, Union
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from ..errors import InputError
+from ..field.model import FieldConfig, NestedField, bbox_from_points, save_field
+from ..io import save_torch, write_json
+from .sampling import PixelBatch, ViewSegments, sample_pixels
+
+FIELD_NAME = "field.pt"
+CHECKPOINT_NAME = "checkpoint.pt"
+REPORT_NAME = "train_report.json"
+GAUSSIANS_NAME = "gaussians.ply"
+_CHECKPOINT_FORMAT = "n2f2-field-checkpoint-v1"
+
+
+# ------------------------------------------------------------------------------------ config
+@dataclass
+class TrainConfig:
+    """Optimisation settings. Defaults are the paper's (30k iterations, GPU); :meth:`cpu` is the
+    preset for the built-in demo scene on a 2-core CPU."""
+
+    iterations: int = 30_000
+    views_per_step: int = 1  # views rendered per step; pixels are sampled across them
+    pixels_per_step: int = 4096  # sampled pixels (each with one sampled segment) per step
+    lr_triplane: float = 0.0016  # x scene extent (paper)
+    lr_mlp: float = 0.00125  # MLP and W (paper)
+    cos_weight: float = 0.001  # lambda of the cosine term (paper)
+    deferred: bool = True  # rasterize backbone features, MLP per pixel (paper, training only)
+    holdout: bool = True  # leave scene.json's test_views out of training
+    checkpoint_every: int = 500  # 0: only at the end
+    log_every: int = 10  # loss-curve sampling and progress-bar refresh
+    seed: int = 0
+    device: str = "cpu"
+
+    @staticmethod
+    def paper() -> "TrainConfig":
+        return TrainConfig()
+
+    @staticmethod
+    def cpu() -> "TrainConfig":
+        """The built-in demo scene (40 views of 160x120) in a few minutes on 2 cores."""
+        return TrainConfig(iterations=1500, pixels_per_step=2048, checkpoint_every=250)
+
+    @staticmethod
+    def preset(name: str) -> "TrainConfig":
+        presets = {"cpu": TrainConfig.cpu, "paper": TrainConfig.paper}
+        if name not in presets:
+            raise ValueError(f"unknown preset {name!r}; choose from {sorted(presets)}")
+        return presets[name]()
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @staticmethod
+    def from_dict(d: dict) -> "TrainConfig":
+        known = {f.name for f in fields(TrainConfig)}
+        return TrainConfig(**{k: v for k, v in d.items() if k in known})
+
+
+def field_preset(name: str, **overrides: Any) -> FieldConfig:
+    """``"cpu"``: FieldConfig defaults (D = 128, TriPlane 128^2 x 32); ``"paper"``: 512, 512^2 x 64."""
+    if name == "paper":
+        return FieldConfig.paper(**overrides)
+    if name == "cpu":
+        return FieldConfig(**overrides)
+    raise ValueError(f"unknown preset {name!r}; choose from ['cpu', 'paper']")
+
+
+# ------------------------------------------------------------------------------------ loss
+def hierarchical_loss(phi: Tensor,  # [P, E] scale-aware features
+                      target: Tensor,  # [P, E] teacher embeddings
+                      cos_weight: float) -> tuple[Tensor, Tensor, Tensor]:
+    """``L2 + lambda * L_cos`` (paper eq. 5): L2 is the mean squared error over pixels and
+    embedding dims; L_cos the mean cosine distance ``1 - cos(phi, target)``. Returns
+    ``(loss, l2, cos)``."""
+    l2 = F.mse_loss(phi, target)
+    cos = (1.0 - F.cosine_similarity(phi, target, dim=-1, eps=1e-8)).mean()
+    return l2 + cos_weight * cos, l2, cos
+
+
+# ------------------------------------------------------------------------------------ data
+def split_views(scene: Any, holdout: bool) -> tuple[list[int], list[int]]:
+    """(train, held-out) views: scene.json's ``test_views`` are held out when ``holdout``."""
+    if not holdout:
+        return list(range(len(scene))), []
+    from ..gaussians.fit import split_views as _split  # the one reader of scene.json's test_views
+
+    return _split(scene, 0)
+
+
+def bank_cameras(scene: Any, bank: Any) -> list:
+    """The scene's cameras at the bank's resolution (segment masks are per bank pixel)."""
+    return [c if (c.width, c.height) == (bank.width, bank.height) else c.scaled(bank.width, bank.height)
+            for c in scene.cameras]
+
+
+def frozen_geometry(gaussians: Any, device: Union[str, torch.device]) -> dict[str, Tensor]:
+    """Detached activated Gaussian parameters: the 3DGS is frozen while the field trains."""
+    with torch.no_grad():
+        return {"means": gaussians.means.detach().float().to(device).contiguous(),
+                "quats": gaussians.quats.detach().float().to(device).contiguous(),
+                "scales": gaussians.scales.detach().float().to(device).contiguous(),
+                "opacities": gaussians.opacities.detach().float().to(device).contiguous()}
+
+
+def render_features(geometry: dict[str, Tensor], features: Tensor,  # [N, C]
+                    camera: Any) -> Tensor:  # -> [H * W, C]
+    """Rasterize per-Gaussian ``features`` (gradients flow to them only)."""
+    from ..render import rasterize
+
+    out = rasterize(geometry["means"], geometry["quats"], geometry["scales"], geometry["opacities"],
+                    features, camera)
+    return out.features.reshape(-1, features.shape[1])
+
+
+def pixel_theta(field: NestedField, geometry: dict[str, Tensor], cameras: list, batch: PixelBatch,
+                deferred: bool) -> Tensor:  # -> theta [P, D] for the batch's pixels
+    """theta(u) at the sampled pixels of the step's views (``cameras[k]`` = view slot k)."""
+    if deferred:
+        per_gaussian = field.encode(field.normalize(geometry["means"]))  # [N, F]
+    else:
+        per_gaussian = field(geometry["means"])  # [N, D]
+    order, rows = [], []
+    for k, cam in enumerate(cameras):
+        sel = torch.nonzero(batch.slot == k).squeeze(1)  # [p] rows of the batch from view slot k
+        if sel.numel() == 0:
+            continue
+        image = render_features(geometry, per_gaussian, cam)  # [H*W, C]
+        order.append(sel)
+        rows.append(image[batch.pixel[sel]])
+    gathered = torch.cat(rows)  # [P, C] grouped by slot
+    out = torch.empty_like(gathered)
+    out[torch.cat(order)] = gathered  # back to batch order
+    return field.decode(out) if deferred else out
+
+
+# ------------------------------------------------------------------------------------ training
+def _peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
+
+
+def _load_checkpoint(path: Path) -> dict:
+    try:
+        ck = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as e:  # noqa: BLE001 - any unreadable file is the user's input problem
+        raise InputError(path, f"cannot read checkpoint ({type(e).__name__}: {e})") from None
+    if not isinstance(ck, dict) or ck.get("format") != _CHECKPOINT_FORMAT:
+        raise InputError(path, "not an n2f2 train checkpoint")
+    return ck
+
+
+def saved_configs(out_dir: Union[str, Path]) -> Optional[tuple[FieldConfig, TrainConfig]]:
+    """(field config, train config) of the checkpoint in ``out_dir``, or None when there is none."""
+    path = Path(out_dir) / CHECKPOINT_NAME
+    if not path.is_file():
+        return None
+    ck = _load_checkpoint(path)
+    return FieldConfig.from_dict(ck["field_meta"]["config"]), TrainConfig.from_dict(ck["train_config"])
+
+
+def _view_segments(bank: Any, views: list[int], show_progress: bool) -> dict[int, ViewSegments]:
+    from tqdm import tqdm
+
+    out = {}
+    for v in tqdm(views, desc="loading segments", disable=not show_progress, leave=False):
+        out[v] = ViewSegments.from_record(v, bank.record(v))
+    return out
+
+
+def train_field(
+    scene: Any,  # n2f2.data.Scene
+    gaussians: Any,  # n2f2.gaussians.Gaussians (frozen)
+    bank: Any,  # n2f2.segments SegmentBank
+    out_dir: Union[str, Path],
+    *,
+    field_config: Optional[FieldConfig] = None,
+    config: Optional[TrainConfig] = None,
+    resume: bool = False,
+    paths: Optional[dict] = None,  # {"scene", "gaussians", "bank"}: recorded in meta
+    progress: bool = True,
+    callback: Optional[Callable[[int, float], None]] = None,  # after each step: (step, loss)
+) -> dict:
+    """Optimise the nested feature field; writes ``field.pt``, ``checkpoint.pt`` and
+    ``train_report.json`` in ``out_dir`` and returns the report."""
+    from tqdm import tqdm
+
+    out = Path(out_dir)
+    paths = {k: (None if v is None else str(v)) for k, v in (paths or {}).items()}
+    config = config or TrainConfig.cpu()
+    field_config = field_config or FieldConfig()
+    device = torch.device(config.device)
+    bank_path = paths.get("bank")
+    bank.validate_against(scene)  # a bank of another scene (image count, names, sizes): InputError
+    E = int(bank.embed_dim)
+    ck_path = out / CHECKPOINT_NAME
+
+    checkpoint = None
+    if resume:
+        if not ck_path.is_file():
+            raise InputError(ck_path, "no checkpoint to resume from (run without --resume to start)")
+        checkpoint = _load_checkpoint(ck_path)
+        fmeta = checkpoint["field_meta"]
+        if int(fmeta["embed_dim"]) != E:
+            raise InputError(bank_path, f"segment bank embeddings have dim {E} but the checkpoint "
+                                        f"{ck_path} was trained with E = {fmeta['embed_dim']} "
+                                        f"(encoder {fmeta.get('encoder_spec')!r})")
+        saved = FieldConfig.from_dict(fmeta["config"])
+        if saved != field_config:
+            raise InputError(ck_path, f"checkpoint field config {saved} differs from the requested {field_config}")
+        if int(checkpoint["num_gaussians"]) != int(gaussians.means.shape[0]):
+            raise InputError(paths.get("gaussians"), f"the checkpoint was trained on {checkpoint['num_gaussians']} "
+                                                     f"Gaussians, this model has {gaussians.means.shape[0]}")
+
+    train_views, test_views = split_views(scene, config.holdout)
+    cameras = bank_cameras(scene, bank)
+    geometry = frozen_geometry(gaussians, device)
+    extent = float(scene.extent())
+    if checkpoint is not None:
+        bbox_min, bbox_max = np.asarray(checkpoint["field_meta"]["bbox_min"]), np.asarray(checkpoint["field_meta"]["bbox_max"])
+    else:
+        bbox_min, bbox_max = bbox_from_points(geometry["means"])
+    torch.manual_seed(config.seed)  # initial TriPlane / MLP weights
+    field = NestedField(field_config, E, bbox_min, bbox_max).to(device)
+    optimizer = torch.optim.Adam(field.param_groups(config.lr_triplane * extent, config.lr_mlp))
+    generator = torch.Generator().manual_seed(config.seed)
+    step, curve, train_time = 0, {"step": [], "loss": [], "l2": [], "cos": []}, 0.0
+    if checkpoint is not None:
+        field.load_state_dict(checkpoint["field_state"])
+        optimizer.load_state_dict(checkpoint["optimizer"])
+        generator.set_state(checkpoint["rng"])
+        step, curve, train_time = int(checkpoint["step"]), checkpoint["curve"], float(checkpoint["train_time"])
+
+    meta = {
+        "encoder_spec": getattr(bank, "encoder_spec", None),
+        "scene": paths.get("scene") or str(getattr(scene, "root", "")),
+        "gaussians": paths.get("gaussians"),
+        "bank": bank_path,
+        "scene_extent": extent,
+        "num_gaussians": int(geometry["means"].shape[0]),
+        "bank_size": [int(bank.width), int(bank.height)],
+        "train_views": train_views,
+        "heldout_views": test_views,
+    }
+
+    segments = _view_segments(bank, train_views, progress)
+    usable = [v for v in train_views if len(segments[v].covered)]
+    if not usable:
+        raise InputError(bank_path, "no training view has a pixel covered by a valid segment")
+
+    def checkpoint_blob() -> dict:
+        return {"format": _CHECKPOINT_FORMAT, "step": step,
+                "field_state": {k: v.detach().cpu().clone() for k, v in field.state_dict().items()},
+                "field_meta": {**meta, "config": field_config.to_dict(), "embed_dim": E,
+                               "bbox_min": list(map(float, bbox_min)), "bbox_max": list(map(float, bbox_max))},
+                "optimizer": optimizer.state_dict(), "rng": generator.get_state(),
+                "train_config": config.to_dict(), "curve": curve, "window": list(window), "train_time": train_time,
+                "num_gaussians": int(geometry["means"].shape[0])}
+
+    out.mkdir(parents=True, exist_ok=True)
+    iter_times: list[float] = []
+    # Losses since the last curve point (checkpointed, so a resumed curve equals an uninterrupted one).
+    window: list[tuple[float, float, float]] = [tuple(w) for w in checkpoint.get("window", [])] if checkpoint else []
+    bar = tqdm(total=config.iterations, initial=min(step, config.iterations), desc="train field",
+               disable=not progress, dynamic_ncols=True)
+    field.train()
+    while step < config.iterations:
+        t0 = time.perf_counter()
+        pick = torch.randperm(len(usable), generator=generator)[:config.views_per_step].tolist()
+        views = [usable[i] for i in pick]
+        batch = sample_pixels([segments[v] for v in views], config.pixels_per_step, generator)
+        theta = pixel_theta(field, geometry, [cameras[v] for v in views], _to(batch, device), config.deferred)
+        mask = field.supervision_mask(batch.scale.to(device))
+        phi = field.project(theta, mask)
+        loss, l2, cos = hierarchical_loss(phi, batch.target.to(device), config.cos_weight)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        step += 1
+        dt = time.perf_counter() - t0
+        train_time += dt
+        iter_times.append(dt)
+        values = (loss.item(), l2.item(), cos.item())
+        window.append(values)
+        if step % config.log_every == 0 or step == config.iterations:
+            m = np.mean(window, axis=0)
+            for key, value in zip(("loss", "l2", "cos"), m):
+                curve[key].append(float(value))
+            curve["step"].append(step)
+            window.clear()
+            bar.set_postfix(loss=f"{m[0]:.4g}", cos=f"{1 - m[2]:.3f}")
+        bar.update(1)
+        if config.checkpoint_every and step % config.checkpoint_every == 0 and step < config.iterations:
+            save_torch(ck_path, checkpoint_blob())
+        if callback is not None:
+            callback(step, values[0])
+    bar.close()
+
+    save_torch(ck_path, checkpoint_blob())
+    field.eval()
+    gpath = _record_gaussians(paths.get("gaussians"), out)
+    field_meta = {**meta, "gaussians": gpath, "step": step, "train_config": config.to_dict()}
+    save_field(out / FIELD_NAME, field, field_meta)
+    report = {
+        "steps": step,
+        "variant": field_config.variant,
+        "deferred": config.deferred,
+        "field_config": field_config.to_dict(),
+        "train_config": config.to_dict(),
+        "embed_dim": E,
+        "num_gaussians": meta["num_gaussians"],
+        "train_views": train_views,
+        "heldout_views": test_views,
+        "scene_extent": extent,
+        "final_loss": curve["loss"][-1] if curve["loss"] else None,
+        "train_time_s": train_time,
+        # This session's iterations only (a resumed run measures what it ran).
+        "time_per_iteration_s": float(np.median(iter_times)) if iter_times else None,
+        "peak_rss_mb": _peak_rss_mb(),
+        "curve": curve,
+        "paths": {**paths, "gaussians": gpath},
+    }
+    write_json(out / REPORT_NAME, report)
+    return report
+
+
+def _to(batch: PixelBatch, device: torch.device) -> PixelBatch:
+    return PixelBatch(*(getattr(batch, f.name).to(device) for f in fields(PixelBatch)))
+
+
+def _record_gaussians(path: Optional[str], out: Path) -> Optional[str]:
+    """Copy the PLY the field was trained on into the run folder (so RUN/ is self-contained)."""
+    if not path:
+        return None
+    src, dst = Path(path), out / GAUSSIANS_NAME
+    if src.resolve() != dst.resolve():
+        from ..io import atomic_path
+
+        with atomic_path(dst) as tmp:
+            shutil.copyfile(src, tmp)
+    return str(dst)

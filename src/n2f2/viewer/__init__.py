@@ -1,0 +1,1 @@
+"""Live viewer: a local web page and JSON API over a trained run (see ``viewer.server``)."""

