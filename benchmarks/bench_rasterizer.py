@@ -7,6 +7,14 @@ Each case runs in a fresh subprocess so that its peak memory can be read as the 
 process's maximum resident set size (``ru_maxrss``) over the value measured just before the
 first render: "peak extra RSS". (tracemalloc cannot see torch's allocations.)
 
+Times are wall-clock medians; ``ns/pair`` = (forward + backward wall time) / pixel-Gaussian
+pairs the forward pass evaluated (padding included). ``CPU ns/pair`` uses the process CPU time
+instead (summed over threads); on a shared machine it is the steadier of the two.
+
+The cases run with ``OMP_WAIT_POLICY=PASSIVE`` unless the variable is set: with the default
+(spinning) policy, two torch threads on a machine shared with other busy processes were measured
+10x slower than one thread; passive waiting removes that.
+
 Scenes are random: Gaussians spread through the view frustum at depths 2..6, random rotations,
 anisotropic scales sized so that each pixel is covered by a few tens of Gaussians (like a
 trained 3DGS scene), opacities uniform in [0.05, 0.95], random features.
@@ -59,23 +67,26 @@ def run_case(n: int, size: int, channels: int, repeats: int) -> dict:
     params = [p.requires_grad_() for p in params]
     w = torch.rand(size, size, channels)
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux
-    fwd, bwd, pairs = [], [], 0
+    fwd, bwd, cpu, pairs = [], [], [], 0
     for _ in range(repeats + 1):  # the first run is a warm-up
         for p in params:
             p.grad = None
+        c0 = time.process_time()
         t0 = time.perf_counter()
         out = rasterize(*params, camera, backend="torch")
         t1 = time.perf_counter()
         loss = (out.features * w).sum() + out.alpha.sum() + out.depth.sum()
         loss.backward()
         t2 = time.perf_counter()
+        cpu.append(time.process_time() - c0)
         fwd.append(t1 - t0)
         bwd.append(t2 - t1)
         pairs = out.n_pairs
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss0
-    f, b = statistics.median(fwd[1:]), statistics.median(bwd[1:])
+    f, b, c = (statistics.median(x[1:]) for x in (fwd, bwd, cpu))
     return {"n": n, "size": size, "channels": channels, "fwd_ms": f * 1e3, "bwd_ms": b * 1e3,
-            "pairs": pairs, "ns_per_pair": (f + b) / max(pairs, 1) * 1e9, "peak_mib": peak / 1024,
+            "pairs": pairs, "ns_per_pair": (f + b) / max(pairs, 1) * 1e9,
+            "cpu_ns_per_pair": c / max(pairs, 1) * 1e9, "peak_mib": peak / 1024,
             "threads": torch.get_num_threads()}
 
 
@@ -83,28 +94,39 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="two smaller scenes, C = 3 and 64, one run each")
     ap.add_argument("--repeats", type=int, default=None, help="timed runs per case (median); default 3, quick 1")
+    ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
     ap.add_argument("--case", type=str, default=None, help=argparse.SUPPRESS)  # "n,size,channels" (subprocess)
     args = ap.parse_args()
     repeats = args.repeats or (1 if args.quick else 3)
+    if args.threads:
+        import torch
+
+        torch.set_num_threads(args.threads)
     if args.case:
         n, size, channels = (int(x) for x in args.case.split(","))
         print(json.dumps(run_case(n, size, channels, repeats)))
         return
     scenes = SCENES[:2] if args.quick else SCENES
     channels = CHANNELS[:2] if args.quick else CHANNELS
-    print(f"torch backend, {os.cpu_count()} CPUs visible; peak memory = growth of max RSS in a fresh process")
+    env = dict(os.environ)
+    env.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    load = os.getloadavg()[0]
+    print(f"torch backend, {os.cpu_count()} CPUs visible, 1-min load average {load:.1f} at start; "
+          f"OMP_WAIT_POLICY={env['OMP_WAIT_POLICY']}; peak memory = growth of max RSS in a fresh process")
     print()
-    print("| Gaussians | image | C | fwd ms | bwd ms | pairs evaluated | ns/pair (fwd+bwd) | peak extra RSS MiB |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("| Gaussians | image | C | fwd ms | bwd ms | pairs evaluated | ns/pair (fwd+bwd) | CPU ns/pair | peak extra RSS MiB |")
+    print("|---|---|---|---|---|---|---|---|---|")
     worst = 0.0
     for n, size in scenes:
         for c in channels:
             cmd = [sys.executable, __file__, "--case", f"{n},{size},{c}", "--repeats", str(repeats)]
-            res = subprocess.run(cmd, capture_output=True, text=True, check=True)
+            if args.threads:
+                cmd += ["--threads", str(args.threads)]
+            res = subprocess.run(cmd, capture_output=True, text=True, check=True, env=env)
             r = json.loads(res.stdout.strip().splitlines()[-1])
             worst = max(worst, r["ns_per_pair"])
             print(f"| {n} | {size}x{size} | {c} | {r['fwd_ms']:.0f} | {r['bwd_ms']:.0f} | {r['pairs']:,} "
-                  f"| {r['ns_per_pair']:.1f} | {r['peak_mib']:.0f} |", flush=True)
+                  f"| {r['ns_per_pair']:.1f} | {r['cpu_ns_per_pair']:.1f} | {r['peak_mib']:.0f} |", flush=True)
     print()
     print(f"worst ns/pair: {worst:.1f} (goal <= {GOAL_NS_PER_PAIR:.0f}); torch threads: {r['threads']}")
 

@@ -282,3 +282,13 @@ def test_init_random_in_frusta_points_are_inside():
     assert inside_some.all()
     g2 = init_random_in_frusta(cams, 500, near=1.0, far=6.0, seed=3, sh_degree=1)
     assert torch.equal(g.means, g2.means)
+
+
+def test_quat_to_rotmat_matches_cameras_convention():
+    from n2f2.cameras import qvec_to_rotmat
+    from n2f2.gaussians.model import quat_to_rotmat
+
+    q = np.random.default_rng(0).normal(size=(6, 4))
+    got = quat_to_rotmat(torch.tensor(q)).numpy()
+    for i in range(6):
+        np.testing.assert_allclose(got[i], qvec_to_rotmat(q[i]), atol=1e-12)

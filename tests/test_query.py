@@ -273,6 +273,17 @@ def test_engine_explicit_picks_best_scale_of_slow_maps(engine):
         best = int(slow[..., q].flatten(1).amax(1).argmax())
         assert res.chosen[q] == best
         torch.testing.assert_close(res.relevancy[q], slow[best, ..., q], rtol=0, atol=1e-5)
+    # LangSplat's choice: highest maximum of the protocol's R' = 0.5 (box(R) + R).
+    from n2f2.eval.protocol import smoothed_relevancy
+
+    engine.config.selection, engine.config.box_size = "smoothed", 5
+    try:
+        res = engine.query(view, texts, "explicit")
+    finally:
+        engine.config.selection, engine.config.box_size = "max", None
+    for q in range(2):
+        sm = smoothed_relevancy(slow[..., q].detach().numpy(), 5)
+        assert res.chosen[q] == int(sm.reshape(len(sm), -1).max(1).argmax())
 
 
 def test_engine_oracle_uses_scorer(engine):

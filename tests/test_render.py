@@ -182,6 +182,22 @@ def test_behind_camera_and_near_plane_are_culled():
     assert means.grad[:2].abs().max() == 0 and means.grad[2].abs().max() > 0
 
 
+def test_empty_and_degenerate_inputs_give_finite_gradients():
+    dt = torch.float32
+    empty = [torch.zeros(0, 3, dtype=dt), torch.zeros(0, 4, dtype=dt), torch.zeros(0, 3, dtype=dt),
+             torch.zeros(0, dtype=dt), torch.zeros(0, 5, dtype=dt)]
+    out = rasterize(*empty, _axis_camera(), backend="torch")
+    assert out.features.shape == (16, 16, 5) and out.alpha.abs().max() == 0 and out.depth.abs().max() == 0
+    # Behind the camera, and an opacity that underflowed to exactly 0.
+    params = [torch.tensor([[0.0, 0, -1], [0, 0, 2]]), torch.tensor([[1.0, 0, 0, 0]] * 2),
+              torch.full((2, 3), 0.1), torch.tensor([0.5, 0.0]), torch.ones(2, 3)]
+    params = [p.requires_grad_() for p in params]
+    out = rasterize(*params, _axis_camera(), backend="torch")
+    (out.features.sum() + out.alpha.sum() + out.depth.sum()).backward()
+    assert out.alpha.max() == 0 and (out.radii == 0).all()
+    assert all(torch.isfinite(p.grad).all() for p in params)
+
+
 def test_tiny_gaussian_lands_on_projected_pixel():
     camera = _camera(40, 30)
     rng = np.random.default_rng(0)
@@ -242,6 +258,16 @@ def test_eval_sh_known_values():
     assert expected[0, 1] > 0 and expected[1, 1] == 0  # the clamp acts on one entry only
     torch.testing.assert_close(eval_sh(sh, dirs, 1), expected)
     torch.testing.assert_close(eval_sh(sh, dirs, 0), (SH_C0 * sh[:, 0] + 0.5).clamp_min(0))
+
+
+def test_eval_sh_gradcheck():
+    g = torch.Generator().manual_seed(0)
+    sh = torch.randn(4, 16, 3, generator=g, dtype=torch.float64, requires_grad=True)
+    dirs = torch.randn(4, 3, generator=g, dtype=torch.float64, requires_grad=True)
+    # Keep away from the clamp at 0 (not differentiable there).
+    with torch.no_grad():
+        sh[:, 0] += 3.0
+    assert torch.autograd.gradcheck(lambda s, d: eval_sh(s, d, 3), (sh, dirs))
 
 
 def test_render_rgb_duck_typed():

@@ -6,7 +6,6 @@ Reference values come from hand-worked examples or from slow, independent re-imp
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 
 import cv2
@@ -21,7 +20,7 @@ from n2f2.io import write_png
 from n2f2.segments.bank import SegmentBank, build_bank
 from n2f2.segments.bins import QuantileScaleBins, scale_to_dims, three_level_groups
 from n2f2.segments.langsplat import LangSplatSource, read_langsplat
-from n2f2.segments.lifting import LiftSettings, erode_layers, lift_view, segment_scales
+from n2f2.segments.lifting import LiftSettings, erode_layers, lift_view, segment_medians, segment_scales
 from n2f2.segments.segmenters import (SegmentSet, greedy_mask_nms, layers_to_masks, mask_nms, pack_layers,
                                       relabel_label_maps, segment_areas, segment_layers)
 
@@ -268,6 +267,38 @@ def test_lift_view_known_plane():
     # no valid depth -> degenerate
     scales_n, _ = lift_view(layers, np.zeros((H, W)), np.ones((H, W), bool), cam, 1)
     assert np.isnan(scales_n[0])
+
+
+def test_segment_medians_match_numpy():
+    rng = np.random.default_rng(2)
+    ids = rng.integers(0, 7, 200)
+    ids[ids == 3] = 4  # segment 3 has no samples
+    vals = rng.normal(size=200)
+    got = segment_medians(ids, vals, 8)
+    want = [np.median(vals[ids == k]) if (ids == k).any() else np.nan for k in range(8)]
+    np.testing.assert_allclose(got, want, equal_nan=True)
+
+
+def test_depth_outliers_are_rejected():
+    """A segment on a plane at depth 2 whose mask leaks onto 4 background pixels at depth 9:
+    with outlier rejection its scale is that of the plane pixels alone."""
+    H, W, f = 20, 40, 20.0
+    cam = Camera(f, f, W / 2, H / 2, W, H)
+    depth = np.full((H, W), 9.0)
+    depth[4:12, 6:30] = 2.0
+    layers = np.full((1, H, W), -1, np.int32)
+    layers[0, 4:12, 6:30] = 0
+    layers[0, 12, 10:14] = 0  # leak: 4 background pixels below the plane
+    valid = np.ones((H, W), bool)
+    plain = LiftSettings(erode=False)
+    robust, n_robust = lift_view(layers, depth, valid, cam, 1, plain)
+    clean = layers.copy()
+    clean[0, 12] = -1
+    want, n_want = lift_view(clean, depth, valid, cam, 1, plain)
+    assert n_robust[0] == n_want[0] == 8 * 24
+    assert robust[0] == pytest.approx(want[0], rel=1e-9)
+    leaky, _ = lift_view(layers, depth, valid, cam, 1, LiftSettings(erode=False, outlier_mads=None))
+    assert leaky[0] > 2 * want[0]  # 4 leaked pixels out of 196 nearly triple the scale
 
 
 # ----------------------------------------------------------------------------- fake scenes

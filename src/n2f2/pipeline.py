@@ -71,7 +71,172 @@ class StageCache:
         return True
 
 
+# ----------------------------------------------------------------------------- the pipeline
+def _cli(argv: list[str]) -> None:
+    """Run one stage through its own CLI command, so ``run`` does exactly what the stage
+    commands do (same options, same validation, same outputs)."""
+    from .cli import build_parser
+
+    args = build_parser().parse_args([str(a) for a in argv])
+    rc = args.func(args)
+    if rc:
+        raise InputError(None, f"stage `n2f2 {argv[0]}` failed (exit {rc})")
+
+
+def scene_digest(scene_dir: Path) -> str:
+    """What the fitted Gaussians depend on: poses/intrinsics files and the images."""
+    return tree_digest(scene_dir, ("transforms.json", "sparse/**/*", "images/*", "*.ply"))
+
+
+@dataclass
+class RunOptions:
+    data: Path
+    out: Path
+    gaussians: Path | None = None
+    segmenter: str = "ground-truth"
+    encoder: str = "captions"
+    model: str | None = None
+    langsplat_features: Path | None = None
+    labels: Path | None = None
+    preset: str = "cpu"
+    fit_steps: int | None = None
+    train_steps: int | None = None
+    variant: str | None = None
+    depth_source: str = "render"
+    downscale: float = 1.0
+    modes: tuple[str, ...] = ("composite", "explicit", "oracle")
+    device: str = "cpu"
+    quiet: bool = False
+
+
+def run_pipeline(opt: RunOptions, log=print) -> dict:
+    """Fit Gaussians -> segment bank -> nested field -> evaluation (when labels exist).
+    Returns ``{"stages": ..., "run_dir": ..., "eval": path or None}``."""
+    data, out = Path(opt.data), Path(opt.out)
+    if not data.is_dir():
+        raise InputError(data, "scene folder does not exist")
+    out.mkdir(parents=True, exist_ok=True)
+    cache = StageCache.open(out)
+    quiet = ["--quiet"] if opt.quiet else []
+    common = ["--downscale", opt.downscale, "--device", opt.device]
+    sdig = scene_digest(data)
+
+    # 1. Gaussians: fitted here, or given.
+    if opt.gaussians is not None:
+        ply = Path(opt.gaussians)
+        if ply.is_dir():
+            ply = ply / "gaussians.ply"
+        if not ply.is_file():
+            raise InputError(ply, "Gaussians file does not exist")
+    else:
+        fit_dir = out / "gaussians"
+        ply = fit_dir / "gaussians.ply"
+        fit_args = ["--preset", opt.preset] + (["--steps", opt.fit_steps] if opt.fit_steps else [])
+        cache.run("fit-gaussians", stage_key(scene=sdig, args=fit_args, downscale=opt.downscale),
+                  [ply], lambda: _cli(["fit-gaussians", data, "--out", fit_dir, *fit_args, *common, *quiet]), log)
+    gdig = file_digest(ply)
+
+    # 2. Segment bank.
+    bank = out / "bank"
+    if opt.langsplat_features is not None:
+        feats = Path(opt.langsplat_features)
+        seg_args = ["segments-from-langsplat", data, "--features", feats, "--encoder", opt.encoder]
+        seg_key = stage_key(scene=sdig, gaussians=gdig, features=tree_digest(feats), args=seg_args[3:],
+                            depth=opt.depth_source, model=opt.model)
+    else:
+        seg_args = ["segments", data, "--segmenter", opt.segmenter, "--encoder", opt.encoder]
+        seg_key = stage_key(scene=sdig, gaussians=gdig, args=seg_args[2:], depth=opt.depth_source, model=opt.model)
+    seg_args += ["--out", bank, "--gaussians", ply, "--depth-source", opt.depth_source, *common, *quiet]
+    if opt.model:
+        seg_args += ["--model", opt.model]
+
+    def build_bank() -> None:
+        import shutil
+
+        if bank.exists():  # inputs changed: a resumed extraction would mix old and new records
+            shutil.rmtree(bank)
+        _cli(seg_args)
+
+    cache.run("segments", seg_key, [bank / "bank.json"], build_bank, log)
+
+    # 3. Nested feature field.
+    train_args = ["--preset", opt.preset]
+    if opt.train_steps:
+        train_args += ["--iterations", opt.train_steps]
+    if opt.variant:
+        train_args += ["--variant", opt.variant]
+
+    def train() -> None:
+        for stale in ("checkpoint.pt", "field.pt"):  # inputs changed: start from scratch
+            (out / stale).unlink(missing_ok=True)
+        _cli(["train", data, "--gaussians", ply, "--segments", bank, "--out", out, *train_args,
+              "--downscale", opt.downscale, "--device", opt.device, *quiet])
+
+    cache.run("train", stage_key(scene=sdig, gaussians=gdig, bank=file_digest(bank / "bank.json"), args=train_args),
+              [out / "field.pt"], train, log)
+
+    # 4. Evaluation, when labels exist.
+    labels = Path(opt.labels) if opt.labels else (data / "label" if (data / "label").is_dir() else None)
+    eval_json = None
+    if labels is not None:
+        eval_dir = out / "eval"
+        eval_json = eval_dir / "eval.json"
+        cache.run("eval", stage_key(field=file_digest(out / "field.pt"), labels=tree_digest(labels),
+                                    modes=list(opt.modes)),
+                  [eval_json],
+                  lambda: _cli(["eval", out, "--labels", labels, "--scene", data, "--bank", bank,
+                                "--out", eval_dir, "--mode", *opt.modes]), log)
+    return {"run_dir": str(out), "stages": cache.records, "eval": None if eval_json is None else str(eval_json)}
+
+
 # ----------------------------------------------------------------------------- commands
+def _add_run_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--gaussians", metavar="PLY", default=None, help="use these Gaussians instead of fitting")
+    p.add_argument("--segmenter", choices=["sam", "classical", "ground-truth"], default=None,
+                   help="segmenter (default: ground-truth on the demo scene, else sam)")
+    p.add_argument("--encoder", choices=["clip", "captions"], default=None,
+                   help="encoder (default: captions = ground-truth captions embedded by all-MiniLM-L6-v2, an "
+                        "offline stand-in for CLIP, on the demo scene; else clip)")
+    p.add_argument("--model", metavar="ID", default=None, help="CLIP model id or folder")
+    p.add_argument("--langsplat-features", metavar="DIR", default=None,
+                   help="LangSplat language_features folder: import instead of segmenting")
+    p.add_argument("--labels", metavar="DIR", default=None,
+                   help="LangSplat-format labels (default: DATA/label when it exists)")
+    p.add_argument("--preset", choices=["cpu", "paper"], default="cpu", help="fit and train presets (default cpu)")
+    p.add_argument("--fit-steps", type=int, default=None, help="override the fit preset's step count")
+    p.add_argument("--train-steps", type=int, default=None, help="override the train preset's iterations")
+    p.add_argument("--variant", choices=["nested", "flat", "levels"], default=None, help="field variant (default nested)")
+    p.add_argument("--depth-source", choices=["render", "gt"], default="render",
+                   help="lift segments with the Gaussians' rendered depth (default) or the demo scene's exact depth")
+    p.add_argument("--modes", nargs="+", default=["composite", "explicit", "oracle"], help="evaluation modes")
+    p.add_argument("--downscale", type=float, default=1.0, help="image downscale factor, as 3DGS -r")
+    p.add_argument("--device", default="cpu", help="torch device (default cpu)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+def _run_options(args: argparse.Namespace, data: Path, out: Path) -> RunOptions:
+    demo_like = (data / "regions.json").is_file()
+    return RunOptions(
+        data=data, out=out, gaussians=Path(args.gaussians) if args.gaussians else None,
+        segmenter=args.segmenter or ("ground-truth" if demo_like else "sam"),
+        encoder=args.encoder or ("captions" if demo_like else "clip"), model=args.model,
+        langsplat_features=Path(args.langsplat_features) if args.langsplat_features else None,
+        labels=Path(args.labels) if args.labels else None, preset=args.preset, fit_steps=args.fit_steps,
+        train_steps=args.train_steps, variant=args.variant, depth_source=args.depth_source,
+        downscale=args.downscale, modes=tuple(args.modes), device=args.device, quiet=args.quiet)
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    start = time.perf_counter()
+    result = run_pipeline(_run_options(args, Path(args.data), Path(args.out)))
+    print(f"run: {result['run_dir']} in {time.perf_counter() - start:.1f} s"
+          + (f"; evaluation: {result['eval']}" if result["eval"] else ""))
+    return 0
+
+
+DEMO_QUERIES = ("teapot", "lid of the teapot", "bag of cookies", "cookies", "red mug", "handle of the blue mug")
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     from .data.synthetic import generate_demo_scene, write_contact_sheet
 
@@ -81,25 +246,53 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     key = stage_key(views=args.views, width=args.width, height=args.height, seed=args.seed)
     cache = StageCache.open(out)
-    cache.run("demo-scene", key, [scene_dir / "transforms.json", scene_dir / "regions.json"],
-              lambda: generate_demo_scene(scene_dir, num_views=args.views, width=args.width,
-                                          height=args.height, seed=args.seed))
+    regenerated = cache.run("demo-scene", key, [scene_dir / "scene.json", scene_dir / "regions.json"],
+                            lambda: generate_demo_scene(scene_dir, num_views=args.views, width=args.width,
+                                                        height=args.height, seed=args.seed,
+                                                        show_progress=not args.quiet))
     sheet = out / "contact_sheet.png"
-    write_contact_sheet(scene_dir, sheet)
-    print(f"demo scene: {scene_dir}")
-    print(f"contact sheet: {sheet}")
-    print(f"total {time.perf_counter() - start:.1f} s")
+    if regenerated or not sheet.exists():
+        write_contact_sheet(scene_dir, sheet)
+    print(f"demo scene: {scene_dir}\ncontact sheet: {sheet}")
+    if args.scene_only:
+        return 0
+    result = run_pipeline(_run_options(args, scene_dir, out / "run"))
+    # A few relevancy PNGs for a person to look at (raw .npy beside each).
+    scene_meta = json.loads((scene_dir / "scene.json").read_text())
+    views = [int(v) for v in scene_meta.get("labelled_views", [0])[:2]]
+    _cli(["query", out / "run", *DEMO_QUERIES, "--views", *views, "--out", out / "queries",
+          *(["--quiet"] if args.quiet else [])])
+    if result["eval"]:
+        md = Path(result["eval"]).with_suffix(".md")
+        if md.is_file():
+            print(md.read_text())
+    print(f"queries: {out / 'queries'}")
+    print(f"demo finished in {time.perf_counter() - start:.1f} s")
     return 0
 
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
-        "demo", help="generate the built-in demo scene and run the pipeline on it",
-        description="Generate the built-in synthetic tabletop scene (exact ground truth at part, "
-                    "object and group level) and write a contact sheet of views and masks.")
+        "demo", help="generate the built-in demo scene and run the whole pipeline on it",
+        description="Generate the built-in synthetic tabletop scene (exact ground truth at part, object and "
+                    "group level), then fit Gaussians, build the segment bank (ground-truth segments; captions "
+                    "embedded by all-MiniLM-L6-v2, an offline stand-in for CLIP), train the nested field, "
+                    "evaluate with LangSplat's protocol, and write a few relevancy PNGs.")
     p.add_argument("--out", default="demo_out", help="output folder (default: demo_out)")
     p.add_argument("--views", type=int, default=40, help="number of views (default: 40)")
     p.add_argument("--width", type=int, default=160, help="image width (default: 160)")
     p.add_argument("--height", type=int, default=120, help="image height (default: 120)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+    p.add_argument("--scene-only", action="store_true", help="only generate the scene and its contact sheet")
+    _add_run_options(p)
     p.set_defaults(func=_cmd_demo)
+
+    r = subparsers.add_parser(
+        "run", help="run every stage on a scene: fit, segments, train, eval (each cached)",
+        description="Fit Gaussians (or --gaussians), build the segment bank (or --langsplat-features), train "
+                    "the nested field, and evaluate when labels exist. Each stage is skipped when its inputs "
+                    "are unchanged (RUN/stages.json).")
+    r.add_argument("data", metavar="DATA", help="scene folder (COLMAP or nerfstudio)")
+    r.add_argument("--out", required=True, metavar="DIR", help="run folder")
+    _add_run_options(r)
+    r.set_defaults(func=_cmd_run)

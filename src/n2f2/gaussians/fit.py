@@ -31,9 +31,8 @@ from ..data.scene import Scene
 from ..errors import InputError
 from ..io import save_torch, write_json
 from .init import init_from_points, init_random_in_frusta
-from .model import PARAM_NAMES, Gaussians, inverse_sigmoid
+from .model import Gaussians, inverse_sigmoid, quat_to_rotmat
 from .ply import write_ply
-from ..render.torch_backend import quat_to_rotmat
 
 CHECKPOINT_NAME = "checkpoint.pt"
 PLY_NAME = "gaussians.ply"
@@ -202,7 +201,7 @@ class GaussianAdam:
 
     Learning rates may be tensors broadcastable to the parameter (the SH tensor uses one rate
     for the DC coefficient and one for the rest). Matches ``torch.optim.Adam`` (no weight decay).
-    An update is committed only when every new value is finite."""
+    A step is taken only when it keeps every value finite."""
 
     def __init__(self, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-15) -> None:
         self.betas = betas
@@ -213,23 +212,32 @@ class GaussianAdam:
 
     @torch.no_grad()
     def step(self, params: dict[str, Tensor], lrs: dict[str, Union[float, Tensor]]) -> bool:
+        """One Adam step for every parameter that has a gradient. Returns False, changing
+        nothing, when a gradient is not finite or so large that its square overflows (the only
+        ways a step from a finite state can produce a non-finite one)."""
         b1, b2 = self.betas
-        updates = {}
-        for name, p in params.items():
-            if p.grad is None:
-                continue
-            g = p.grad
-            m = self.exp_avg.get(name, torch.zeros_like(p)) * b1 + (1 - b1) * g
-            v = self.exp_avg_sq.get(name, torch.zeros_like(p)) * b2 + (1 - b2) * g * g
-            t = self.step_count.get(name, 0) + 1
-            bc1, bc2 = 1 - b1 ** t, 1 - b2 ** t
-            new_p = p - (lrs[name] / bc1) * m / (v.sqrt() / math.sqrt(bc2) + self.eps)
-            if not (torch.isfinite(new_p).all() and torch.isfinite(v).all()):
+        live = {name: p for name, p in params.items() if p.grad is not None}
+        limit = math.sqrt(torch.finfo(torch.float32).max) / 16.0
+        for p in live.values():
+            if not bool(torch.isfinite(p.grad).all()) or bool((p.grad.abs() > limit).any()):
                 return False
-            updates[name] = (new_p, m, v, t)
-        for name, (new_p, m, v, t) in updates.items():
-            params[name].copy_(new_p)
-            self.exp_avg[name], self.exp_avg_sq[name], self.step_count[name] = m, v, t
+        for name, p in live.items():
+            g = p.grad
+            if name not in self.exp_avg:
+                self.exp_avg[name], self.exp_avg_sq[name] = torch.zeros_like(p), torch.zeros_like(p)
+            m, v = self.exp_avg[name], self.exp_avg_sq[name]
+            t = self.step_count.get(name, 0) + 1
+            self.step_count[name] = t
+            m.mul_(b1).add_(g, alpha=1 - b1)
+            v.mul_(b2).addcmul_(g, g, value=1 - b2)
+            bc1, bc2 = 1 - b1 ** t, 1 - b2 ** t
+            # torch.optim.Adam: p -= lr / bc1 * m / (sqrt(v) / sqrt(bc2) + eps)
+            update = m / v.sqrt().div_(math.sqrt(bc2)).add_(self.eps)
+            lr = lrs[name]
+            if isinstance(lr, Tensor):
+                p.sub_(update.mul_(lr / bc1))
+            else:
+                p.sub_(update, alpha=lr / bc1)
         return True
 
     def _moments(self) -> list[dict[str, Tensor]]:
@@ -496,7 +504,8 @@ def fit_gaussians(
     adam = GaussianAdam(eps=config.adam_eps)
     if ck is None:
         g = initial_gaussians(scene, config, init)
-        g.sh_degree = 0
+        if not isinstance(init, Gaussians):
+            g.sh_degree = 0  # the SH schedule starts from the DC colour (3DGS)
         start, loss_curve, skipped, train_time = 0, [], 0, 0.0
         stats = DensifyStats.zeros(g.num, device)
     else:
@@ -531,9 +540,9 @@ def fit_gaussians(
         loss = photometric_loss(image, targets[view], config.lambda_dssim)
         g.zero_grad(set_to_none=True)
         loss.backward()
-        grads_ok = bool(torch.isfinite(loss)) and all(
-            p.grad is None or bool(torch.isfinite(p.grad).all()) for p in g.params().values()
-        ) and (out.means2d.grad is None or bool(torch.isfinite(out.means2d.grad).all()))
+        # Parameter gradients are checked by the optimiser; it refuses non-finite steps.
+        grads_ok = bool(torch.isfinite(loss)) and (
+            out.means2d.grad is None or bool(torch.isfinite(out.means2d.grad).all()))
         ok = grads_ok and adam.step(g.params(), learning_rates(config, step, extent, k, device))
         g.zero_grad(set_to_none=True)
         if not ok:

@@ -48,6 +48,17 @@ def inverse_sigmoid(x: Tensor) -> Tensor:
     return torch.log(x / (1.0 - x))
 
 
+def quat_to_rotmat(quats: Tensor) -> Tensor:  # [N, 4] wxyz, any norm -> [N, 3, 3]
+    """Rotation matrices of (normalised) wxyz quaternions, the model's orientation convention.
+    (The renderer keeps its own copy in a kernel-friendly [3, 3, N] layout.)"""
+    w, x, y, z = torch.nn.functional.normalize(quats, dim=-1).unbind(-1)
+    return torch.stack([
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+    ], dim=-1).reshape(quats.shape[:-1] + (3, 3))
+
+
 class Gaussians(nn.Module):
     """A 3DGS scene. Parameters are ``nn.Parameter`` so any torch optimiser can fit them;
     densification replaces them with :meth:`set_params`.

@@ -84,8 +84,6 @@ def run(args: argparse.Namespace) -> int:
     overrides = {"canonical": tuple(args.canonical)} if args.canonical else {}
     config = QueryConfig(temperature=args.temperature, selection=args.selection, box_size=box, **overrides)
     engine = QueryEngine.from_run(args.run_dir, device=args.device, scene=args.scene, config=config)
-    if engine.scene is None:
-        raise InputError(args.run_dir, "the run does not record its scene folder: pass --scene DATA")
     for i in args.views:  # fail before any work on a bad index
         engine.camera(i)
     out = Path(args.out)

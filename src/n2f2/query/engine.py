@@ -39,7 +39,6 @@ import torch
 from torch import Tensor
 
 from ..errors import InputError
-from ..eval.protocol import LANGSPLAT_BOX_SIZE
 from .composite import (DEFAULT_CANONICAL, premultiply, prefix_dot, prefix_sq_norms, supervised_dims,
                         to_blocks)
 from .relevancy import (DEFAULT_NEGATIVES, check_texts, inverse_norm, inverse_norm_from_sq,
@@ -61,7 +60,7 @@ class QueryConfig:
     negatives: tuple[str, ...] = DEFAULT_NEGATIVES  # negatives of the relevancy (LERF)
     temperature: float = 1.0  # gamma = softmax(score / T); 1 = paper (near-uniform gamma)
     selection: str = "smoothed"  # explicit/levels 2D scale choice: "smoothed" (LangSplat) | "max"
-    box_size: Union[int, str] = LANGSPLAT_BOX_SIZE  # protocol mean filter (px) or "scaled"
+    box_size: Union[int, str, None] = None  # protocol mean filter (px) or "scaled"; None = protocol's
     chunk: int = 65536  # points per block when building caches (bounds [chunk, E] memory)
 
     def __post_init__(self) -> None:
@@ -173,6 +172,7 @@ def build_prefix_cache(
     negdir = (negatives @ W).T  # [D, C]
     inv = theta.new_empty(S, 1, P)
     neg = theta.new_empty(S, 1, P)
+    chunk = _points_per_block(chunk, S * step)
     for a in range(0, P, chunk):
         b = blocks[:, :, a:a + chunk]
         i = inverse_norm_from_sq(prefix_sq_norms(b, gram))  # [S, p]
@@ -195,6 +195,7 @@ def build_linear_cache(
     negdir = torch.einsum("sed,ce->sdc", maps, negatives)  # [S, D, C]
     inv = theta.new_empty(S, 1, P)
     neg = theta.new_empty(S, 1, P)
+    chunk = _points_per_block(chunk, S * D)
     for a in range(0, P, chunk):
         t = theta[a:a + chunk]  # [p, D]
         sq = ((t @ gram_cat).view(-1, S, D) * t[:, None, :]).sum(-1).clamp_(min=0.0)  # [p, S]
@@ -202,6 +203,11 @@ def build_linear_cache(
         inv[:, 0, a:a + chunk] = i
         neg[:, 0, a:a + chunk] = (torch.einsum("pd,sdc->spc", t, negdir) * i[..., None]).amax(-1)
     return LinearCache(theta.contiguous(), maps, inv, neg, labels=list(labels))
+
+
+def _points_per_block(chunk: int, width: int) -> int:
+    """Points per block so that ``[width, points]`` intermediates stay near 4M floats."""
+    return max(1, min(chunk, (1 << 22) // max(1, width)))
 
 
 # ---------------------------------------------------------------------------------- results
@@ -404,7 +410,10 @@ class QueryEngine:
         """A view index (into the scene) or a Camera -> (camera, index, name)."""
         if isinstance(view, (int, np.integer)):
             if self.scene is None:
-                raise InputError(self.run_dir, "no scene is known for this run: pass --scene, or give cameras")
+                recorded = self.meta.get("scene")
+                where = f" (its recorded scene {recorded} does not exist)" if recorded else ""
+                raise InputError(self.run_dir, f"no scene is known for this run{where}: pass --scene DATA, "
+                                               "or give cameras instead of view indices")
             n = len(self.scene.cameras)
             if not 0 <= int(view) < n:
                 raise InputError(getattr(self.scene, "root", None),
@@ -424,26 +433,25 @@ class QueryEngine:
             self._check_mode(m)
         cam, index, name = self.camera(view)
         kinds = list(dict.fromkeys(self._cache_kind(m) for m in modes))
-        sources = {k: (self.theta_tilde if k == "composite" else self.theta) for k in kinds}
-        # Distinct per-Gaussian feature blocks: Theta~ and/or Theta (prefix and levels share Theta).
-        blocks = list(dict.fromkeys(id(v) for v in sources.values()))
-        feats = {id(v): v for v in sources.values()}
-        stacked = torch.cat([feats[b] for b in blocks], dim=1)
+        # Composite needs Theta~, the other kinds raw Theta: one rasterization of both.
+        parts = (["tilde"] if "composite" in kinds else []) + \
+                (["theta"] if any(k != "composite" for k in kinds) else [])
+        stacked = torch.cat([self.theta_tilde if p == "tilde" else self.theta for p in parts], dim=1)
         g = self.gaussians
         t0 = time.perf_counter()
         out = rasterize(g.means, g.normalized_quats, g.scales, g.opacities, stacked, cam)
         t1 = time.perf_counter()
         H, W_ = out.features.shape[:2]
         flat = out.features.reshape(H * W_, -1)
+        D = self.dim
         caches = {}
         for k in kinds:
-            j = blocks.index(id(sources[k]))
-            caches[k] = self._build_cache(k, flat[:, j * self.dim:(j + 1) * self.dim])
+            j = parts.index("tilde" if k == "composite" else "theta")
+            caches[k] = self._build_cache(k, flat[:, j * D:(j + 1) * D])
         t2 = time.perf_counter()
         image = None
         if rgb:
-            r = render_rgb(g, cam)
-            image = (r.features if hasattr(r, "features") else r).clamp(0.0, 1.0)
+            image = render_rgb(g, cam).features.clamp(0.0, 1.0)
         return ViewCache(cam, index, name, caches, out.alpha.reshape(H, W_), image,
                          {"render": t1 - t0, "cache": t2 - t1})
 
@@ -495,7 +503,7 @@ class QueryEngine:
         if image and self.config.selection == "smoothed":
             from ..eval.protocol import resolve_box_size, smoothed_relevancy
 
-            size = resolve_box_size(self.config.box_size, rel.shape[-1])
+            size = resolve_box_size(_box(self.config), rel.shape[-1])
             sm = smoothed_relevancy(rel.float().cpu().numpy(), size)
             return torch.from_numpy(sm.reshape(len(sm), -1).max(axis=1)).to(rel.device)
         return rel.reshape(rel.shape[0], -1).amax(dim=1)
@@ -588,10 +596,17 @@ def _oracle_scores(rel: Tensor, qi: int, gt_masks: Any, scorer: Optional[OracleS
     gt = np.asarray(gt_masks[qi].cpu() if isinstance(gt_masks, Tensor) else gt_masks[qi]) != 0
     if gt.shape != tuple(rel.shape[1:]):
         raise InputError(None, f"ground-truth mask {gt.shape} does not match the view {tuple(rel.shape[1:])}")
-    size = resolve_box_size(config.box_size, rel.shape[-1])
+    size = resolve_box_size(_box(config), rel.shape[-1])
     maps = rel.float().cpu().numpy()
     ious = [mask_iou(segmentation_mask(m, box_size=size), gt) if gt.any() else 0.0 for m in maps]
     return torch.tensor(ious, dtype=torch.float32, device=rel.device)
+
+
+def _box(config: QueryConfig) -> Union[int, str]:
+    """The configured mean-filter size, or the evaluation protocol's default."""
+    from ..eval.protocol import LANGSPLAT_BOX_SIZE
+
+    return LANGSPLAT_BOX_SIZE if config.box_size is None else config.box_size
 
 
 def _load_run_scene(run_dir: Path, meta: dict, scene: Optional[Union[str, Path]]) -> Any:
@@ -609,9 +624,11 @@ def _load_run_scene(run_dir: Path, meta: dict, scene: Optional[Union[str, Path]]
                 candidates += [r.get("scene"), r.get("scene_path")]
             except (json.JSONDecodeError, OSError):
                 pass
-        scene = next((c for c in candidates if c), None)
-        if scene is None:
+        recorded = next((c for c in candidates if c), None)
+        # A recorded folder that has moved is not an error until a view index needs it.
+        if recorded is None or not Path(recorded).is_dir():
             return None
+        scene = recorded
     path = Path(scene)
     if not path.is_dir():
         raise InputError(path, "scene folder does not exist")

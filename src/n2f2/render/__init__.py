@@ -85,6 +85,10 @@ def rasterize(
         raise N2F2Error(f"unknown render backend {backend!r}; choose one of {', '.join(BACKENDS)}")
     if not 0.0 < alpha_min <= alpha_clamp < 1.0:
         raise ValueError(f"need 0 < alpha_min <= alpha_clamp < 1, got {alpha_min}, {alpha_clamp}")
+    if not 0.0 < near < far:
+        raise ValueError(f"need 0 < near < far, got near={near}, far={far}")
+    if not 0.0 < transmittance_min < 1.0 or tile_size < 1:
+        raise ValueError(f"need 0 < transmittance_min < 1 and tile_size >= 1, got {transmittance_min}, {tile_size}")
     _check_inputs(means, quats, scales, opacities, features)
     cam = camera.to_torch(device=means.device, dtype=means.dtype)
     if backend == "auto":

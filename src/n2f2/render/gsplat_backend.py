@@ -70,12 +70,13 @@ def rasterize_gsplat(
     except ImportError as e:  # gsplat also needs `packaging`, which it does not declare
         raise N2F2Error(f"the gsplat backend needs `pip install gsplat packaging` ({e})") from e
 
-    radii, means2d, depths, conics, _ = fully_fused_projection(
-        means, None, quats, scales, viewmat[None], K[None], width, height,
-        eps2d=eps2d, near_plane=near, far_plane=far, packed=False, opacities=opacities,
-    )  # radii [1, N, 2] (older gsplat: [1, N]), means2d [1, N, 2], depths [1, N], conics [1, N, 3]
-    if radii.dim() == 2:
-        radii = radii[..., None].expand(-1, -1, 2)
+    kw = dict(eps2d=eps2d, near_plane=near, far_plane=far, packed=False)
+    try:  # gsplat >= 1.5 uses the opacities for a tighter screen extent
+        proj = fully_fused_projection(means, None, quats, scales, viewmat[None], K[None], width, height,
+                                      opacities=opacities, **kw)
+    except TypeError:  # gsplat 1.4
+        proj = fully_fused_projection(means, None, quats, scales, viewmat[None], K[None], width, height, **kw)
+    radii, means2d, depths, conics, _ = proj  # radii [1, N, 2] (gsplat < 1.5: [1, N]), means2d [1, N, 2], depths [1, N], conics [1, N, 3]
     m2d = means2d[0]  # [N, 2]: the tensor we hand out; everything below reads it
     m2d_b = m2d[None]
     tiles_x = math.ceil(width / GSPLAT_TILE_SIZE)
@@ -96,6 +97,6 @@ def rasterize_gsplat(
         "alpha": alpha,
         "depth_sum": img[..., -1:],
         "means2d": m2d,
-        "radii": radii[0].amax(-1).to(torch.int32),
+        "radii": (radii[0].amax(-1) if radii.dim() == 3 else radii[0]).to(torch.int32),
         "n_pairs": None,
     }

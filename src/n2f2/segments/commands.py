@@ -63,7 +63,7 @@ def register(subparsers) -> None:
 
 def _depth_provider(args, scene):
     from ..errors import InputError
-    from .lifting import gt_depth_provider, render_depth_provider
+    from .lifting import LiftSettings, gt_depth_provider, render_depth_provider
 
     if args.depth_source == "gt":
         return gt_depth_provider(scene)
@@ -78,7 +78,7 @@ def _depth_provider(args, scene):
     if not path.is_file():
         raise InputError(path, "Gaussians file does not exist (run `n2f2 fit-gaussians` first)")
     gaussians = read_ply(path, device=args.device)
-    return render_depth_provider(gaussians, scene.cameras)
+    return render_depth_provider(gaussians, scene.cameras, min_alpha=LiftSettings().min_alpha)
 
 
 def _load(args):

@@ -56,7 +56,7 @@ def _offline() -> bool:
     return os.environ.get("HF_HUB_OFFLINE", "").strip().lower() in ("1", "true", "yes", "on")
 
 
-def load_pretrained(cls, model_id: str, what: str, alternative: str, **kwargs):
+def load_pretrained(cls, model_id: str, what: str, alternative: str, flag: str = "--model", **kwargs):
     """``cls.from_pretrained(model_id)``: from the local cache first (works offline), then,
     unless ``HF_HUB_OFFLINE`` is set, from the Hub. Any failure becomes one
     :class:`MissingModelError` that says what to download and which flag avoids the model."""
@@ -73,7 +73,7 @@ def load_pretrained(cls, model_id: str, what: str, alternative: str, **kwargs):
         f"{what} model '{model_id}' is not in the local Hugging Face cache and could not be "
         f"downloaded ({reason}). Download it on a machine with internet access with "
         f"`huggingface-cli download {model_id}` (then copy ~/.cache/huggingface), pass a local "
-        f"folder with --model, or use {alternative}.")
+        f"folder with {flag}, or use {alternative}.")
 
 
 # ----------------------------------------------------------------------------- CLIP

@@ -29,6 +29,13 @@ class LiftSettings:
     erode: bool = True  # erode each mask once with a 3 x 3 kernel before lifting (GARField)
     min_points: int = 10  # fewer valid 3D points -> degenerate segment (scale NaN, dropped)
     min_alpha: float = 0.5  # rendered pixels with less accumulated opacity have no depth
+    # Robust depth: drop a segment's pixels whose depth is more than ``outlier_mads`` scaled
+    # median absolute deviations (1.4826 MAD ~ one standard deviation) from the segment's
+    # median depth, and at least ``outlier_min_rel`` x median depth away. A few pixels with
+    # background depth (3DGS depth blurs across occlusion edges; masks overshoot) otherwise
+    # dominate the covariance of a small segment. None disables it.
+    outlier_mads: Optional[float] = 3.0
+    outlier_min_rel: float = 0.02
 
 
 def erode_layers(layers: np.ndarray) -> np.ndarray:  # [L, H, W] int -> [L, H, W] int32
@@ -49,42 +56,96 @@ def erode_layers(layers: np.ndarray) -> np.ndarray:  # [L, H, W] int -> [L, H, W
     return np.where(same, layers, -1).astype(np.int32)
 
 
-def _moments(layers: np.ndarray,  # [L, H, W] int32
+def _counts(layers: np.ndarray, valid: np.ndarray, S: int) -> np.ndarray:
+    """[S] number of valid pixels of each segment."""
+    ids = layers[:, valid]
+    return np.bincount(ids[ids >= 0], minlength=S)[:S]
+
+
+def segment_medians(ids: np.ndarray,  # [P] segment id of each sample (>= 0)
+                    values: np.ndarray,  # [P]
+                    S: int) -> np.ndarray:
+    """[S] median of ``values`` per segment (NaN for segments without samples), by one
+    lexicographic sort instead of a loop over segments."""
+    out = np.full(S, np.nan)
+    if ids.size == 0:
+        return out
+    order = np.lexsort((values, ids))
+    v = values[order]
+    counts = np.bincount(ids, minlength=S)[:S]
+    starts = np.cumsum(counts) - counts
+    has = counts > 0
+    lo = starts[has] + (counts[has] - 1) // 2
+    hi = starts[has] + counts[has] // 2
+    out[has] = 0.5 * (v[lo] + v[hi])
+    return out
+
+
+def select_pixels(layers: np.ndarray,  # [L, H, W] int32 segment ids
+                  valid: np.ndarray,  # [H, W] bool
+                  depth: Optional[np.ndarray],  # [H, W] z-depth, for outlier rejection
+                  num_segments: int,
+                  settings: Optional[LiftSettings] = None) -> np.ndarray:  # [L, H, W] int32
+    """The pixels each segment is lifted from, as id layers (-1 = not used): the eroded mask
+    (or the raw mask when erosion leaves fewer than ``min_points`` valid pixels), restricted
+    to valid depth, minus depth outliers."""
+    st = settings or LiftSettings()
+    S = int(num_segments)
+    layers = np.asarray(layers, dtype=np.int32)
+    sel = np.where(valid[None], layers, -1)
+    if st.erode:
+        eroded = erode_layers(layers)
+        use_eroded = np.append(_counts(eroded, valid, S) >= st.min_points, False)  # index -1 -> False
+        # eroded is a subset of the raw mask: drop a raw pixel only if its segment uses the
+        # eroded mask and erosion removed the pixel.
+        sel = np.where(use_eroded[sel] & (eroded < 0), -1, sel)
+    if depth is not None and st.outlier_mads is not None:
+        for l in range(sel.shape[0]):
+            pix = sel[l] >= 0
+            ids, z = sel[l][pix], depth[pix]
+            med = segment_medians(ids, z, S)
+            dev = np.abs(z - med[ids])
+            mad = segment_medians(ids, dev, S)
+            tol = np.maximum(st.outlier_mads * 1.4826 * mad, st.outlier_min_rel * np.abs(med))
+            layer = sel[l].copy()
+            layer[pix] = np.where(dev > tol[ids], -1, ids)
+            sel[l] = layer
+    return sel
+
+
+def _moments(layers: np.ndarray,  # [L, H, W] int32, only pixels to use
              points: np.ndarray,  # [H, W, 3] float64, centred
-             valid: np.ndarray,  # [H, W] bool
              S: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per segment: count [S], sum of points [S, 3], sum of outer products [S, 3, 3]."""
     count = np.zeros(S)
     first = np.zeros((S, 3))
-    second = np.zeros((S, 3, 3))
-    p = points[valid]  # [P, 3]
-    outer = (p[:, :, None] * p[:, None, :]).reshape(-1, 9)  # [P, 9]
+    second = np.zeros((S, 9))
     for layer in layers:
-        ids = layer[valid]
-        sel = ids >= 0
-        ids = ids[sel]
+        pix = layer >= 0
+        ids = layer[pix]
         if ids.size == 0:
             continue
+        p = points[pix]  # [P, 3]
+        outer = (p[:, :, None] * p[:, None, :]).reshape(-1, 9)
         count += np.bincount(ids, minlength=S)[:S]
         for c in range(3):
-            first[:, c] += np.bincount(ids, weights=p[sel, c], minlength=S)[:S]
+            first[:, c] += np.bincount(ids, weights=p[:, c], minlength=S)[:S]
         for c in range(9):
-            second.reshape(S, 9)[:, c] += np.bincount(ids, weights=outer[sel, c], minlength=S)[:S]
-    return count, first, second
+            second[:, c] += np.bincount(ids, weights=outer[:, c], minlength=S)[:S]
+    return count, first, second.reshape(S, 3, 3)
 
 
 def segment_scales(layers: np.ndarray,  # [L, H, W] int32 segment ids, -1 = none
                    points: np.ndarray,  # [H, W, 3] world points at the pixel centres
                    valid: np.ndarray,  # [H, W] bool: pixel has a trustworthy depth
                    num_segments: int,
-                   settings: Optional[LiftSettings] = None) -> tuple[np.ndarray, np.ndarray]:
+                   settings: Optional[LiftSettings] = None,
+                   depth: Optional[np.ndarray] = None,  # [H, W] z-depth for outlier rejection
+                   ) -> tuple[np.ndarray, np.ndarray]:
     """Physical scale of every segment: the largest eigenvalue of the covariance of its lifted
-    (eroded) pixels. Returns ``(scales [S] float32, NaN for degenerate segments,
-    num_points [S] int64)``.
-
-    Erosion falls back to the un-eroded mask for a segment whose eroded mask keeps fewer than
-    ``min_points`` valid pixels (thin segments would otherwise vanish); a segment with fewer
-    than ``min_points`` valid pixels either way is degenerate."""
+    pixels (see :func:`select_pixels`). Returns ``(scales [S] float32, NaN for degenerate
+    segments, num_points [S] int64)``. A segment with fewer than ``min_points`` usable pixels
+    is degenerate."""
     st = settings or LiftSettings()
     S = int(num_segments)
     if S == 0:
@@ -92,13 +153,8 @@ def segment_scales(layers: np.ndarray,  # [L, H, W] int32 segment ids, -1 = none
     valid = np.asarray(valid, dtype=bool) & np.isfinite(points).all(axis=-1)
     pts = np.asarray(points, dtype=np.float64)
     pts = pts - (pts[valid].mean(axis=0) if valid.any() else 0.0)  # centring keeps E[xx^T] - mu mu^T accurate
-    count, first, second = _moments(layers, pts, valid, S)
-    if st.erode:
-        e_count, e_first, e_second = _moments(erode_layers(layers), pts, valid, S)
-        use = e_count >= st.min_points
-        count = np.where(use, e_count, count)
-        first = np.where(use[:, None], e_first, first)
-        second = np.where(use[:, None, None], e_second, second)
+    sel = select_pixels(layers, valid, depth, S, st)
+    count, first, second = _moments(sel, pts, S)
     ok = count >= max(st.min_points, 2)
     n = np.maximum(count, 1)[:, None]
     mean = first / n
@@ -122,7 +178,7 @@ def lift_view(layers: np.ndarray,  # [L, H, W]
                          f"{camera.height}x{camera.width} sizes differ")
     valid = np.asarray(valid, dtype=bool) & np.isfinite(depth) & (depth > 0)
     points = camera.depth_to_points(np.where(valid, depth, 0.0))
-    return segment_scales(layers, points, valid, num_segments, settings)
+    return segment_scales(layers, points, valid, num_segments, settings, depth=depth)
 
 
 # ----------------------------------------------------------------------------- depth sources

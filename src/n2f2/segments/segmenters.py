@@ -18,8 +18,7 @@ two go to different layers.
 
 from __future__ import annotations
 
-import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from typing import Optional, Sequence
 
 import numpy as np
@@ -27,7 +26,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ..errors import InputError, MissingModelError
+from ..errors import InputError
 
 DEFAULT_SAM_MODEL = "facebook/sam-vit-huge"
 SEGMENTER_NAMES = ("sam", "classical", "ground-truth")
@@ -176,11 +175,25 @@ def relabel_label_maps(label_maps: np.ndarray,  # [L, H, W] int, -1 = none, any 
     sources = []
     offset = 0
     for l, lab in enumerate(label_maps):
-        ids, inverse, counts = np.unique(lab, return_inverse=True, return_counts=True)
-        keep = (ids >= 0) & (counts >= max(min_area, 1))
-        local = np.full(ids.shape, -1, np.int64)
-        local[keep] = offset + np.arange(int(keep.sum()))
-        layers[l] = local[inverse.reshape(lab.shape)]
+        lab = np.asarray(lab, dtype=np.int64)
+        if lab.size == 0:
+            sources.append(np.zeros(0, np.int64))
+            continue
+        lo, hi = int(lab.min()), int(lab.max())
+        if lo >= -1 and hi < 4 * lab.size + 1024:
+            # Dense labels (Felzenszwalb, region ids): a lookup table, no sort.
+            counts = np.bincount((lab + 1).ravel(), minlength=hi + 2)
+            ids = np.arange(-1, hi + 1)
+            keep = (ids >= 0) & (counts >= max(min_area, 1))
+            local = np.full(ids.shape, -1, np.int64)
+            local[keep] = offset + np.arange(int(keep.sum()))
+            layers[l] = local[lab + 1]
+        else:
+            ids, inverse, counts = np.unique(lab, return_inverse=True, return_counts=True)
+            keep = (ids >= 0) & (counts >= max(min_area, 1))
+            local = np.full(ids.shape, -1, np.int64)
+            local[keep] = offset + np.arange(int(keep.sum()))
+            layers[l] = local[inverse.reshape(lab.shape)]
         sources.append(ids[keep].astype(np.int64))
         offset += int(keep.sum())
     return layers, (np.concatenate(sources) if sources else np.zeros(0, np.int64))
@@ -334,6 +347,8 @@ class SamSettings:
     nms_iou_thr: float = 0.8
     nms_score_thr: float = 0.7
     nms_inner_thr: float = 0.5
+    # Run the IoU NMS early whenever this many masks are pending (memory bound on big images).
+    max_pending_masks: int = 384
 
 
 class SamSegmenter:
@@ -355,7 +370,8 @@ class SamSegmenter:
 
         from .encoders import load_pretrained
 
-        model = load_pretrained(SamModel, model_id, what="SAM", alternative="--segmenter classical")
+        model = load_pretrained(SamModel, model_id, what="SAM", alternative="--segmenter classical",
+                                flag="--sam-model")
         return SamSegmenter(model, settings, model_id=model_id, device=device)
 
     @property
@@ -398,6 +414,11 @@ class SamSegmenter:
         xs, ys = np.meshgrid(side, side)
         return np.stack([xs.ravel() * width, ys.ravel() * height], axis=-1)
 
+    def _nms(self, masks: list[Tensor], iou: list[Tensor], stability: list[Tensor]) -> tuple[Tensor, Tensor, Tensor]:
+        masks, iou, stability = torch.cat(masks), torch.cat(iou), torch.cat(stability)
+        kept = greedy_mask_nms(masks, iou, self.settings.box_nms_thresh)
+        return masks[kept], iou[kept], stability[kept]
+
     @torch.no_grad()
     def __call__(self, image: np.ndarray, view: Optional[int] = None) -> SegmentSet:
         image = check_image(image)
@@ -430,12 +451,13 @@ class SamSegmenter:
             all_masks.append(masks[nonempty].cpu())
             all_iou.append(iou[keep][stable][nonempty].cpu())
             all_stab.append(stability[stable][nonempty].cpu())
+            if sum(len(m) for m in all_masks) > st.max_pending_masks:
+                # Bound memory on large images: NMS what has accumulated so far (SAM itself
+                # runs NMS per crop, then across crops, in the same spirit).
+                all_masks, all_iou, all_stab = map(lambda x: [x], self._nms(all_masks, all_iou, all_stab))
         if not all_masks or sum(len(m) for m in all_masks) == 0:
             return SegmentSet.empty(H, W)
-        masks, iou, stability = torch.cat(all_masks), torch.cat(all_iou), torch.cat(all_stab)
-
-        kept = greedy_mask_nms(masks, iou, st.box_nms_thresh)
-        masks, iou, stability = masks[kept], iou[kept], stability[kept]
+        masks, iou, stability = self._nms(all_masks, all_iou, all_stab)
         if st.min_mask_region_area > 0:
             cleaned = np.stack([remove_small_regions(m, st.min_mask_region_area) for m in masks.numpy()])
             big = cleaned.reshape(len(cleaned), -1).sum(1) >= st.min_mask_region_area

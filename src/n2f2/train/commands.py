@@ -18,9 +18,9 @@ _FIELD_OPTIONS = {
     "step_size": (int, "k of the dimension-scale mapping, paper Table 6 (1)"),
 }
 _TRAIN_OPTIONS = {
-    "iterations": (int, "optimisation steps (cpu 1500, paper 30000)"),
+    "iterations": (int, "optimisation steps (cpu 1000, paper 30000)"),
     "views_per_step": (int, "views rendered per step (1)"),
-    "pixels_per_step": (int, "sampled pixels per step (cpu 2048, paper 4096)"),
+    "pixels_per_step": (int, "sampled pixels per step (4096)"),
     "checkpoint_every": (int, "write checkpoint.pt every N steps; 0: only at the end"),
     "cos_weight": (float, "lambda of the cosine loss (0.001)"),
 }
@@ -38,7 +38,7 @@ def register(subparsers) -> None:
     p.add_argument("--segments", required=True, metavar="BANK", help="segment bank folder (`n2f2 segments`)")
     p.add_argument("--out", required=True, metavar="DIR", help="run folder")
     p.add_argument("--preset", choices=["cpu", "paper"], default=None,
-                   help="cpu: small field, 1500 steps (default without CUDA); paper: D=512, 512^2x64 "
+                   help="cpu: small field, 1000 steps (default without CUDA); paper: D=512, 512^2x64 "
                         "planes, 30k steps (default with --device cuda)")
     for name, (typ, text) in {**_FIELD_OPTIONS, **_TRAIN_OPTIONS}.items():
         flag = "--" + name.replace("_", "-")

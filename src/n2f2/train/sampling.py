@@ -61,9 +61,9 @@ class ViewSegments:
         L = layers.shape[0]
         layers = layers.reshape(L, -1)
         S = int(np.asarray(record.areas).shape[0])
-        valid = torch.as_tensor(np.asarray(record.valid, dtype=bool)) if record.valid is not None \
+        valid = torch.from_numpy(np.array(record.valid, dtype=bool)) if record.valid is not None \
             else torch.ones(S, dtype=torch.bool)
-        weights = segment_weights(torch.as_tensor(np.asarray(record.areas)), valid)
+        weights = segment_weights(torch.from_numpy(np.array(record.areas, dtype=np.int64)), valid)
         # Drop ids of invalid segments so every remaining candidate has a positive weight.
         if S:
             keep = layers >= 0

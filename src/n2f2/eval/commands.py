@@ -1,0 +1,75 @@
+"""``n2f2 eval``: score a trained run on LangSplat-format labels (LERF-OVS protocol, both box
+sizes, simple vs compound, R@K retrieval, per-query deltas against another run)."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def register(subparsers) -> None:
+    from ..query.engine import MODES
+
+    p = subparsers.add_parser(
+        "eval",
+        help="evaluate a trained run on LangSplat-format labels (loc. accuracy, mIoU, R@K, deltas)",
+        description="Render every labelled view once, answer all of its label categories in one batch per "
+                    "mode, and score them with LangSplat's LERF-OVS protocol, under LangSplat's exact 30 px "
+                    "box and under the box scaled to the image width (both are always reported). Writes "
+                    "OUT/eval.json (every number), OUT/eval.md (tables), OUT/*.png (plots) and float32 "
+                    "relevancy maps OUT/relevancy/<view>/<query>.npy of the composite mode (for rescoring "
+                    "with other evaluators; the three level maps [3, H, W] for a 3-level field).")
+    p.add_argument("run_dir", metavar="RUN_DIR", help="trained run folder (field.pt + gaussians.ply)")
+    p.add_argument("--labels", required=True, metavar="DIR",
+                   help="label folder of frame_XXXXX.json files (LangSplat / expanded LERF-OVS format)")
+    p.add_argument("--mode", nargs="+", choices=MODES, default=None, metavar="MODE",
+                   help=f"query modes to score ({', '.join(MODES)}); default: every mode the field supports "
+                        "(composite explicit oracle for a nested field, levels oracle for a 3-level one)")
+    p.add_argument("--scene", default=None, metavar="DIR", help="scene folder (default: the run's)")
+    p.add_argument("--bank", default=None, metavar="DIR",
+                   help="segment bank giving the R@K segment pool (default: the run's bank)")
+    p.add_argument("--out", default=None, metavar="DIR", help="output folder (default RUN_DIR/eval)")
+    p.add_argument("--compare", default=None, metavar="EVAL_JSON",
+                   help="another run's eval.json: per-query IoU delta (this run - that run), top/bottom 3")
+    p.add_argument("--query-types", default=None, metavar="JSON",
+                   help="query types (simple / compound) as queries.json or {query: type} "
+                        "(default: SCENE/queries.json; otherwise 'unknown')")
+    p.add_argument("--skip-missing-frames", action="store_true",
+                   help="skip (and count) labels of frames that are not views of the scene instead of failing")
+    p.add_argument("--rescale-labels", action="store_true",
+                   help="scale labels drawn at another resolution to the render size (not LangSplat)")
+    p.add_argument("--temperature", type=float, default=1.0,
+                   help="composite gamma = softmax(score / T); 1 = paper (default)")
+    p.add_argument("--no-relevancy", action="store_true", help="do not write the relevancy .npy files")
+    p.add_argument("--device", default="cpu", help="torch device (default cpu)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from ..errors import InputError
+    from ..query.engine import QueryConfig
+    from .runner import EvalConfig, evaluate_run, load_eval, write_eval_outputs
+
+    if not args.temperature > 0:
+        raise InputError(None, f"--temperature must be > 0, got {args.temperature}")
+    if args.compare is not None:
+        load_eval(args.compare)  # fail on a bad comparison file before any work
+    out = Path(args.out) if args.out else Path(args.run_dir) / "eval"
+    config = EvalConfig(modes=tuple(args.mode) if args.mode else None,
+                        missing_frames="skip" if args.skip_missing_frames else "error",
+                        rescale_labels=args.rescale_labels, progress=not args.quiet)
+    result = evaluate_run(args.run_dir, args.labels, scene=args.scene, bank=args.bank,
+                          query_types=args.query_types, config=config,
+                          query_config=QueryConfig(temperature=args.temperature), device=args.device,
+                          relevancy_dir=None if args.no_relevancy else out / "relevancy")
+    write_eval_outputs(result, out, compare=args.compare)
+    for m in result.modes:
+        parts = [f"{b}: loc {100 * s.loc_accuracy:.1f}% mIoU {100 * s.miou:.1f}% (box {','.join(map(str, s.box_sizes))} px)"
+                 for b, s in result.scores[m].items()]
+        print(f"eval {m}: " + "; ".join(parts))
+    for note in result.notes:
+        print(f"note: {note}")
+    print(f"eval: {result.scores[result.modes[0]]['exact'].num_pairs} pairs in {result.seconds:.1f} s -> {out}")
+    return 0

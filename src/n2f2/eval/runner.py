@@ -1,0 +1,768 @@
+"""The evaluation runner: a trained run + LangSplat-format labels -> every number of the paper's
+LERF-OVS tables (Sec. 4.1, appendix Tables 7 and 8, the R@K retrieval figure), written as
+``eval.json``, ``eval.md``, PNG plots and raw relevancy ``.npy`` files.
+
+What is measured, per query mode (``composite``, ``explicit``, ``levels`` for a 3-level field,
+``oracle``) and per box size:
+
+* **Box sizes, always both.** ``exact`` is LangSplat's protocol as released (30 px mean filter,
+  7x7 majority filter), sized for LERF-OVS images about 986 px wide; ``scaled`` is the same
+  rules with both pixel sizes scaled to the evaluated width (:meth:`ProtocolConfig.scaled`).
+  On small renders (the 160 px demo) the 30 px box erases small parts, so both are reported
+  side by side; neither is tuned.
+* **Localization accuracy and mIoU** per scene, from :func:`n2f2.eval.protocol.evaluate_scene`.
+* **Scale choice of each mode** (the candidate scales are the field's ``floor(D / k)`` prefix
+  scales, or the 3 levels of a "levels" field):
+
+  - ``composite``: one map per query (paper Sec. 3.3); no choice.
+  - ``explicit`` / ``levels``: every scale is handed to the protocol as one of its levels, so the
+    choice is LangSplat's own: segmentation uses the scale whose ``R' = 0.5 (box(R) + R)`` has
+    the highest maximum, localization the scale whose ``box(R)`` has the highest maximum
+    (``protocol.evaluate_frame_category``). The box size of each setting is used for the choice.
+  - ``oracle`` (paper Sec. 4.3, "the scale that gives the highest performance for the task in
+    question"): per (frame, category) pair, segmentation uses the scale with the best protocol
+    IoU and localization the first scale that localizes (any scale whose box-filtered maximum
+    lies in a box). It is an upper bound of ``explicit`` / ``levels`` by construction (same
+    candidates), *not* of ``composite``, whose map is a blend that is not one of the scales.
+
+  A pair's IoU is computed on its segmentation map and its hit on its localization map: each
+  mode's chosen maps are scored by two ``evaluate_scene`` passes (one over the segmentation
+  maps, one over the localization maps), so the protocol's bookkeeping (skipped frames and
+  objects, label sizes, box sizes used) is the protocol's, not re-implemented here.
+* **Simple vs compound queries** (paper Table 7): query types from the scene's
+  ``queries.json`` (``"type": "simple" | "compound"``), from a ``--query-types`` JSON, or
+  ``"unknown"``. Pair counts of the types add up to the scene's pairs.
+* **R@K retrieval** (appendix, K = 1..5): per labelled view the pool is the segment bank's
+  segments of that view (every stored segment with at least one pixel). Each segment is scored
+  by its mean relevancy (:func:`n2f2.eval.metrics.segment_mean_relevancy`) in the mode's
+  segmentation map; segments are ranked per query, ties counted against the query
+  (:func:`metrics.segment_ranks`). A segment *matches* the ground truth when its IoU with the
+  label's union mask is at least ``retrieval_iou`` (0.5). A (view, query) pair is retrieved at K
+  when a matching segment is among the top K (the paper's definition, i.e. hit@K; R@K is
+  monotone in K). Pairs with no matching segment in the pool cannot be retrieved by any field:
+  they are skipped and counted (``skipped``), not scored 0.
+* **Per-query scores** (mean IoU and localization over the frames a query is labelled in), the
+  input of the per-query delta between two runs (paper Table 8; ``compare_evals``).
+
+Bad input (each an :class:`~n2f2.errors.InputError` naming the file, or a counted skip):
+an empty or missing label folder; a label whose frame is not a view of the scene (error, or
+with ``missing_frames="skip"`` a skip listed in the report); two labels for one view; labels
+drawn at another size than the renders (error, or ``rescale_labels=True``); polygons outside
+the image (dropped and counted by the protocol); a segment bank of another scene or size.
+
+Memory: the runner renders each labelled view once and keeps, per view, the chosen maps of every
+mode (``[Q, H, W]`` float32 each, about 9 per view); the all-scale maps are scored per query and
+dropped. On the 160x120 demo that is ~14 MB per view.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Any, Mapping, Optional, Sequence, Union
+
+import numpy as np
+
+from ..errors import InputError
+from .metrics import per_query_scores, query_deltas, recall_at_k, segment_mean_relevancy
+from .protocol import (PairRecord, ProtocolConfig, SceneScores, box_filter, evaluate_frame_category,
+                       evaluate_scene, frame_targets, max_locations, points_in_boxes,
+                       resolve_box_size, resolve_majority_radius)
+
+BOXES = ("exact", "scaled")  # LangSplat's 30 px box, and the box scaled to the image width
+DEFAULT_KS = (1, 2, 3, 4, 5)
+RETRIEVAL_IOU = 0.5  # a bank segment matches a label when IoU(segment, union mask) >= this
+QUERY_TYPES = ("simple", "compound", "unknown")
+SCALE_MODES = ("explicit", "levels", "oracle")  # modes scored from the all-scale maps
+
+
+@dataclass(frozen=True)
+class EvalConfig:
+    """Settings of :func:`evaluate_run`. Defaults: LangSplat's protocol, labels must match."""
+
+    modes: Optional[tuple[str, ...]] = None  # None = every mode the field supports
+    missing_frames: str = "error"  # label of a frame not in the scene: "error" | "skip" (counted)
+    rescale_labels: bool = False  # labels drawn at another size: False raises, True rescales
+    ks: tuple[int, ...] = DEFAULT_KS  # R@K cut-offs
+    retrieval_iou: float = RETRIEVAL_IOU  # segment/label IoU for a retrieval match
+    progress: bool = True
+
+    def protocols(self) -> dict[str, ProtocolConfig]:
+        """The two protocol settings every number is reported under."""
+        kw = dict(missing_frames=self.missing_frames, rescale_labels=self.rescale_labels)
+        return {"exact": ProtocolConfig(**kw), "scaled": ProtocolConfig.scaled(**kw)}
+
+
+@dataclass
+class RetrievalSummary:
+    """R@K of one (mode, box) over all labelled (view, query) pairs."""
+
+    ks: list[int]
+    recall: dict[int, float]  # K -> fraction of scored pairs retrieved at K
+    mean_first_rank: float
+    num_pairs: int  # scored pairs (a matching segment is in the pool)
+    first_ranks: dict[str, int]  # "frame/query" -> rank of the best matching segment
+    skipped: list[str] = field(default_factory=list)  # pairs with no matching segment
+    iou_threshold: float = RETRIEVAL_IOU
+    pool_sizes: dict[str, int] = field(default_factory=dict)  # frame -> segments in the pool
+
+
+@dataclass
+class EvalResult:
+    """Everything :func:`evaluate_run` measured (``to_dict`` is ``eval.json``)."""
+
+    scene: str
+    run_dir: str
+    scene_dir: str
+    label_dir: str
+    bank_dir: Optional[str]
+    encoder: dict  # name, description (honest: e.g. "captions", not CLIP), spec
+    field: dict  # variant, dim, step, scale labels
+    modes: list[str]
+    boxes: dict[str, dict]  # box -> {"box_sizes", "majority_radii", "config"}
+    scores: dict[str, dict[str, SceneScores]]  # mode -> box -> scores
+    split: dict[str, dict[str, dict[str, dict]]]  # mode -> box -> type -> {pairs, miou, ...}
+    retrieval: dict[str, dict[str, RetrievalSummary]]  # mode -> box -> R@K
+    per_query: dict[str, dict[str, dict[str, dict]]]  # mode -> box -> query -> {iou, hit, ...}
+    query_types: dict[str, str]  # query -> simple | compound | unknown
+    query_types_source: str
+    views: list[dict]  # per labelled view: index, name, held out from training?, timings
+    relevancy_files: dict[str, dict[str, str]] = field(default_factory=dict)  # frame -> query -> path
+    relevancy_mode: Optional[str] = None
+    notes: list[str] = field(default_factory=list)
+    seconds: float = 0.0
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["format"] = "n2f2-eval-v1"
+        d["scores"] = {m: {b: s.to_dict() for b, s in by.items()} for m, by in self.scores.items()}
+        return d
+
+
+# ------------------------------------------------------------------------------ inputs
+def read_query_types(path: Union[str, Path]) -> dict[str, str]:
+    """Query -> type from a ``queries.json`` (``{"queries": [{"query", "type"}]}``) or a plain
+    ``{"query": "simple" | "compound"}`` mapping."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except OSError as e:
+        raise InputError(path, f"cannot read query types ({e})") from None
+    except json.JSONDecodeError as e:
+        raise InputError(path, f"not valid JSON ({e.msg} at line {e.lineno})") from None
+    if isinstance(data, dict) and isinstance(data.get("queries"), list):
+        items = []
+        for k, q in enumerate(data["queries"]):
+            if not isinstance(q, dict) or not isinstance(q.get("query"), str):
+                raise InputError(path, f"queries[{k}] must be an object with a 'query' string")
+            items.append((q["query"], q.get("type", "unknown")))
+    elif isinstance(data, dict):
+        items = list(data.items())
+    else:
+        raise InputError(path, "query types must be {\"queries\": [...]} or {query: type}")
+    out = {}
+    for query, kind in items:
+        if kind not in QUERY_TYPES:
+            raise InputError(path, f"query {query!r} has type {kind!r}; use one of {', '.join(QUERY_TYPES)}")
+        out[str(query)] = str(kind)
+    return out
+
+
+def check_label_frames(labels: Sequence[Any], num_views: int, label_dir: Path,
+                       missing_frames: str) -> tuple[list[Any], list[str]]:
+    """(frames to render, names of skipped frames). Fails before any rendering, naming the label
+    file, on a frame outside the scene (unless ``missing_frames="skip"``) or two labels for one
+    view; the protocol applies the same rules again when it scores."""
+    keep, skipped, seen = [], [], {}
+    for frame in labels:
+        path = label_dir / f"{frame.frame_name}.json"
+        idx = frame.view_index
+        if idx in seen:
+            raise InputError(path, f"view {idx} is labelled twice ({seen[idx]} and {frame.frame_name})")
+        seen[idx] = frame.frame_name
+        if not 0 <= idx < num_views:
+            if missing_frames == "skip":
+                skipped.append(frame.frame_name)
+                continue
+            raise InputError(path, f"label {frame.frame_name!r} refers to view {idx}, but the scene has "
+                                   f"{num_views} views (frame_00001 is view 0); pass --skip-missing-frames "
+                                   "to leave it out")
+        keep.append(frame)
+    return keep, skipped
+
+
+# ------------------------------------------------------------------------------ per view
+@dataclass
+class _ViewMaps:
+    """Chosen maps of one view: mode -> box -> {"seg" | "loc": [K, H, W]}, and the choices."""
+
+    frame: str
+    categories: list[str]
+    maps: dict[str, dict[str, dict[str, np.ndarray]]]
+    # mode -> box -> category -> (seg scale, loc scale, IoU of every scale)
+    choices: dict[str, dict[str, dict[str, tuple[int, int, list[float]]]]]
+    all_scales: Optional[np.ndarray] = None  # [K, S, H, W] for a levels field's npy output
+
+
+def _scale_maps(engine: Any, view: Any, categories: list[str], targets: dict, modes: list[str],
+                protocols: dict[str, ProtocolConfig], keep_all: bool) -> tuple[dict, dict, Optional[np.ndarray]]:
+    """Score every scale of every labelled category once (through the engine's oracle scorer
+    hook, which hands over the ``[S, H, W]`` maps of one query) and keep each mode's chosen maps."""
+    H, W = view.height, view.width
+    K = len(categories)
+    wanted = [m for m in modes if m in SCALE_MODES]
+    maps = {m: {b: {"seg": np.zeros((K, H, W), np.float32), "loc": np.zeros((K, H, W), np.float32)}
+                for b in protocols} for m in wanted}
+    choices: dict = {m: {b: {} for b in protocols} for m in wanted}
+    stacks: list = [None] * K
+
+    def scorer(rel: Any, qi: int) -> np.ndarray:  # rel [S, H, W] -> [S] (the engine's choice is unused)
+        r = rel.detach().float().cpu().numpy()
+        if keep_all:
+            stacks[qi] = r.copy()
+        target = targets.get(categories[qi])
+        if target is None:  # every object of this category is outside the image: not scored
+            return np.zeros(len(r))
+        for b, cfg in protocols.items():
+            size = resolve_box_size(cfg.box_size, W, cfg.box_ref_width)
+            radius = resolve_majority_radius(cfg.majority_radius, W, cfg.box_ref_width)
+            res = evaluate_frame_category(r, target.mask, target.boxes, size, cfg.threshold, radius)
+            hits = [points_in_boxes(max_locations(f), target.boxes) for f in box_filter(r, size)]
+            picks = {"explicit": (res.seg_level, res.loc_level), "levels": (res.seg_level, res.loc_level),
+                     "oracle": (int(np.argmax(res.iou_per_level)),
+                                hits.index(True) if any(hits) else res.loc_level)}
+            for m in wanted:
+                seg, loc = picks[m]
+                maps[m][b]["seg"][qi] = r[seg]
+                maps[m][b]["loc"][qi] = r[loc]
+                choices[m][b][categories[qi]] = (seg, loc, res.iou_per_level)
+        return np.zeros(len(r))
+
+    engine.query(view, categories, mode="oracle", scorer=scorer)
+    all_scales = np.stack(stacks, axis=0) if keep_all else None  # [K, S, H, W]
+    return maps, choices, all_scales
+
+
+# ------------------------------------------------------------------------------ retrieval
+def segment_label_iou(
+    layers: np.ndarray,  # [L, H, W] int segment ids, -1 = none
+    gt: np.ndarray,  # [H, W] bool union mask of a label
+    num_segments: int,
+) -> np.ndarray:  # [S] IoU of every segment with the mask (0 for an empty segment)
+    """IoU of each bank segment with a label mask, from id counts (no per-segment masks)."""
+    area = np.zeros(num_segments, np.int64)
+    inter = np.zeros(num_segments, np.int64)
+    for layer in np.asarray(layers):
+        ids = layer[layer >= 0]
+        area += np.bincount(ids, minlength=num_segments)
+        inter += np.bincount(layer[(layer >= 0) & gt], minlength=num_segments)
+    union = area + int(gt.sum()) - inter
+    return np.where(union > 0, inter / np.maximum(union, 1), 0.0)
+
+
+@dataclass
+class _RetrievalAcc:
+    first_ranks: dict[str, int] = field(default_factory=dict)
+    skipped: list[str] = field(default_factory=list)
+    pool_sizes: dict[str, int] = field(default_factory=dict)
+
+    def add(self, frame: str, relevancy: np.ndarray,  # [K, H, W]
+            categories: list[str], positives: list[list[int]], layers: np.ndarray, num_segments: int,
+            ks: Sequence[int]) -> None:
+        scores, areas = segment_mean_relevancy(relevancy, layers, num_segments)  # [K, S]
+        names = [f"{frame}/{c}" for c in categories]
+        r = recall_at_k(scores, positives, ks=ks, queries=names)
+        self.first_ranks.update({q.query: q.first_rank for q in r.per_query})
+        self.skipped += r.skipped
+        self.pool_sizes[frame] = int((areas > 0).sum())
+
+    def summary(self, ks: Sequence[int], iou: float) -> RetrievalSummary:
+        ranks = np.asarray(list(self.first_ranks.values()), dtype=np.float64)
+        recall = {int(k): (float((ranks <= k).mean()) if ranks.size else math.nan) for k in ks}
+        return RetrievalSummary(list(map(int, ks)), recall,
+                                float(ranks.mean()) if ranks.size else math.nan, int(ranks.size),
+                                dict(self.first_ranks), list(self.skipped), iou, dict(self.pool_sizes))
+
+
+# ------------------------------------------------------------------------------ scoring
+def _stored(per_view: Mapping[int, _ViewMaps], mode: str, box: str, kind: str):
+    """The protocol's ``relevancy_fn`` over the kept maps: (view, categories) -> [1, K, H, W]."""
+    def relevancy_fn(i: int, categories: list) -> np.ndarray:
+        vm = per_view[i]
+        return vm.maps[mode][box][kind][[vm.categories.index(c) for c in categories]][None]
+    return relevancy_fn
+
+
+def _combine(seg: SceneScores, loc: SceneScores,
+             choices: Optional[dict[tuple[str, str], tuple[int, int, list[float]]]]) -> SceneScores:
+    """One mode's scores: IoU from the segmentation-map pass, hit from the localization-map pass;
+    the levels recorded are the chosen scales (and every scale's IoU) of the mode."""
+    pairs = []
+    for ps, pl in zip(seg.pairs, loc.pairs):
+        if (ps.frame, ps.category) != (pl.frame, pl.category):
+            raise RuntimeError("segmentation and localization passes scored different pairs")
+        if choices is None:
+            pairs.append(replace(ps, hit=pl.hit))
+        else:
+            s, l_, ious = choices[(ps.frame, ps.category)]
+            pairs.append(replace(ps, hit=pl.hit, seg_level=s, loc_level=l_, iou_per_level=list(ious)))
+    return replace(seg, pairs=pairs, loc_accuracy=sum(p.hit for p in pairs) / len(pairs))
+
+
+def split_scores(pairs: Sequence[PairRecord], types: Mapping[str, str]) -> dict[str, dict]:
+    """mIoU and localization accuracy per query type (paper Table 7); types with no pair are
+    listed with ``pairs: 0`` and NaN scores."""
+    out = {}
+    for kind in QUERY_TYPES:
+        sel = [p for p in pairs if types.get(p.category, "unknown") == kind]
+        out[kind] = {"pairs": len(sel),
+                     "queries": sorted({p.category for p in sel}),
+                     "miou": float(np.mean([p.iou for p in sel])) if sel else math.nan,
+                     "loc_accuracy": float(np.mean([p.hit for p in sel])) if sel else math.nan}
+    return out
+
+
+def _per_query(pairs: Sequence[PairRecord], types: Mapping[str, str]) -> dict[str, dict]:
+    iou = per_query_scores(pairs, "iou")
+    hit = per_query_scores(pairs, "hit")
+    frames: dict[str, int] = {}
+    for p in pairs:
+        frames[p.category] = frames.get(p.category, 0) + 1
+    return {q: {"iou": iou[q], "hit": hit[q], "frames": frames[q], "type": types.get(q, "unknown")}
+            for q in iou}
+
+
+# ------------------------------------------------------------------------------ the runner
+def evaluate_run(
+    run_dir: Union[str, Path],
+    label_dir: Union[str, Path],
+    *,
+    scene: Optional[Union[str, Path]] = None,  # default: the scene recorded in the run
+    bank: Optional[Union[str, Path]] = None,  # default: the bank recorded in the run; R@K needs one
+    query_types: Optional[Union[str, Path, Mapping[str, str]]] = None,  # default: SCENE/queries.json
+    config: EvalConfig = EvalConfig(),
+    query_config: Any = None,  # n2f2.query.QueryConfig (canonical phrases, temperature, negatives)
+    device: str = "cpu",
+    encoder: Any = None,  # text encoder override (tests); default: the one the field was trained with
+    relevancy_dir: Optional[Union[str, Path]] = None,  # write raw float32 maps here (see module doc)
+) -> EvalResult:
+    """Evaluate a trained run on LangSplat-format labels (see the module docstring)."""
+    from tqdm import tqdm
+
+    from ..data.labels import read_label_dir
+    from ..io import write_npy
+    from ..query.engine import QueryEngine
+    from ..query.outputs import unique_slugs
+
+    t_start = time.perf_counter()
+    if config.missing_frames not in ("error", "skip"):
+        raise ValueError(f"missing_frames must be 'error' or 'skip', got {config.missing_frames!r}")
+    run_dir, label_dir = Path(run_dir), Path(label_dir)
+    labels = read_label_dir(label_dir)  # InputError on a missing folder or one with no frame_*.json
+    engine = QueryEngine.from_run(run_dir, device=device, scene=scene, config=query_config, encoder=encoder)
+    if engine.scene is None:
+        raise InputError(run_dir, "the run does not record its scene folder: pass --scene DIR")
+    scene_obj = engine.scene
+    num_views = len(scene_obj.cameras)
+    supported = list(engine.modes())
+    modes = list(dict.fromkeys(config.modes or supported))
+    for m in modes:
+        if m not in supported:
+            raise InputError(run_dir / "field.pt", f"mode {m!r} does not apply to this {engine.variant!r} field "
+                                                   f"(it supports {', '.join(supported)})")
+    protocols = config.protocols()
+    frames, skipped_frames = check_label_frames(labels, num_views, label_dir, config.missing_frames)
+    notes: list[str] = []
+    if skipped_frames:
+        notes.append(f"{len(skipped_frames)} label frame(s) refer to views not in the scene and were "
+                     f"skipped: {', '.join(skipped_frames)}")
+
+    # Query types: the scene's queries.json, a given file / mapping, else "unknown".
+    types: dict[str, str] = {}
+    types_source = "none (all queries 'unknown')"
+    if query_types is not None:
+        types = dict(query_types) if isinstance(query_types, Mapping) else read_query_types(query_types)
+        types_source = "given mapping" if isinstance(query_types, Mapping) else str(query_types)
+    elif (Path(scene_obj.root) / "queries.json").is_file():
+        types = read_query_types(Path(scene_obj.root) / "queries.json")
+        types_source = str(Path(scene_obj.root) / "queries.json")
+
+    # Segment bank for R@K: given, or the run's; none -> R@K skipped with a note (not zeros).
+    bank_obj, bank_path = None, None
+    bank_arg = bank if bank is not None else engine.meta.get("bank")
+    if bank_arg:
+        from ..segments.bank import SegmentBank
+
+        if bank is None and not Path(bank_arg).is_dir():
+            notes.append(f"R@K not computed: the run's segment bank {bank_arg} does not exist (pass --bank)")
+        else:
+            bank_obj, bank_path = SegmentBank.open(bank_arg), str(bank_arg)
+            bank_obj.validate_against(scene_obj)
+    else:
+        notes.append("R@K not computed: the run records no segment bank (pass --bank)")
+
+    all_categories = list(dict.fromkeys(c for f in frames for c in f.categories))
+    slugs = dict(zip(all_categories, unique_slugs(all_categories)))
+    npy_mode = "composite" if "composite" in modes else ("levels" if "levels" in modes else None)
+    render_modes = (["composite"] if "composite" in modes else []) + \
+        (["oracle"] if any(m in SCALE_MODES for m in modes) else [])
+    heldout = set(int(v) for v in engine.meta.get("heldout_views", []) or [])
+    train_views = engine.meta.get("train_views")
+
+    per_view: dict[int, _ViewMaps] = {}
+    retrieval = {m: {b: _RetrievalAcc() for b in protocols} for m in modes}
+    view_info: list[dict] = []
+    relevancy_files: dict[str, dict[str, str]] = {}
+    # Ground truth of every frame before any rendering, so a label of the wrong size fails fast.
+    frame_gt: dict[str, list] = {}
+    for frame in frames:
+        camera = engine.camera(frame.view_index)[0]
+        try:
+            frame_gt[frame.frame_name] = frame_targets(frame, (camera.height, camera.width),
+                                                       config.rescale_labels)[0]
+        except ValueError as e:
+            raise InputError(label_dir / f"{frame.frame_name}.json",
+                             f"{e} (render size; pass --rescale-labels to scale the labels)") from None
+    for frame in tqdm(frames, desc="eval views", unit="view", disable=not config.progress):
+        idx = frame.view_index
+        categories = frame.categories
+        if not categories:
+            continue
+        target_list = frame_gt[frame.frame_name]
+        targets = {t.category: t for t in target_list}
+        t0 = time.perf_counter()
+        view = engine.render_view(idx, modes=render_modes, rgb=False)
+        t1 = time.perf_counter()
+        maps: dict = {}
+        choices: dict = {}
+        if "composite" in modes:
+            rel = engine.query(view, categories, mode="composite").relevancy.float().cpu().numpy()
+            maps["composite"] = {b: {"seg": rel, "loc": rel} for b in protocols}
+        all_scales = None
+        if any(m in SCALE_MODES for m in modes):
+            smaps, choices, all_scales = _scale_maps(engine, view, categories, targets, modes, protocols,
+                                                     keep_all=(npy_mode == "levels" and relevancy_dir is not None))
+            maps.update(smaps)
+        t2 = time.perf_counter()
+        per_view[idx] = _ViewMaps(frame.frame_name, categories, maps, choices)
+
+        if relevancy_dir is not None and npy_mode is not None:
+            files = relevancy_files.setdefault(view.name, {})
+            for k, c in enumerate(categories):
+                path = Path(relevancy_dir) / view.name / f"{slugs[c]}.npy"
+                arr = maps["composite"]["exact"]["seg"][k] if npy_mode == "composite" else all_scales[k]
+                write_npy(path, np.ascontiguousarray(arr, dtype=np.float32))
+                files[c] = str(path)
+
+        if bank_obj is not None and target_list:
+            rec = bank_obj.record(bank_obj.index(scene_obj.image_names[idx]))
+            layers = np.asarray(rec.layers)
+            if layers.shape[1:] != (view.height, view.width):
+                raise InputError(Path(bank_path) / "bank.json",
+                                 f"segments of {view.name} are {layers.shape[2]}x{layers.shape[1]} but the "
+                                 f"render is {view.width}x{view.height}")
+            S = rec.num_segments
+            scored = [c for c in categories if c in targets]
+            positives = [np.flatnonzero(segment_label_iou(layers, targets[c].mask, S) >= config.retrieval_iou).tolist()
+                         for c in scored]
+            rows = [categories.index(c) for c in scored]
+            for m in modes:
+                for b in protocols:
+                    retrieval[m][b].add(frame.frame_name, maps[m][b]["seg"][rows], scored, positives,
+                                        layers, S, config.ks)
+        view_info.append({"view_index": idx, "frame": frame.frame_name, "name": view.name,
+                          "heldout": (idx in heldout) if train_views is not None else None,
+                          "categories": len(categories), "render_s": t1 - t0, "query_s": t2 - t1})
+
+    # Protocol passes: segmentation maps -> IoU, localization maps -> hits, per mode and box.
+    scores: dict[str, dict[str, SceneScores]] = {}
+    for m in modes:
+        scores[m] = {}
+        for b, cfg in protocols.items():
+            seg = evaluate_scene(_stored(per_view, m, b, "seg"), labels, num_views, cfg, label_dir, progress=False)
+            loc = evaluate_scene(_stored(per_view, m, b, "loc"), labels, num_views, cfg, label_dir, progress=False)
+            ch = None
+            if m in SCALE_MODES:
+                ch = {(vm.frame, c): v for vm in per_view.values() for c, v in vm.choices[m][b].items()}
+            scores[m][b] = _combine(seg, loc, ch)
+
+    any_scores = scores[modes[0]]
+    boxes = {b: {"box_sizes": any_scores[b].box_sizes, "majority_radii": any_scores[b].majority_radii,
+                 "config": asdict(protocols[b])} for b in protocols}
+    ref = any_scores["exact"]
+    if ref.skipped_objects:
+        notes.append(f"{ref.skipped_objects} labelled object(s) have a polygon outside the image and were "
+                     f"dropped; {ref.skipped_categories} (frame, category) pair(s) were left empty and not scored")
+    held = [v for v in view_info if v["heldout"]]
+    if train_views is not None:
+        notes.append(f"{len(held)} of {len(view_info)} labelled views were held out from field training "
+                     "(the others were training views)")
+    enc_spec = dict(engine.meta.get("encoder_spec") or {})
+    description = enc_spec.get("description") or getattr(encoder, "description", None) or \
+        (bank_obj.encoder_spec.get("description") if bank_obj is not None else None) or "unknown"
+    if enc_spec.get("name") == "captions":
+        notes.append("Teacher: ground-truth captions embedded by MiniLM (not CLIP). Relevancy at temperature "
+                     "10 saturates for related captions, and part queries score low even for the teacher; "
+                     "the protocol is not tuned to hide it.")
+    labels_of_scales = _scale_labels(engine)
+    result = EvalResult(
+        scene=Path(scene_obj.root).name, run_dir=str(run_dir), scene_dir=str(scene_obj.root),
+        label_dir=str(label_dir), bank_dir=bank_path,
+        encoder={"name": enc_spec.get("name", getattr(encoder, "name", None)), "description": description,
+                 "spec": enc_spec},
+        field={"variant": engine.variant, "dim": engine.dim, "step": engine.step,
+               "num_scales": len(labels_of_scales), "scale_labels": labels_of_scales},
+        modes=modes, boxes=boxes, scores=scores,
+        split={m: {b: split_scores(s.pairs, types) for b, s in by.items()} for m, by in scores.items()},
+        retrieval=({m: {b: acc.summary(config.ks, config.retrieval_iou) for b, acc in by.items()}
+                    for m, by in retrieval.items()} if bank_obj is not None else {}),
+        per_query={m: {b: _per_query(s.pairs, types) for b, s in by.items()} for m, by in scores.items()},
+        query_types={c: types.get(c, "unknown") for c in all_categories}, query_types_source=types_source,
+        views=view_info, relevancy_files=relevancy_files,
+        relevancy_mode=npy_mode if relevancy_dir is not None else None,
+        notes=notes, seconds=time.perf_counter() - t_start)
+    return result
+
+
+def _scale_labels(engine: Any) -> list[str]:
+    if engine.variant == "levels":
+        from ..query.engine import LEVEL_NAMES
+
+        return list(LEVEL_NAMES)
+    return [f"d={d}" for d in engine.scale_dims]
+
+
+# ------------------------------------------------------------------------------ comparison
+def load_eval(path: Union[str, Path]) -> dict:
+    """Read an ``eval.json`` written by ``n2f2 eval`` (for ``--compare``)."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / "eval.json"
+    try:
+        data = json.loads(path.read_text())
+    except OSError as e:
+        raise InputError(path, f"cannot read eval results ({e})") from None
+    except json.JSONDecodeError as e:
+        raise InputError(path, f"not valid JSON ({e.msg} at line {e.lineno})") from None
+    if not isinstance(data, dict) or data.get("format") != "n2f2-eval-v1" or "per_query" not in data:
+        raise InputError(path, "not an eval.json written by `n2f2 eval` (format n2f2-eval-v1)")
+    return data
+
+
+def compare_evals(reference: Mapping, current: Mapping, n: int = 3) -> dict[str, dict[str, Any]]:
+    """Per-query IoU delta ``current - reference`` for every (mode, box) both evals scored
+    (paper Table 8: top and bottom ``n``)."""
+    out: dict[str, dict[str, Any]] = {}
+    for m, by in current["per_query"].items():
+        for b, queries in by.items():
+            ref = reference["per_query"].get(m, {}).get(b)
+            if ref is None:
+                continue
+            out.setdefault(m, {})[b] = query_deltas({q: v["iou"] for q, v in ref.items()},
+                                                    {q: v["iou"] for q, v in queries.items()}, n=n)
+    return out
+
+
+# ------------------------------------------------------------------------------ reports
+def _pct(v: Any) -> str:
+    from .reports import _fmt
+
+    return _fmt(v, percent=True)
+
+
+def _box_title(result: Mapping, box: str) -> str:
+    """"exact 30 px" / "scaled 5 px" (sizes actually used, from the protocol's record)."""
+    return f"{box} {','.join(str(s) for s in result['boxes'][box]['box_sizes'])} px"
+
+
+def _radii(result: Mapping, box: str) -> str:
+    return ",".join(str(s) for s in result["boxes"][box]["majority_radii"])
+
+
+def _at(d: Mapping, k: int) -> Any:  # K-keyed dicts have int keys in memory, str keys after JSON
+    return d[k] if k in d else d[str(k)]
+
+
+def markdown_report(result: Mapping, deltas: Optional[Mapping] = None, compare_name: str = "") -> str:
+    """``eval.md`` from an ``eval.json`` dict (and optional :func:`compare_evals` output)."""
+    from .reports import markdown_table
+
+    boxes = list(result["boxes"])
+    title = {b: _box_title(result, b) for b in boxes}
+    radii = {b: _radii(result, b) for b in boxes}
+    modes = result["modes"]
+    out = [f"# n2f2 eval: {result['scene']}\n",
+           f"- run: `{result['run_dir']}`\n- labels: `{result['label_dir']}`\n"
+           f"- field: {result['field']['variant']}, D = {result['field']['dim']}, k = {result['field']['step']} "
+           f"({result['field']['num_scales']} scales)\n"
+           f"- text encoder / teacher: {result['encoder']['description']}\n"
+           f"- protocol: LangSplat's LERF-OVS rules. Box sizes, always both: **{title['exact']}** "
+           f"(LangSplat's, sized for ~986 px-wide images; majority radius {radii['exact']}) and "
+           f"**{title['scaled']}** (round(30 W / 986); majority radius {radii['scaled']}).\n"]
+    for note in result.get("notes", []):
+        out.append(f"- note: {note}\n")
+
+    out.append("\n## Localization and segmentation\n\n")
+    first = result["scores"][modes[0]]
+    rows = []
+    for m in modes:
+        s = result["scores"][m]
+        rows.append([m] + [_pct(s[b]["loc_accuracy"]) for b in boxes] + [_pct(s[b]["miou"]) for b in boxes]
+                    + [s["exact"]["num_pairs"]])
+    out.append(markdown_table(["mode"] + [f"loc. % ({title[b]})" for b in boxes]
+                              + [f"mIoU % ({title[b]})" for b in boxes] + ["pairs"], rows))
+    out.append(f"\nScene {result['scene']}: {first['exact']['num_frames']} labelled frames, "
+               f"{first['exact']['num_pairs']} (frame, query) pairs; skipped frames: "
+               f"{len(first['exact']['skipped_frames'])}, objects outside the image: "
+               f"{first['exact']['skipped_objects']}, empty pairs: {first['exact']['skipped_categories']}.\n")
+
+    out.append("\n## Simple vs compound queries (paper Table 7)\n\n")
+    out.append(f"Query types from {result['query_types_source']}.\n\n")
+    rows = []
+    for m in modes:
+        for b in boxes:
+            sp = result["split"][m][b]
+            rows.append([m, title[b]] + [_pct(sp[k]["miou"]) for k in ("simple", "compound")]
+                        + [_pct(sp[k]["loc_accuracy"]) for k in ("simple", "compound")]
+                        + [sp[k]["pairs"] for k in QUERY_TYPES])
+    out.append(markdown_table(["mode", "box", "simple mIoU %", "compound mIoU %", "simple loc. %",
+                               "compound loc. %", "simple pairs", "compound pairs", "unknown pairs"], rows,
+                              ["l", "l"] + ["r"] * 7))
+
+    out.append("\n## Retrieval R@K over the segment pool\n\n")
+    if result["retrieval"]:
+        any_r = next(iter(next(iter(result["retrieval"].values())).values()))
+        ks = any_r["ks"]
+        out.append(f"Pool: the segment bank's segments of each labelled view ({result['bank_dir']}); a segment "
+                   f"matches when its IoU with the label mask is >= {any_r['iou_threshold']}; a pair is "
+                   "retrieved at K when a matching segment ranks in the top K by mean relevancy (ties count "
+                   "against it). Pairs with no matching segment are skipped and counted.\n\n")
+        rows = []
+        for m in modes:
+            for b in boxes:
+                r = result["retrieval"][m][b]
+                rows.append([m, title[b] if m != "composite" else "any"]
+                            + [_pct(_at(r["recall"], k)) for k in ks]
+                            + [_fmt_num(r["mean_first_rank"]), r["num_pairs"], len(r["skipped"])])
+                if m == "composite":
+                    break  # the composite map does not depend on the box
+        out.append(markdown_table(["mode", "box"] + [f"R@{k} %" for k in ks]
+                                  + ["mean first rank", "pairs", "skipped (no matching segment)"], rows,
+                                  ["l", "l"] + ["r"] * (len(ks) + 3)))
+    else:
+        out.append("Not computed (no segment bank).\n")
+
+    out.append("\n## Per query (IoU %, mean over the frames a query is labelled in)\n\n")
+    queries = sorted(result["query_types"], key=lambda q: (result["query_types"][q], q))
+    rows = []
+    for q in queries:
+        row = [q, result["query_types"][q]]
+        frames = None
+        for m in modes:
+            for b in boxes:
+                v = result["per_query"][m][b].get(q)
+                row.append(_pct(v["iou"]) if v else "-")
+                frames = frames or (v["frames"] if v else None)
+        rows.append(row[:2] + [frames if frames is not None else 0] + row[2:])
+    out.append(markdown_table(["query", "type", "frames"] + [f"{m} {title[b]}" for m in modes for b in boxes],
+                              rows, ["l", "l"] + ["r"] * (1 + len(modes) * len(boxes))))
+
+    if deltas:
+        from .reports import deltas_table
+
+        out.append(f"\n## Per-query IoU delta vs {compare_name} (paper Table 8: top and bottom 3)\n\n")
+        for m, by in deltas.items():
+            for b, d in by.items():
+                out.append(f"\n### {m}, {title[b]}: mean delta {_signed(d.mean_delta)} points over "
+                           f"{len(d.deltas)} shared queries\n\n")
+                out.append(deltas_table(d, name_a=f"{compare_name} IoU %", name_b="this run IoU %"))
+                if d.only_a or d.only_b:
+                    out.append(f"\nOnly in {compare_name}: {len(d.only_a)}; only in this run: {len(d.only_b)}.\n")
+    return "".join(out)
+
+
+def _fmt_num(v: Any) -> str:
+    from .reports import _fmt
+
+    return _fmt(v, digits=2)
+
+
+def _signed(v: float) -> str:
+    return "n/a" if not np.isfinite(v) else f"{100 * v:+.1f}"
+
+
+def plot_recall_curves(path: Union[str, Path], curves: Mapping[str, Mapping[int, float]],
+                       title: str = "R@K") -> Path:
+    """R@K against K, one line per (mode, box), written as PNG."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from ..io import atomic_path
+
+    fig = Figure(figsize=(4.5, 3.2))
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(1, 1, 1)
+    for name, rec in curves.items():
+        ks = sorted(int(k) for k in rec)
+        ax.plot(ks, [100 * rec[k] for k in ks], marker="o", label=name)
+    ax.set_xlabel("K")
+    ax.set_ylabel("R@K %")
+    ax.set_ylim(0, 100)
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize="small")
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=120, bbox_inches="tight")
+    return Path(path)
+
+
+def write_eval_outputs(result: EvalResult, out_dir: Union[str, Path],
+                       compare: Optional[Union[str, Path]] = None) -> dict[str, Path]:
+    """Write ``eval.json``, ``eval.md`` and the PNG plots into ``out_dir``; returns the paths."""
+    from ..io import write_json, write_text
+    from .reports import plot_grouped_bars, plot_level_histogram, plot_query_deltas
+
+    out = Path(out_dir)
+    data = result.to_dict()
+    deltas, compare_name = None, ""
+    if compare is not None:
+        other = load_eval(compare)
+        compare_name = Path(other.get("run_dir") or str(compare)).name or str(compare)
+        deltas = compare_evals(other, data)
+        data["compare"] = {"reference": str(compare), "reference_run": other.get("run_dir"),
+                           "iou_deltas": {m: {b: d.to_dict() for b, d in by.items()} for m, by in deltas.items()}}
+    paths = {"json": out / "eval.json", "md": out / "eval.md"}
+    title = {b: _box_title(data, b) for b in data["boxes"]}
+    modes = result.modes
+    bars = {}
+    for b in data["boxes"]:
+        bars[f"loc. ({title[b]})"] = {m: result.scores[m][b].loc_accuracy for m in modes}
+        bars[f"mIoU ({title[b]})"] = {m: result.scores[m][b].miou for m in modes}
+    paths["scores_png"] = plot_grouped_bars(out / "scores.png", bars, title=f"{result.scene}: per mode")
+    split = {k: {f"{m} {title[b]}": result.split[m][b][k]["miou"] for m in modes for b in data["boxes"]}
+             for k in ("simple", "compound") if any(result.split[m][b][k]["pairs"] for m in modes for b in data["boxes"])}
+    if split:
+        paths["split_png"] = plot_grouped_bars(out / "simple_compound.png", split, title="mIoU by query type")
+    if result.retrieval:
+        curves = {}
+        for m in modes:
+            for b in data["boxes"]:
+                curves[m if m == "composite" else f"{m} ({title[b]})"] = result.retrieval[m][b].recall
+        paths["recall_png"] = plot_recall_curves(out / "recall_at_k.png", curves)
+    for m in modes:
+        if m in SCALE_MODES:
+            for b in data["boxes"]:
+                paths[f"levels_{m}_{b}"] = plot_level_histogram(
+                    out / f"scales_{m}_{b}.png", result.scores[m][b], title=f"{m}: chosen scale ({title[b]})")
+    if deltas:
+        for m, by in deltas.items():
+            for b, d in by.items():
+                if d.deltas:
+                    paths[f"delta_{m}_{b}"] = plot_query_deltas(out / f"delta_{m}_{b}.png", d,
+                                                                title=f"IoU delta vs {compare_name}: {m}, {title[b]}")
+    write_text(paths["md"], markdown_report(data, deltas, compare_name))
+    write_json(paths["json"], data)  # last: its presence marks a finished evaluation
+    return paths

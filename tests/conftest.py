@@ -1,0 +1,53 @@
+"""Shared fixtures. ``trained_run`` builds one tiny end-to-end run of the real pipeline (demo scene
+-> fitted Gaussians -> ground-truth segment bank with MiniLM caption embeddings -> nested field)
+once per test session, through the same CLI commands a user runs."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+# Two cores: keep torch from oversubscribing when pytest and a server thread both compute.
+os.environ.setdefault("OMP_NUM_THREADS", "2")
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # see n2f2/cli.py
+os.environ.setdefault("HF_HUB_OFFLINE", "1")
+
+
+@dataclass(frozen=True)
+class TrainedRun:
+    scene_dir: Path
+    run_dir: Path
+    bank_dir: Path
+    num_views: int
+    part_query: str = "lid of the teapot"
+
+
+def _cli(*argv) -> None:
+    from n2f2.cli import main
+
+    rc = main([str(a) for a in argv])
+    assert rc == 0, f"n2f2 {' '.join(map(str, argv))} exited {rc}"
+
+
+@pytest.fixture(scope="session")
+def trained_run(tmp_path_factory) -> TrainedRun:
+    from n2f2.data.synthetic import generate_demo_scene
+
+    root = tmp_path_factory.mktemp("trained_run")
+    scene = root / "scene"
+    num_views = 6
+    generate_demo_scene(scene, num_views=num_views, width=80, height=60, seed=0,
+                        labelled_views=[1, 4], show_progress=False)
+    fit = root / "fit"
+    _cli("fit-gaussians", scene, "--out", fit, "--steps", 60, "--quiet")
+    bank = root / "bank"
+    _cli("segments", scene, "--gaussians", fit / "gaussians.ply", "--segmenter", "ground-truth",
+         "--encoder", "captions", "--out", bank, "--quiet")
+    run = root / "run"
+    _cli("train", scene, "--gaussians", fit / "gaussians.ply", "--segments", bank, "--out", run,
+         "--iterations", 80, "--pixels-per-step", 1024, "--dim", 32, "--plane-resolution", 32,
+         "--plane-channels", 8, "--hidden", 64, "--train-on-all", "--quiet")
+    return TrainedRun(scene_dir=scene, run_dir=run, bank_dir=bank, num_views=num_views)
