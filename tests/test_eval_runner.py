@@ -21,58 +21,17 @@ from n2f2.eval.runner import (EvalConfig, compare_evals, evaluate_run, read_quer
 from n2f2.query.outputs import unique_slugs
 
 
-class _Run:
-    def __init__(self, run_dir, scene_dir, bank_dir, num_views, encoder=None):
-        self.run_dir, self.scene_dir, self.bank_dir = Path(run_dir), Path(scene_dir), Path(bank_dir)
-        self.num_views, self.encoder = num_views, encoder
-
-
-def _build_tiny_run(root: Path) -> _Run:
-    """6 views of 64x48, Gaussians on the sparse points, a ground-truth bank embedded by the
-    captions teacher, and a field trained for a few steps."""
-    from n2f2.data import load_scene
-    from n2f2.data.synthetic import generate_demo_scene
-    from n2f2.field import FieldConfig
-    from n2f2.gaussians import init_from_points, write_ply
-    from n2f2.segments.bank import SegmentAndEncode, SegmentBank, build_bank
-    from n2f2.segments.encoders import CaptionEncoder
-    from n2f2.segments.lifting import gt_depth_provider
-    from n2f2.segments.segmenters import GroundTruthSegmenter
-    from n2f2.train.trainer import TrainConfig, train_field
-
-    scene_dir = generate_demo_scene(root / "scene", num_views=6, width=64, height=48, supersample=1,
-                                    num_points=600, labelled_views=[1, 4], show_progress=False)
-    scene = load_scene(scene_dir)
-    g = init_from_points(scene.points, scene.point_colors, sh_degree=0)
-    with torch.no_grad():  # opaque, overlapping splats: every pixel is covered
-        g.opacity_logits.fill_(2.0)
-        g.log_scales.add_(0.7)
-    write_ply(root / "gaussians.ply", g)
-    encoder = CaptionEncoder.from_package()
-    build_bank(scene, SegmentAndEncode(GroundTruthSegmenter(scene), encoder), gt_depth_provider(scene),
-               root / "bank", depth_source="gt", progress=False)
-    train_field(scene, g, SegmentBank.open(root / "bank"), root / "run",
-                field_config=FieldConfig(dim=12, plane_resolution=16, plane_channels=4, hidden=32),
-                config=TrainConfig(iterations=8, pixels_per_step=256, checkpoint_every=0, log_every=4),
-                progress=False, paths={"scene": str(scene_dir), "gaussians": str(root / "gaussians.ply"),
-                                       "bank": str(root / "bank")})
-    return _Run(root / "run", scene_dir, root / "bank", 6, encoder)
-
-
 @pytest.fixture(scope="module")
-def tiny(request, tmp_path_factory):
-    try:  # the shared session fixture, once tests/conftest.py provides it
-        tr = request.getfixturevalue("trained_run")
-        return _Run(tr.run_dir, tr.scene_dir, tr.bank_dir, tr.num_views)
-    except pytest.FixtureLookupError:
-        return _build_tiny_run(tmp_path_factory.mktemp("eval_run"))
+def tiny(trained_run):
+    """The session's tiny trained run (tests/conftest.py): 6 views, 2 of them labelled."""
+    return trained_run
 
 
 @pytest.fixture(scope="module")
 def evaluated(tiny, tmp_path_factory):
     out = tmp_path_factory.mktemp("eval_out")
     result = evaluate_run(tiny.run_dir, tiny.scene_dir / "label", config=EvalConfig(progress=False),
-                          encoder=tiny.encoder, relevancy_dir=out / "relevancy")
+                          relevancy_dir=out / "relevancy")
     paths = write_eval_outputs(result, out)
     return result, out, paths
 
@@ -99,7 +58,11 @@ def test_scores_finite_in_range_and_both_boxes_recorded(tiny, evaluated):
             assert {p.box_size for p in s.pairs} == {30 if b == "exact" else scaled}
     data = json.loads((out / "eval.json").read_text())
     assert data["scores"]["composite"]["scaled"]["box_sizes"] == [scaled]
-    assert "MiniLM" in data["encoder"]["description"] or data["encoder"]["description"] != "unknown"
+    # The teacher is described honestly, as the bank recorded it (MiniLM captions, not CLIP).
+    from n2f2.segments.bank import SegmentBank
+
+    assert data["encoder"]["description"] == SegmentBank.open(tiny.bank_dir).encoder_spec["description"]
+    assert "MiniLM" in data["encoder"]["description"]
 
 
 def test_oracle_is_the_best_scale_per_pair(evaluated):
@@ -213,7 +176,7 @@ def test_reports_and_compare(tiny, evaluated, tmp_path):
     ref_path.write_text(json.dumps(ref))
     paths2 = write_eval_outputs(result, tmp_path / "cmp", compare=ref_path)
     md2 = paths2["md"].read_text()
-    assert "Per-query IoU delta vs run" in md2 and f"| top | {worse} |" in md2
+    assert "Per-query IoU delta: this run - reference" in md2 and str(ref_path) in md2 and f"| top | {worse} |" in md2
     assert (tmp_path / "cmp" / "delta_composite_exact.png").is_file()
     assert json.loads(paths2["json"].read_text())["compare"]["iou_deltas"]["composite"]["exact"]["top"][0]["query"] == worse
 
@@ -234,8 +197,7 @@ def test_levels_field_modes_and_level_maps(tiny, tmp_path):
     save_field(run / "field.pt", levels, keep)
     shutil.copyfile(tiny.run_dir / "gaussians.ply", run / "gaussians.ply")
     result = evaluate_run(run, tiny.scene_dir / "label", scene=tiny.scene_dir, bank=tiny.bank_dir,
-                          config=EvalConfig(progress=False), encoder=tiny.encoder,
-                          relevancy_dir=tmp_path / "rel")
+                          config=EvalConfig(progress=False), relevancy_dir=tmp_path / "rel")
     assert result.modes == ["levels", "oracle"] and result.relevancy_mode == "levels"
     assert result.field["scale_labels"] == ["part", "object", "group"]
     for b in ("exact", "scaled"):

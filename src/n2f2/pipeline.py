@@ -90,17 +90,21 @@ def scene_digest(scene_dir: Path) -> str:
 
 @dataclass
 class RunOptions:
+    """Settings of ``n2f2 run``; ``None`` means the default that :func:`resolve_defaults`
+    picks from the scene (see there)."""
+
     data: Path
     out: Path
     gaussians: Path | None = None
-    segmenter: str = "ground-truth"
-    encoder: str = "captions"
+    segmenter: str | None = None
+    encoder: str | None = None
     model: str | None = None
     langsplat_features: Path | None = None
     labels: Path | None = None
     preset: str = "cpu"
     fit_steps: int | None = None
     train_steps: int | None = None
+    dim: int | None = None  # feature-field dims D (None: the preset's)
     variant: str | None = None
     depth_source: str = "render"
     downscale: float = 1.0
@@ -109,12 +113,54 @@ class RunOptions:
     quiet: bool = False
 
 
+def is_demo_scene(data: Path) -> bool:
+    """A scene with the built-in demo's ground truth (regions with captions, exact depth)."""
+    return (Path(data) / "regions.json").is_file()
+
+
+def resolve_defaults(opt: RunOptions) -> RunOptions:
+    """Fill in the scene-dependent defaults:
+
+    * segmenter: ``ground-truth`` on a demo scene, else ``sam`` (the paper's);
+    * encoder: with ``langsplat_features``, the encoder an n2f2 export recorded beside them
+      (``encoder.json``), else ``clip`` (LangSplat's own features are CLIP); otherwise
+      ``captions`` (the offline MiniLM stand-in) on a demo scene, else ``clip``."""
+    from dataclasses import replace
+
+    demo = is_demo_scene(Path(opt.data))
+    segmenter = opt.segmenter or ("ground-truth" if demo else "sam")
+    encoder = opt.encoder
+    if encoder is None and opt.langsplat_features is not None:
+        from .segments.langsplat import recorded_encoder
+
+        feats = Path(opt.langsplat_features)
+        recorded = recorded_encoder(feats) if feats.is_dir() else None
+        encoder = recorded["name"] if recorded else "clip"
+    if encoder is None:
+        encoder = "captions" if demo else "clip"
+    return replace(opt, segmenter=segmenter, encoder=encoder)
+
+
 def run_pipeline(opt: RunOptions, log=print) -> dict:
     """Fit Gaussians -> segment bank -> nested field -> evaluation (when labels exist).
-    Returns ``{"stages": ..., "run_dir": ..., "eval": path or None}``."""
+    Returns ``{"stages": ..., "run_dir": ..., "eval": path or None}``.
+
+    Works on any COLMAP or nerfstudio scene: without ground truth the segments are lifted with
+    the fitted Gaussians' rendered depth (``depth_source="render"``, the default), and with
+    ``langsplat_features`` the bank is imported from LangSplat-format files instead of
+    segmenting. Evaluation runs on ``labels`` (default ``DATA/label``) when they exist; query
+    types (simple / compound) come from ``DATA/queries.json`` when the scene has one."""
+    opt = resolve_defaults(opt)
     data, out = Path(opt.data), Path(opt.out)
     if not data.is_dir():
         raise InputError(data, "scene folder does not exist")
+    if opt.depth_source == "gt" and not (is_demo_scene(data) and (data / "depth").is_dir()):
+        raise InputError(data / "depth", "--depth-source gt needs the exact depth maps of the demo scene "
+                         "(depth/*.npy and regions.json); use --depth-source render")
+    if opt.langsplat_features is not None and not Path(opt.langsplat_features).is_dir():
+        raise InputError(opt.langsplat_features, "LangSplat features folder does not exist")
+    if opt.labels is not None and not Path(opt.labels).is_dir():
+        raise InputError(opt.labels, "labels folder does not exist")
     out.mkdir(parents=True, exist_ok=True)
     cache = StageCache.open(out)
     quiet = ["--quiet"] if opt.quiet else []
@@ -163,6 +209,8 @@ def run_pipeline(opt: RunOptions, log=print) -> dict:
     train_args = ["--preset", opt.preset]
     if opt.train_steps:
         train_args += ["--iterations", opt.train_steps]
+    if opt.dim:
+        train_args += ["--dim", opt.dim]
     if opt.variant:
         train_args += ["--variant", opt.variant]
 
@@ -185,7 +233,7 @@ def run_pipeline(opt: RunOptions, log=print) -> dict:
                                     modes=list(opt.modes)),
                   [eval_json],
                   lambda: _cli(["eval", out, "--labels", labels, "--scene", data, "--bank", bank,
-                                "--out", eval_dir, "--mode", *opt.modes]), log)
+                                "--out", eval_dir, "--mode", *opt.modes, "--device", opt.device, *quiet]), log)
     return {"run_dir": str(out), "stages": cache.records, "eval": None if eval_json is None else str(eval_json)}
 
 
@@ -196,15 +244,20 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                    help="segmenter (default: ground-truth on the demo scene, else sam)")
     p.add_argument("--encoder", choices=["clip", "captions"], default=None,
                    help="encoder (default: captions = ground-truth captions embedded by all-MiniLM-L6-v2, an "
-                        "offline stand-in for CLIP, on the demo scene; else clip)")
+                        "offline stand-in for CLIP, on the demo scene; else clip). With --langsplat-features: "
+                        "the text encoder the features are aligned with (default: the one an n2f2 export "
+                        "recorded in DIR/encoder.json, else clip)")
     p.add_argument("--model", metavar="ID", default=None, help="CLIP model id or folder")
     p.add_argument("--langsplat-features", metavar="DIR", default=None,
-                   help="LangSplat language_features folder: import instead of segmenting")
+                   help="LangSplat language_features folder (<stem>_s.npy, <stem>_f.npy): import instead of "
+                        "segmenting")
     p.add_argument("--labels", metavar="DIR", default=None,
                    help="LangSplat-format labels (default: DATA/label when it exists)")
     p.add_argument("--preset", choices=["cpu", "paper"], default="cpu", help="fit and train presets (default cpu)")
     p.add_argument("--fit-steps", type=int, default=None, help="override the fit preset's step count")
     p.add_argument("--train-steps", type=int, default=None, help="override the train preset's iterations")
+    p.add_argument("--dim", type=int, default=None,
+                   help="override the train preset's feature-field dims D (cpu 128, paper 512)")
     p.add_argument("--variant", choices=["nested", "flat", "levels"], default=None, help="field variant (default nested)")
     p.add_argument("--depth-source", choices=["render", "gt"], default="render",
                    help="lift segments with the Gaussians' rendered depth (default) or the demo scene's exact depth")
@@ -215,14 +268,16 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
 
 
 def _run_options(args: argparse.Namespace, data: Path, out: Path) -> RunOptions:
-    demo_like = (data / "regions.json").is_file()
+    for flag in ("fit_steps", "train_steps", "dim"):
+        value = getattr(args, flag)
+        if value is not None and value <= 0:
+            raise InputError(None, f"--{flag.replace('_', '-')} must be > 0, got {value}")
     return RunOptions(
         data=data, out=out, gaussians=Path(args.gaussians) if args.gaussians else None,
-        segmenter=args.segmenter or ("ground-truth" if demo_like else "sam"),
-        encoder=args.encoder or ("captions" if demo_like else "clip"), model=args.model,
+        segmenter=args.segmenter, encoder=args.encoder, model=args.model,
         langsplat_features=Path(args.langsplat_features) if args.langsplat_features else None,
         labels=Path(args.labels) if args.labels else None, preset=args.preset, fit_steps=args.fit_steps,
-        train_steps=args.train_steps, variant=args.variant, depth_source=args.depth_source,
+        train_steps=args.train_steps, dim=args.dim, variant=args.variant, depth_source=args.depth_source,
         downscale=args.downscale, modes=tuple(args.modes), device=args.device, quiet=args.quiet)
 
 

@@ -102,13 +102,13 @@ class ProtocolConfig:
         if not (self.majority_radius == "scaled"
                 or (isinstance(self.majority_radius, int) and self.majority_radius >= 0)):
             raise ValueError(f"majority_radius must be an int >= 0 or 'scaled', got {self.majority_radius!r}")
+        if self.missing_frames not in ("error", "skip"):
+            raise ValueError(f"missing_frames must be 'error' or 'skip', got {self.missing_frames!r}")
 
     @classmethod
     def scaled(cls, ref_width: int = LERF_REFERENCE_WIDTH, **kwargs: Any) -> "ProtocolConfig":
         """LangSplat's rules with both pixel sizes (box, majority window) scaled to the image width."""
         return cls(box_size="scaled", majority_radius="scaled", box_ref_width=ref_width, **kwargs)
-        if self.missing_frames not in ("error", "skip"):
-            raise ValueError(f"missing_frames must be 'error' or 'skip', got {self.missing_frames!r}")
 
 
 def resolve_box_size(box_size: BoxSize, width: int, ref_width: int = LERF_REFERENCE_WIDTH) -> int:

@@ -60,7 +60,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field as dc_field, replace
 from pathlib import Path
 from typing import Any, Mapping, Optional, Sequence, Union
 
@@ -105,9 +105,9 @@ class RetrievalSummary:
     mean_first_rank: float
     num_pairs: int  # scored pairs (a matching segment is in the pool)
     first_ranks: dict[str, int]  # "frame/query" -> rank of the best matching segment
-    skipped: list[str] = field(default_factory=list)  # pairs with no matching segment
+    skipped: list[str] = dc_field(default_factory=list)  # pairs with no matching segment
     iou_threshold: float = RETRIEVAL_IOU
-    pool_sizes: dict[str, int] = field(default_factory=dict)  # frame -> segments in the pool
+    pool_sizes: dict[str, int] = dc_field(default_factory=dict)  # frame -> segments in the pool
 
 
 @dataclass
@@ -130,9 +130,9 @@ class EvalResult:
     query_types: dict[str, str]  # query -> simple | compound | unknown
     query_types_source: str
     views: list[dict]  # per labelled view: index, name, held out from training?, timings
-    relevancy_files: dict[str, dict[str, str]] = field(default_factory=dict)  # frame -> query -> path
+    relevancy_files: dict[str, dict[str, str]] = dc_field(default_factory=dict)  # frame -> query -> path
     relevancy_mode: Optional[str] = None
-    notes: list[str] = field(default_factory=list)
+    notes: list[str] = dc_field(default_factory=list)
     seconds: float = 0.0
 
     def to_dict(self) -> dict:
@@ -265,9 +265,9 @@ def segment_label_iou(
 
 @dataclass
 class _RetrievalAcc:
-    first_ranks: dict[str, int] = field(default_factory=dict)
-    skipped: list[str] = field(default_factory=list)
-    pool_sizes: dict[str, int] = field(default_factory=dict)
+    first_ranks: dict[str, int] = dc_field(default_factory=dict)
+    skipped: list[str] = dc_field(default_factory=list)
+    pool_sizes: dict[str, int] = dc_field(default_factory=dict)
 
     def add(self, frame: str, relevancy: np.ndarray,  # [K, H, W]
             categories: list[str], positives: list[list[int]], layers: np.ndarray, num_segments: int,
@@ -586,7 +586,7 @@ def _at(d: Mapping, k: int) -> Any:  # K-keyed dicts have int keys in memory, st
     return d[k] if k in d else d[str(k)]
 
 
-def markdown_report(result: Mapping, deltas: Optional[Mapping] = None, compare_name: str = "") -> str:
+def markdown_report(result: Mapping, deltas: Optional[Mapping] = None, reference: str = "") -> str:
     """``eval.md`` from an ``eval.json`` dict (and optional :func:`compare_evals` output)."""
     from .reports import markdown_table
 
@@ -602,6 +602,16 @@ def markdown_report(result: Mapping, deltas: Optional[Mapping] = None, compare_n
            f"- protocol: LangSplat's LERF-OVS rules. Box sizes, always both: **{title['exact']}** "
            f"(LangSplat's, sized for ~986 px-wide images; majority radius {radii['exact']}) and "
            f"**{title['scaled']}** (round(30 W / 986); majority radius {radii['scaled']}).\n"]
+    n_scales = result["field"]["num_scales"]
+    about = {"composite": "one composite-embedding map per query (paper Sec. 3.3)",
+             "explicit": f"LangSplat's level choice over the {n_scales} scales (max R' for segmentation, "
+                         "max box(R) for localization)",
+             "levels": "LangSplat's level choice over the 3 levels of the baseline field",
+             "oracle": f"per pair the best of the {n_scales} scales for each task (best IoU; any scale that "
+                       "localizes): an upper bound of the explicit choice, not of composite; with many "
+                       "scales the localization bound is loose"}
+    for m in modes:
+        out.append(f"- mode {m}: {about[m]}\n")
     for note in result.get("notes", []):
         out.append(f"- note: {note}\n")
 
@@ -673,14 +683,15 @@ def markdown_report(result: Mapping, deltas: Optional[Mapping] = None, compare_n
     if deltas:
         from .reports import deltas_table
 
-        out.append(f"\n## Per-query IoU delta vs {compare_name} (paper Table 8: top and bottom 3)\n\n")
+        out.append("\n## Per-query IoU delta: this run - reference (paper Table 8: top and bottom 3)\n\n"
+                   f"Reference: {reference}.\n")
         for m, by in deltas.items():
             for b, d in by.items():
                 out.append(f"\n### {m}, {title[b]}: mean delta {_signed(d.mean_delta)} points over "
                            f"{len(d.deltas)} shared queries\n\n")
-                out.append(deltas_table(d, name_a=f"{compare_name} IoU %", name_b="this run IoU %"))
+                out.append(deltas_table(d, name_a="reference IoU %", name_b="this run IoU %"))
                 if d.only_a or d.only_b:
-                    out.append(f"\nOnly in {compare_name}: {len(d.only_a)}; only in this run: {len(d.only_b)}.\n")
+                    out.append(f"\nQueries only in the reference: {len(d.only_a)}; only in this run: {len(d.only_b)}.\n")
     return "".join(out)
 
 
@@ -727,10 +738,10 @@ def write_eval_outputs(result: EvalResult, out_dir: Union[str, Path],
 
     out = Path(out_dir)
     data = result.to_dict()
-    deltas, compare_name = None, ""
+    deltas, reference = None, ""
     if compare is not None:
         other = load_eval(compare)
-        compare_name = Path(other.get("run_dir") or str(compare)).name or str(compare)
+        reference = f"`{compare}` (run `{other.get('run_dir')}`)"
         deltas = compare_evals(other, data)
         data["compare"] = {"reference": str(compare), "reference_run": other.get("run_dir"),
                            "iou_deltas": {m: {b: d.to_dict() for b, d in by.items()} for m, by in deltas.items()}}
@@ -762,7 +773,7 @@ def write_eval_outputs(result: EvalResult, out_dir: Union[str, Path],
             for b, d in by.items():
                 if d.deltas:
                     paths[f"delta_{m}_{b}"] = plot_query_deltas(out / f"delta_{m}_{b}.png", d,
-                                                                title=f"IoU delta vs {compare_name}: {m}, {title[b]}")
-    write_text(paths["md"], markdown_report(data, deltas, compare_name))
+                                                                title=f"IoU delta vs reference: {m}, {title[b]}")
+    write_text(paths["md"], markdown_report(data, deltas, reference))
     write_json(paths["json"], data)  # last: its presence marks a finished evaluation
     return paths

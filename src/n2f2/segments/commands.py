@@ -1,4 +1,5 @@
-"""``n2f2 segments`` and ``n2f2 segments-from-langsplat``: build a scene's segment bank.
+"""``n2f2 segments`` and ``n2f2 segments-from-langsplat``: build a scene's segment bank;
+``n2f2 segments-export-langsplat``: write a bank as LangSplat ``language_features``.
 
 The LangSplat import is its own command (``segments-from-langsplat``) rather than a sub-action
 of ``segments``, because ``segments`` takes the scene folder as its first positional argument
@@ -54,11 +55,29 @@ def register(subparsers) -> None:
     _common(q)
     q.add_argument("--features", metavar="DIR", default=None,
                    help="LangSplat language_features folder (default DATA/language_features)")
-    q.add_argument("--encoder", choices=["clip"], default="clip",
-                   help="text encoder matching the features (LangSplat uses OpenCLIP ViT-B/16 laion2b_s34b_b88k)")
+    q.add_argument("--encoder", choices=["clip", "captions"], default=None,
+                   help="text encoder the features are aligned with: clip (LangSplat's OpenCLIP ViT-B/16 "
+                        "laion2b_s34b_b88k) or captions (ground-truth captions embedded by all-MiniLM-L6-v2, "
+                        "the offline stand-in that `n2f2 segments-export-langsplat` exports from a demo bank). "
+                        "Default: the encoder an n2f2 export recorded in DIR/encoder.json, else clip")
     q.add_argument("--model", metavar="ID", default=None,
                    help="CLIP model id recorded for queries (default laion/CLIP-ViT-B-16-laion2B-s34B-b88K)")
     q.set_defaults(func=run_from_langsplat)
+
+    x = subparsers.add_parser(
+        "segments-export-langsplat", help="write a segment bank as LangSplat language_features",
+        description="Write a segment bank's segments and embeddings in LangSplat's language_features format "
+                    "(<stem>_s.npy: [4, H, W] global row indices per level default/s/m/l, -1 = none; "
+                    "<stem>_f.npy: [N, E] embeddings) plus encoder.json naming the text encoder. Each LangSplat "
+                    "level takes one bank layer (--levels); the demo's ground truth maps to default = object, "
+                    "s = part, m = object, l = group.")
+    x.add_argument("bank", metavar="BANK", help="segment bank folder (`n2f2 segments`)")
+    x.add_argument("--out", required=True, metavar="DIR", help="output folder (e.g. SCENE/language_features)")
+    x.add_argument("--levels", nargs=4, metavar=("DEFAULT", "S", "M", "L"), default=None,
+                   help="bank layer (index, or level name such as part / object / group) for each LangSplat "
+                        "level (default: 1 0 1 2, i.e. object part object group)")
+    x.add_argument("--quiet", action="store_true", help="no progress bar")
+    x.set_defaults(func=run_export_langsplat)
 
 
 def _depth_provider(args, scene):
@@ -120,13 +139,30 @@ def run_segments(args: argparse.Namespace) -> int:
 
 
 def run_from_langsplat(args: argparse.Namespace) -> int:
+    from ..errors import InputError
     from .bank import build_bank
-    from .encoders import DEFAULT_CLIP_MODEL
-    from .langsplat import LangSplatSource
+    from .langsplat import LangSplatSource, langsplat_encoder_spec, recorded_encoder
 
+    features = Path(args.features) if args.features else Path(args.data) / "language_features"
+    if not features.is_dir():
+        raise InputError(features, "LangSplat features folder does not exist")
+    recorded = recorded_encoder(features)
+    encoder = args.encoder or (recorded["name"] if recorded else "clip")
+    model = args.model or (recorded.get("model_id") if recorded and recorded["name"] == encoder == "clip" else None)
+    spec = langsplat_encoder_spec(encoder, model)  # before the scene and Gaussians: fail fast
     scene = _load(args)
     depth = _depth_provider(args, scene)
-    features = Path(args.features) if args.features else Path(args.data) / "language_features"
-    source = LangSplatSource(features, {"name": args.encoder, "model_id": args.model or DEFAULT_CLIP_MODEL})
+    source = LangSplatSource(features, spec)
     report = build_bank(scene, source, depth, args.out, depth_source=args.depth_source, progress=not args.quiet)
     return _finish(report)
+
+
+def run_export_langsplat(args: argparse.Namespace) -> int:
+    from .langsplat import DEFAULT_LEVEL_LAYERS, export_langsplat
+
+    report = export_langsplat(args.bank, args.out, level_layers=args.levels or DEFAULT_LEVEL_LAYERS,
+                              progress=not args.quiet)
+    lv = ", ".join(f"{k} = layer {v}" for k, v in report["levels"].items())
+    print(f"segments-export-langsplat: {report['images']} images, {report['rows']} feature rows ({lv}); "
+          f"{report['segments_not_exported']} segments in no exported layer -> {report['out']}")
+    return 0

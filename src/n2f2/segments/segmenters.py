@@ -454,7 +454,8 @@ class SamSegmenter:
             if sum(len(m) for m in all_masks) > st.max_pending_masks:
                 # Bound memory on large images: NMS what has accumulated so far (SAM itself
                 # runs NMS per crop, then across crops, in the same spirit).
-                all_masks, all_iou, all_stab = map(lambda x: [x], self._nms(all_masks, all_iou, all_stab))
+                kept_masks, kept_iou, kept_stab = self._nms(all_masks, all_iou, all_stab)
+                all_masks, all_iou, all_stab = [kept_masks], [kept_iou], [kept_stab]
         if not all_masks or sum(len(m) for m in all_masks) == 0:
             return SegmentSet.empty(H, W)
         masks, iou, stability = self._nms(all_masks, all_iou, all_stab)
