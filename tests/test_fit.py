@@ -214,6 +214,17 @@ def test_densify_respects_cap_and_keeps_largest_gradients():
     assert counts["cloned"] == 0 and counts["split"] == 1  # Gaussian 1 has the larger gradient
 
 
+def test_densify_splits_large_on_screen_gaussians():
+    g = _hand_gaussians()
+    stats = _stats([0.0] * 5)
+    stats.max_radii = torch.tensor([0.2, 0.0, 0.01, 0.0, 0.0])  # Gaussian 0 covers 20% of the image
+    cfg = replace(FitConfig(), densify_grad_threshold=1.0, split_screen_size=0.05)
+    counts = densify_and_prune(g, _adam_with_row_ids(g), stats, cfg, 10.0, prune_big=False,
+                               generator=torch.Generator().manual_seed(0))
+    assert counts == {"cloned": 0, "split": 1, "pruned": 1}  # split although small in world units
+    torch.testing.assert_close(g.scales[-2:], torch.full((2, 3), 0.001 / 1.6))
+
+
 def test_reset_opacity():
     g = _hand_gaussians()
     adam = _adam_with_row_ids(g)
@@ -226,7 +237,7 @@ def test_densify_stats_ndc_scaling():
     s = DensifyStats.zeros(3, "cpu")
     s.add(torch.tensor([[1.0, 0.0], [0.0, 2.0], [5.0, 5.0]]), torch.tensor([3, 4, 0], dtype=torch.int32), 20, 10)
     torch.testing.assert_close(s.grad_accum, torch.tensor([10.0, 10.0, 0.0]))  # x * W/2, y * H/2
-    assert s.count.tolist() == [1.0, 1.0, 0.0] and s.max_radii.tolist() == [3.0, 4.0, 0.0]
+    assert s.count.tolist() == [1.0, 1.0, 0.0] and s.max_radii.tolist() == pytest.approx([3 / 20, 4 / 20, 0.0])
 
 
 def test_split_views(tiny_scene, tmp_path):

@@ -76,6 +76,9 @@ class FitConfig:
     prune_opacity: float = 0.005
     prune_world_size: float = 0.1  # prune Gaussians larger than this x extent (after 1st reset)
     max_gaussians: Optional[int] = None  # cap; densification keeps the largest gradients
+    # Also split Gaussians whose screen radius exceeded this fraction of the image size since the
+    # last densification (gsplat's grow_scale2d); None: off, as in 3DGS.
+    split_screen_size: Optional[float] = None
 
     # Initialisation when the scene has no sparse points (random inside the frusta).
     random_init_count: int = 100_000
@@ -292,7 +295,7 @@ class DensifyStats:
 
     grad_accum: Tensor  # [N] sum of ||d loss / d NDC mean||
     count: Tensor  # [N] views in which the Gaussian was visible
-    max_radii: Tensor  # [N] largest screen radius seen (pixels)
+    max_radii: Tensor  # [N] largest screen radius seen, as a fraction of max(width, height)
 
     @staticmethod
     def zeros(n: int, device) -> "DensifyStats":
@@ -307,7 +310,7 @@ class DensifyStats:
         g = means2d_grad[visible] * torch.tensor([width / 2.0, height / 2.0], device=means2d_grad.device)
         self.grad_accum[visible] += g.norm(dim=-1)
         self.count[visible] += 1
-        self.max_radii[visible] = torch.maximum(self.max_radii[visible], radii[visible].float())
+        self.max_radii[visible] = torch.maximum(self.max_radii[visible], radii[visible].float() / max(width, height))
 
     def state_dict(self) -> dict:
         return asdict(self)
@@ -330,16 +333,21 @@ def densify_and_prune(
     grads = stats.grad_accum / stats.count.clamp_min(1)
     grads[stats.count == 0] = 0.0
     candidates = grads >= config.densify_grad_threshold
+    # gsplat's ``grow_scale2d``: also split whatever covers too much of the screen, whatever its
+    # gradient (ranked after every gradient candidate when the cap bites).
+    screen_big = (stats.max_radii > config.split_screen_size) if config.split_screen_size else \
+        torch.zeros_like(candidates)
+    priority = torch.where(candidates, grads, torch.where(screen_big, torch.zeros_like(grads), -torch.ones_like(grads)))
+    candidates = candidates | screen_big
     if config.max_gaussians is not None:
         budget = max(0, config.max_gaussians - n)
         if int(candidates.sum()) > budget:
-            # Keep the largest gradients: each clone or split adds exactly one Gaussian.
-            order = torch.argsort(torch.where(candidates, grads, torch.full_like(grads, -1.0)), descending=True,
-                                  stable=True)
+            # Keep the highest priority: each clone or split adds exactly one Gaussian.
+            order = torch.argsort(priority, descending=True, stable=True)
             keep = torch.zeros_like(candidates)
             keep[order[:budget]] = True
             candidates &= keep
-    big = g.scales.max(dim=1).values > config.percent_dense * extent
+    big = (g.scales.max(dim=1).values > config.percent_dense * extent) | screen_big
     clone = candidates & ~big
     split = candidates & big
 
@@ -579,8 +587,7 @@ def fit_gaussians(
                   resumed_from=None if ck is None else int(ck["step"]),
                   loss_curve=_subsample(loss_curve, 200), config=config.to_dict(),
                   threads=torch.get_num_threads())
-    if g.finite():
-        write_ply(out_dir / PLY_NAME, g)
+    write_ply(out_dir / PLY_NAME, g)  # refuses non-finite values (cannot happen: steps are guarded)
     report["wall_time_s"] = time.perf_counter() - t_start
     result = FitReport(**report)
     write_json(out_dir / REPORT_NAME, result.to_dict())

@@ -284,7 +284,7 @@ def export_langsplat(bank, out_dir: str | Path,
         rows_total += int(rows.size)
         present = np.flatnonzero(rec.areas > 0)
         dropped += int(np.setdiff1d(present, rows).size)
-    spec = {**bank.encoder_spec, "exported_from": str(bank.root),
+    spec = {**bank.encoder_spec, "exported_from": str(bank.root.resolve()),
             "levels": {name: int(b) for name, b in zip(LANGSPLAT_LEVELS, levels)}}
     write_json(out / ENCODER_FILE, spec)
     return {"out": str(out), "images": bank.num_images, "rows": rows_total, "segments_not_exported": dropped,

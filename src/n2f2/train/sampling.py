@@ -54,10 +54,16 @@ class ViewSegments:
     embeddings: Tensor  # [S, E] float32 teacher embeddings
 
     @staticmethod
-    def from_record(view: int, record) -> "ViewSegments":
+    def from_record(view: int, record, size: Optional[tuple[int, int]] = None) -> "ViewSegments":
         """From a bank record (``layers [L, H, W]``, ``embeddings``, ``quantized``, ``areas``,
-        ``valid``)."""
-        layers = torch.from_numpy(np.array(record.layers, dtype=np.int64))  # [L, H, W] (copy: records are mmapped)
+        ``valid``). ``size = (height, width)`` resamples the layers (nearest, at pixel centres)
+        to the resolution the training renders at; segment areas stay the bank's."""
+        layers = np.asarray(record.layers)
+        if size is not None and tuple(size) != layers.shape[1:]:
+            from ..segments.segmenters import resize_nearest
+
+            layers = resize_nearest(layers, int(size[0]), int(size[1]))
+        layers = torch.from_numpy(np.array(layers, dtype=np.int64))  # [L, H, W] (copy: records are mmapped)
         L = layers.shape[0]
         layers = layers.reshape(L, -1)
         S = int(np.asarray(record.areas).shape[0])

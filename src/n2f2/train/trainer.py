@@ -53,6 +53,9 @@ class TrainConfig:
 
     iterations: int = 30_000
     views_per_step: int = 1  # views rendered per step; pixels are sampled across them
+    # Training renders views downscaled by this integer factor (segment layers resampled to
+    # match); 1 = the bank's resolution (paper). Test time always renders at full resolution.
+    render_downscale: int = 1
     pixels_per_step: int = 4096  # sampled pixels (each with one sampled segment) per step
     lr_triplane: float = 0.0016  # x scene extent (paper)
     lr_mlp: float = 0.00125  # MLP and W (paper)
@@ -190,12 +193,12 @@ def saved_configs(out_dir: Union[str, Path]) -> Optional[tuple[FieldConfig, Trai
     return FieldConfig.from_dict(ck["field_meta"]["config"]), TrainConfig.from_dict(ck["train_config"])
 
 
-def _view_segments(bank: Any, views: list[int], show_progress: bool) -> dict[int, ViewSegments]:
+def _view_segments(bank: Any, views: list[int], cameras: list, show_progress: bool) -> dict[int, ViewSegments]:
     from tqdm import tqdm
 
     out = {}
     for v in tqdm(views, desc="loading segments", disable=not show_progress, leave=False):
-        out[v] = ViewSegments.from_record(v, bank.record(v))
+        out[v] = ViewSegments.from_record(v, bank.record(v), (cameras[v].height, cameras[v].width))
     return out
 
 
@@ -244,7 +247,10 @@ def train_field(
                                                      f"Gaussians, this model has {gaussians.means.shape[0]}")
 
     train_views, test_views = split_views(scene, config.holdout)
-    cameras = bank_cameras(scene, bank)
+    if config.render_downscale < 1 or config.render_downscale != int(config.render_downscale):
+        raise ValueError(f"render_downscale must be a positive integer, got {config.render_downscale}")
+    cameras = [c.downscaled(config.render_downscale) if config.render_downscale > 1 else c
+               for c in bank_cameras(scene, bank)]
     geometry = frozen_geometry(gaussians, device)
     extent = float(scene.extent())
     if checkpoint is not None:
@@ -274,7 +280,7 @@ def train_field(
         "heldout_views": test_views,
     }
 
-    segments = _view_segments(bank, train_views, progress)
+    segments = _view_segments(bank, train_views, cameras, progress)
     usable = [v for v in train_views if len(segments[v].covered)]
     if not usable:
         raise InputError(bank_path, "no training view has a pixel covered by a valid segment")
