@@ -376,3 +376,35 @@ def test_cli(run_dir, tmp_path, monkeypatch, capsys):
         assert main(["query", *argv, "--out", str(tmp_path / "x")]) == 2
         err = capsys.readouterr().err
         assert msg in err and "Traceback" not in err
+
+
+def test_levels_mode_on_a_levels_field(engine):
+    from n2f2.field import FieldConfig, NestedField
+    from n2f2.query import QueryConfig, QueryEngine
+    from n2f2.render import rasterize
+
+    torch.manual_seed(1)
+    field = NestedField(FieldConfig(backbone="mlp", dim=12, hidden=16, pe_frequencies=2, variant="levels"),
+                        E_TEST, engine.field.bbox_min.numpy(), engine.field.bbox_max.numpy())
+    with torch.no_grad():
+        field.W.copy_(torch.randn(E_TEST, 12) / 3.0)
+    lv = QueryEngine(field, engine.gaussians, HashEncoder(E_TEST), {"config": field.config.to_dict()},
+                     QueryConfig(selection="max"), scene=engine.scene)
+    assert lv.modes() == ("levels", "oracle")
+    texts = ["teapot", "lid"]
+    view = lv.render_view(0, modes=["levels"], rgb=False)
+    res = lv.query(view, texts, "levels")
+    g = lv.gaussians
+    per_level = field.level_features(lv.theta)  # [N, 3, E]
+    negs = lv.encode(list(lv.config.negatives))
+    slow = torch.stack([relevancy(rasterize(g.means, g.normalized_quats, g.scales, g.opacities,
+                                            per_level[:, level], view.camera).features.detach(),
+                                  lv.encode(texts), negs) for level in range(3)])  # [3, H, W, Q]
+    for q in range(2):
+        best = int(slow[..., q].flatten(1).amax(1).argmax())
+        assert res.chosen[q] == best and res.chosen_labels[q] == ("part", "object", "group")[best]
+        torch.testing.assert_close(res.relevancy[q], slow[best, ..., q], rtol=0, atol=1e-5)
+    from n2f2.errors import InputError
+
+    with pytest.raises(InputError, match="levels"):
+        lv.query(view, texts, "composite")

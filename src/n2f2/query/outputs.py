@@ -26,7 +26,7 @@ import numpy as np
 
 from ..io import write_json, write_npy, write_png
 
-MASK_COLOR = np.array([1.0, 0.15, 0.1], dtype=np.float32)  # tint of segmentation masks
+MASK_COLOR = np.array([0.0, 0.9, 1.0], dtype=np.float32)  # cyan tint of masks (no demo object is cyan)
 
 
 def slugify(text: str, max_len: int = 60) -> str:

@@ -48,6 +48,9 @@ def register(subparsers) -> None:
         p.add_argument(flag, type=typ, default=None, help=text, **kw)
     p.add_argument("--no-deferred", action="store_true",
                    help="rasterize D-dim features (MLP per Gaussian) instead of deferred rendering")
+    p.add_argument("--blend-cache", action=argparse.BooleanOptionalAction, default=None,
+                   help="precompute each view's blending weights once instead of rasterizing every step "
+                        "(exact; default on for the cpu preset, off for paper)")
     p.add_argument("--train-on-all", action="store_true",
                    help="also train on the views scene.json lists as test_views (held out by default)")
     p.add_argument("--resume", action="store_true", help="continue from DIR/checkpoint.pt")
@@ -116,6 +119,8 @@ def run_train(args: argparse.Namespace) -> int:
         config = replace(config, device=device, **train_over)
         if args.no_deferred:
             config = replace(config, deferred=False)
+        if args.blend_cache is not None:
+            config = replace(config, blend_cache=args.blend_cache)
         if args.train_on_all:
             config = replace(config, holdout=False)
     except ValueError as e:

@@ -36,6 +36,7 @@ from torch import Tensor
 from ..errors import InputError
 from ..field.model import FieldConfig, NestedField, bbox_from_points, save_field
 from ..io import save_torch, write_json
+from .blend import BlendCache, build_blend_cache
 from .sampling import PixelBatch, ViewSegments, sample_pixels
 
 FIELD_NAME = "field.pt"
@@ -56,6 +57,12 @@ class TrainConfig:
     # Training renders views downscaled by this integer factor (segment layers resampled to
     # match); 1 = the bank's resolution (paper). Test time always renders at full resolution.
     render_downscale: int = 1
+    # Precompute each training view's sparse blending weights once (the Gaussians are frozen,
+    # so rasterizing is a fixed linear map; see train/blend.py) instead of rasterizing every
+    # step; then every step samples pixels across all training views. Exact, ~4x faster on
+    # CPU; falls back to rasterizing when the cache would exceed blend_cache_mb.
+    blend_cache: bool = False
+    blend_cache_mb: float = 1024.0
     pixels_per_step: int = 4096  # sampled pixels (each with one sampled segment) per step
     lr_triplane: float = 0.0016  # x scene extent (paper)
     lr_mlp: float = 0.00125  # MLP and W (paper)
@@ -74,7 +81,7 @@ class TrainConfig:
     @staticmethod
     def cpu() -> "TrainConfig":
         """The built-in demo scene (40 views of 160x120) in a few minutes on 2 cores."""
-        return TrainConfig(iterations=1000, pixels_per_step=4096, checkpoint_every=250)
+        return TrainConfig(iterations=1000, pixels_per_step=4096, checkpoint_every=250, blend_cache=True)
 
     @staticmethod
     def preset(name: str) -> "TrainConfig":
@@ -148,25 +155,30 @@ def render_features(geometry: dict[str, Tensor], features: Tensor,  # [N, C]
     return out.features.reshape(-1, features.shape[1])
 
 
-def pixel_theta(field: NestedField, geometry: dict[str, Tensor], cameras: list, batch: PixelBatch,
-                deferred: bool) -> Tensor:  # -> theta [P, D] for the batch's pixels
-    """theta(u) at the sampled pixels of the step's views (``cameras[k]`` = view slot k)."""
-    if deferred:
-        per_gaussian = field.encode(field.normalize(geometry["means"]))  # [N, F]
+def pixel_theta(field: NestedField, geometry: dict[str, Tensor], batch: PixelBatch, deferred: bool,
+                cameras: Optional[list] = None, cache: Optional[BlendCache] = None,
+                ) -> Tensor:  # -> theta [P, D] for the batch's pixels
+    """theta(u) at the sampled pixels. Slot k of the batch is ``cameras[k]`` (rasterized now) or
+    the k-th view of ``cache`` (cached blending weights).
+
+    Deferred (training, paper): the backbone features [N, F] are blended and the MLP runs per
+    pixel. Non-deferred (test-time form): the MLP runs per Gaussian and D channels are blended."""
+    per_gaussian = field.encode(field.normalize(geometry["means"])) if deferred else field(geometry["means"])
+    if cache is not None:
+        rendered = cache.blend(per_gaussian, batch.slot, batch.pixel)  # [P, C]
     else:
-        per_gaussian = field(geometry["means"])  # [N, D]
-    order, rows = [], []
-    for k, cam in enumerate(cameras):
-        sel = torch.nonzero(batch.slot == k).squeeze(1)  # [p] rows of the batch from view slot k
-        if sel.numel() == 0:
-            continue
-        image = render_features(geometry, per_gaussian, cam)  # [H*W, C]
-        order.append(sel)
-        rows.append(image[batch.pixel[sel]])
-    gathered = torch.cat(rows)  # [P, C] grouped by slot
-    out = torch.empty_like(gathered)
-    out[torch.cat(order)] = gathered  # back to batch order
-    return field.decode(out) if deferred else out
+        order, rows = [], []
+        for k, cam in enumerate(cameras):
+            sel = torch.nonzero(batch.slot == k).squeeze(1)  # [p] rows of the batch from view slot k
+            if sel.numel() == 0:
+                continue
+            image = render_features(geometry, per_gaussian, cam)  # [H*W, C]
+            order.append(sel)
+            rows.append(image[batch.pixel[sel]])
+        gathered = torch.cat(rows)  # [P, C] grouped by slot
+        rendered = torch.empty_like(gathered)
+        rendered[torch.cat(order)] = gathered  # back to batch order
+    return field.decode(rendered) if deferred else rendered
 
 
 # ------------------------------------------------------------------------------------ training
@@ -285,6 +297,17 @@ def train_field(
     if not usable:
         raise InputError(bank_path, "no training view has a pixel covered by a valid segment")
 
+    cache, cache_info = None, {"used": False}
+    if config.blend_cache:
+        t0 = time.perf_counter()
+        try:
+            cache = build_blend_cache(geometry, [cameras[v] for v in usable],
+                                      max_bytes=config.blend_cache_mb * 2**20, progress=progress)
+            cache_info = {"used": True, "mb": cache.nbytes / 2**20, "build_s": time.perf_counter() - t0,
+                          "entries_per_pixel": int(cache.gid.numel()) / max(1, int(cache.crow.numel()) - 1)}
+        except MemoryError as e:  # large scenes: rasterize every step instead
+            cache_info = {"used": False, "reason": str(e)}
+
     def checkpoint_blob() -> dict:
         return {"format": _CHECKPOINT_FORMAT, "step": step,
                 "field_state": {k: v.detach().cpu().clone() for k, v in field.state_dict().items()},
@@ -304,10 +327,13 @@ def train_field(
     field.train()
     while step < config.iterations:
         t0, c0 = time.perf_counter(), time.process_time()
-        pick = torch.randperm(len(usable), generator=generator)[:config.views_per_step].tolist()
-        views = [usable[i] for i in pick]
+        if cache is not None:  # pixels uniform across all training images (paper)
+            views = usable
+        else:  # only the views rasterized this step
+            views = [usable[i] for i in torch.randperm(len(usable), generator=generator)[:config.views_per_step].tolist()]
         batch = sample_pixels([segments[v] for v in views], config.pixels_per_step, generator)
-        theta = pixel_theta(field, geometry, [cameras[v] for v in views], _to(batch, device), config.deferred)
+        theta = pixel_theta(field, geometry, _to(batch, device), config.deferred,
+                            cameras=[cameras[v] for v in views], cache=cache)
         mask = field.supervision_mask(batch.scale.to(device))
         phi = field.project(theta, mask)
         loss, l2, cos = hierarchical_loss(phi, batch.target.to(device), config.cos_weight)
@@ -344,6 +370,7 @@ def train_field(
         "steps": step,
         "variant": field_config.variant,
         "deferred": config.deferred,
+        "blend_cache": cache_info,
         "field_config": field_config.to_dict(),
         "train_config": config.to_dict(),
         "embed_dim": E,
