@@ -7,7 +7,6 @@ import concurrent.futures
 import io
 import json
 import os
-import shutil
 import socket
 import threading
 import time

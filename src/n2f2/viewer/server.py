@@ -37,6 +37,7 @@ from pathlib import Path
 from typing import Any, Optional
 
 import numpy as np
+from fastapi import Request  # module level: FastAPI resolves the handlers' string annotations here
 
 from ..cameras import Camera, look_at
 from ..errors import InputError, N2F2Error
@@ -135,6 +136,7 @@ class Viewer:
         if self.scene is None:
             raise InputError(getattr(engine, "run_dir", None), "the viewer needs the run's scene (its cameras)")
         self.orbit = OrbitFrame.from_cameras(list(self.scene.cameras))
+        self.modes = tuple(m for m in VIEWER_MODES if m in engine.modes())
         self.lock = threading.Lock()
         self._renders: OrderedDict[str, Any] = OrderedDict()
 
@@ -188,7 +190,7 @@ class Viewer:
         mode = value if value is not None else "composite"
         if mode not in VIEWER_MODES:
             raise ApiError(422, f"unknown mode {mode!r}: use one of {', '.join(VIEWER_MODES)}")
-        if mode not in self.engine.modes:
+        if mode not in self.modes:
             raise ApiError(422, f"mode {mode!r} is not available for this field")
         return mode
 
@@ -199,8 +201,7 @@ class Viewer:
             if key in self._renders:
                 self._renders.move_to_end(key)
                 return self._renders[key], True
-            modes = [m for m in VIEWER_MODES if m in self.engine.modes]
-            cache = self.engine.render_view(view, modes=modes, rgb=True)
+            cache = self.engine.render_view(view, modes=self.modes, rgb=True)
             self._renders[key] = cache
             while len(self._renders) > self.limits.render_cache_size:
                 self._renders.popitem(last=False)
@@ -256,7 +257,7 @@ class Viewer:
 
 # ----------------------------------------------------------------------------- the app
 def create_app(viewer: Viewer):
-    from fastapi import FastAPI, Request
+    from fastapi import FastAPI
     from fastapi.exceptions import RequestValidationError
     from fastapi.responses import FileResponse, JSONResponse, Response
     from fastapi.staticfiles import StaticFiles
@@ -322,7 +323,7 @@ def create_app(viewer: Viewer):
         views = [{"index": i, "name": name, "width": cam.width, "height": cam.height,
                   "orbit": viewer.orbit.orbit_of(cam)}
                  for i, (name, cam) in enumerate(zip(scene.image_names, scene.cameras))]
-        return {"views": views, "modes": [m for m in VIEWER_MODES if m in viewer.engine.modes],
+        return {"views": views, "modes": list(viewer.modes),
                 "encoder": getattr(viewer.engine.encoder, "description", ""),
                 "limits": {"max_queries": limits.max_queries, "max_query_chars": limits.max_query_chars,
                            "max_body_bytes": limits.max_body_bytes}}

@@ -2,7 +2,7 @@
 // draws the server's overlays. All rendering happens on the server; this file only displays.
 "use strict";
 
-const SCALE = 2; // display magnification of the (small) rendered images
+let SCALE = 2; // display magnification of the rendered images: about 640 px wide on screen
 const state = { scene: null, camera: { view: 0 }, orbit: null, lastResults: null, busy: false };
 const $ = (id) => document.getElementById(id);
 
@@ -36,6 +36,7 @@ function loadImage(b64) {
 async function drawMain(rgbB64, overlayB64, maskB64, loc) {
   const canvas = $("canvas");
   const base = await loadImage(overlayB64 || rgbB64);
+  SCALE = Math.max(1, Math.floor(640 / base.width));
   canvas.width = base.width * SCALE;
   canvas.height = base.height * SCALE;
   const ctx = canvas.getContext("2d");
