@@ -209,24 +209,85 @@ def test_variants_and_non_deferred_train(setup, tmp_path):
 
 
 def test_deferred_gather_matches_full_render(setup):
-    """The deferred path's per-pixel rows are the rendered backbone features at those pixels."""
+    """The deferred path's per-pixel rows are the rendered backbone features at those pixels,
+    whether rasterized each step or taken from the blend-weight cache."""
+    from n2f2.field import NestedField
+    from n2f2.train.blend import build_blend_cache
     from n2f2.train.sampling import PixelBatch
     from n2f2.train.trainer import pixel_theta
-    from n2f2.field import NestedField
 
     scene, bank = setup["scene"], setup["banks"][16]
     torch.manual_seed(0)
     field = NestedField(FIELD, 16, [-3, -3, -3], [3, 3, 3])
     geometry = frozen_geometry(setup["gaussians"], "cpu")
-    cams = bank_cameras(scene, bank)
+    cams = [bank_cameras(scene, bank)[v] for v in (1, 2)]
     batch = PixelBatch(slot=torch.tensor([1, 0, 1, 0]), pixel=torch.tensor([5, 100, 700, 33]),
                        segment=torch.zeros(4, dtype=torch.long), scale=torch.zeros(4), target=torch.zeros(4, 16))
-    theta = pixel_theta(field, geometry, [cams[1], cams[2]], batch, deferred=True)
     with torch.no_grad():
         feats = field.encode(field.normalize(geometry["means"]))
-        images = [render_features(geometry, feats, cams[v]) for v in (1, 2)]
+        images = [render_features(geometry, feats, cam) for cam in cams]
         expected = field.decode(torch.stack([images[s][p] for s, p in zip(batch.slot.tolist(), batch.pixel.tolist())]))
+    theta = pixel_theta(field, geometry, batch, deferred=True, cameras=cams)
     torch.testing.assert_close(theta.detach(), expected)
+    cache = build_blend_cache(geometry, cams)
+    theta_cached = pixel_theta(field, geometry, batch, deferred=True, cache=cache)
+    torch.testing.assert_close(theta_cached.detach(), expected, rtol=1e-5, atol=1e-5)
+
+
+def test_blend_cache_equals_rasterizer_with_gradients(setup):
+    """Cached weights reproduce every pixel of the rasterizer, and the gradient it sends to
+    the per-Gaussian features."""
+    from n2f2.train.blend import build_blend_cache
+
+    scene = setup["scene"]
+    geometry = frozen_geometry(setup["gaussians"], "cpu")
+    cams = [scene.cameras[0], scene.cameras[3]]
+    cache = build_blend_cache(geometry, cams)
+    N = geometry["means"].shape[0]
+    g = torch.Generator().manual_seed(0)
+    f1 = torch.randn(N, 5, generator=g, requires_grad=True)
+    f2 = f1.detach().clone().requires_grad_(True)
+    HW = cams[0].width * cams[0].height
+    slot = torch.cat([torch.zeros(HW, dtype=torch.long), torch.ones(HW, dtype=torch.long)])
+    pixel = torch.cat([torch.arange(HW), torch.arange(HW)])
+    ref = torch.cat([render_features(geometry, f1, cam) for cam in cams])  # [2 HW, 5]
+    got = cache.blend(f2, slot, pixel)
+    torch.testing.assert_close(got, ref, rtol=1e-5, atol=1e-5)
+    upstream = torch.randn(ref.shape, generator=g)
+    (ref * upstream).sum().backward()
+    (got * upstream).sum().backward()
+    torch.testing.assert_close(f2.grad, f1.grad, rtol=1e-4, atol=1e-5)
+    with pytest.raises(MemoryError):
+        build_blend_cache(geometry, cams, max_bytes=100)
+
+
+def test_blend_cache_training_matches_rasterized_training(setup, tmp_path):
+    """Same sampled pixels (one view per step, so both paths sample alike) -> same losses."""
+    bank = setup["banks"][16]
+    scene = Scene(root=setup["scene"].root, cameras=setup["scene"].cameras, image_paths=setup["scene"].image_paths)
+    losses = []
+    for cached in (False, True):
+        cfg = tiny_config(iterations=3, checkpoint_every=0, holdout=True, blend_cache=cached)
+        # A bank/scene with one training view makes both paths sample from the same view.
+        r = train_field(_one_train_view(scene, tmp_path), setup["gaussians"], bank, tmp_path / str(cached),
+                        field_config=FIELD, config=cfg, progress=False)
+        losses.append(r["curve"]["loss"])
+        assert r["blend_cache"]["used"] is cached
+    np.testing.assert_allclose(losses[0], losses[1], rtol=1e-4)
+
+
+def _one_train_view(scene: Scene, tmp_path) -> Scene:
+    """The same scene with scene.json holding out all but view 2 (root is a temp copy of the
+    listing only; images stay where they are)."""
+    import shutil
+
+    root = tmp_path / "one_view"
+    if not root.exists():
+        shutil.copytree(scene.root, root, ignore=shutil.ignore_patterns("images", "depth", "label"))
+        meta = json.loads((root / "scene.json").read_text())
+        meta["test_views"] = [0, 1, 3]
+        (root / "scene.json").write_text(json.dumps(meta))
+    return Scene(root=root, cameras=scene.cameras, image_paths=scene.image_paths, ground_truth=scene.ground_truth)
 
 
 # ---------------------------------------------------------------------------------- bad input

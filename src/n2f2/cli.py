@@ -24,6 +24,7 @@ COMMAND_MODULES = (
     "n2f2.train.commands",
     "n2f2.query.commands",
     "n2f2.eval.commands",
+    "n2f2.eval.bench",
     "n2f2.viewer.commands",
     "n2f2.pipeline",
 )

@@ -81,14 +81,18 @@ def view_blend_weights(geometry: dict[str, Tensor],  # means [N,3], quats [N,4],
         T = torch.ones(tiles.shape[0], ts * ts, dtype=kp.dtype, device=kp.device)
         for c0 in range(0, kb.shape[2], cfg.chunk):
             w, T_next, _ = tb._chunk(kb[:, :, c0:c0 + cfg.chunk], P, T, th)  # [B, p, k]
-            b, p, k = torch.nonzero(w, as_tuple=True)
-            tile = tiles[b]
+            # Flat indices: advanced indexing with three index tensors is ~10x slower on CPU.
+            kk = w.shape[2]
+            flat = torch.nonzero(w.reshape(-1)).squeeze(1)
+            b, rem = flat.div(ts * ts * kk, rounding_mode="floor"), flat % (ts * ts * kk)
+            p, k = rem.div(kk, rounding_mode="floor"), rem % kk
+            tile = tiles.index_select(0, b)
             row = (tile // bins.tiles_x) * ts + p // ts
             col = (tile % bins.tiles_x) * ts + p % ts
-            inside = (row < H) & (col < W)  # edge tiles overhang the image
-            pix.append((row * W + col)[inside])
-            gid.append(gb[b, c0 + k][inside])
-            wt.append(w[b, p, k][inside])
+            inside = torch.nonzero((row < H) & (col < W)).squeeze(1)  # edge tiles overhang the image
+            pix.append((row * W + col).index_select(0, inside))
+            gid.append(gb[:, c0:c0 + kk].reshape(-1).index_select(0, (b * kk + k).index_select(0, inside)))
+            wt.append(w.reshape(-1).index_select(0, flat.index_select(0, inside)))
             T = T_next[:, :, -1]
             if bool((T.amax(1) == 0).all()):  # every pixel of the batch has stopped
                 break

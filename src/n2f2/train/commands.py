@@ -19,7 +19,7 @@ _FIELD_OPTIONS = {
 }
 _TRAIN_OPTIONS = {
     "iterations": (int, "optimisation steps (cpu 1000, paper 30000)"),
-    "views_per_step": (int, "views rendered per step (1)"),
+    "views_per_step": (int, "views rasterized per step without --blend-cache (1)"),
     "render_downscale": (int, "render training views downscaled by this integer factor (1 = bank resolution)"),
     "pixels_per_step": (int, "sampled pixels per step (4096)"),
     "checkpoint_every": (int, "write checkpoint.pt every N steps; 0: only at the end"),

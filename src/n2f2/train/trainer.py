@@ -3,13 +3,17 @@
 
 One step:
 
-1. pick ``views_per_step`` training views; sample ``pixels_per_step`` pixels uniformly over
-   their segment-covered pixels and, per pixel, one covering segment with probability
-   ∝ 1 / log(area) (:mod:`n2f2.train.sampling`);
+1. sample ``pixels_per_step`` pixels uniformly over the segment-covered pixels of the training
+   views and, per pixel, one covering segment with probability ∝ 1 / log(area)
+   (:mod:`n2f2.train.sampling`);
 2. **deferred rendering** (default): query the backbone at the (frozen) Gaussian centres,
-   rasterize those low-dimensional features (F = TriPlane channels), gather the sampled pixels
-   and run the MLP there, giving ``theta(u) [P, D]``. Without deferral the MLP runs per
-   Gaussian and D channels are rasterized (what test time does);
+   render those low-dimensional features (F = TriPlane channels) at the sampled pixels and run
+   the MLP there, giving ``theta(u) [P, D]``. Without deferral the MLP runs per Gaussian and D
+   channels are rendered (what test time does). Rendering is either rasterizing
+   ``views_per_step`` random views every step (pixels are then sampled from those views), or,
+   with ``blend_cache`` (CPU preset), gathering the sampled pixels' entries of per-view blending
+   weights computed once (:mod:`n2f2.train.blend`; exact, since the Gaussians are frozen), with
+   pixels sampled across all training views every step;
 3. ``phi = W (B(s) * theta)`` with the variant's mask B(s); loss ``L2 + lambda * (1 - cos)``;
    Adam, TriPlane at ``0.0016 x scene extent``, MLP and W at ``0.00125``.
 
@@ -327,7 +331,7 @@ def train_field(
     field.train()
     while step < config.iterations:
         t0, c0 = time.perf_counter(), time.process_time()
-        if cache is not None:  # pixels uniform across all training images (paper)
+        if cache is not None or config.views_per_step >= len(usable):  # uniform across all training images
             views = usable
         else:  # only the views rasterized this step
             views = [usable[i] for i in torch.randperm(len(usable), generator=generator)[:config.views_per_step].tolist()]

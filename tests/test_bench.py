@@ -1,0 +1,142 @@
+"""``n2f2 bench``: a tiny bench end to end (tiny demo scene, 2 variants, a few steps) writes the
+report with its tables and finite numbers and resumes on a rerun; the helpers are checked against
+answers worked out by hand."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from n2f2.eval.bench import (ActivationMeter, BenchConfig, VARIANTS, convergence, main, paired_difference,
+                             run_bench, run_name, scaled_step)
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    from n2f2.data import load_scene
+    from n2f2.data.synthetic import generate_demo_scene
+    from n2f2.gaussians import init_from_points, write_ply
+
+    root = tmp_path_factory.mktemp("bench")
+    scene_dir = generate_demo_scene(root / "scene", num_views=6, width=48, height=36, seed=0,
+                                    labelled_views=[1, 4], supersample=1, num_points=600, show_progress=False)
+    scene = load_scene(scene_dir)
+    write_ply(root / "gaussians.ply", init_from_points(scene.points, scene.point_colors, sh_degree=0))
+    config = BenchConfig(iterations=4, dim=12, pixels_per_step=256, variants=("nested", "levels"),
+                         temperatures=(1.0, 0.1), timing_repeats=1, progress=False)
+    out = root / "out"
+    result = run_bench(out, config, scene=scene_dir, gaussians=root / "gaussians.ply", log=lambda s: None)
+    return {"root": root, "scene": scene_dir, "out": out, "config": config, "result": result}
+
+
+def test_report_has_the_tables_and_finite_numbers(tiny):
+    out, result = tiny["out"], tiny["result"]
+    md = (out / "bench.md").read_text()
+    for heading in ("## Verdicts", "## Composite vs explicit vs oracle (paper Table 3)",
+                    "## N2F2 vs the 3-level LangSplat-like field", "### Simple vs compound queries (paper Table 7)",
+                    "## Nested vs non-nested", "## Composite temperature T", "## Query time breakdown (paper Table 4"):
+        assert heading in md, heading
+    assert "exact 30 px" in md and "scaled 1 px" in md  # both boxes, named with their sizes
+    data = json.loads((out / "bench.json").read_text())
+    assert set(data["runs"]) == {"nested-k1", "levels"}
+    for name in data["runs"]:
+        assert (out / "runs" / name / "field.pt").is_file()
+        assert (out / "runs" / name / "eval" / "eval.json").is_file()
+        assert math.isfinite(data["runs"][name]["final_loss"])
+    # Claims computed from paired (frame, query) differences are finite numbers.
+    paired = [c for c in data["claims"] if c["pairs"]]
+    assert {c["claim"] for c in paired} >= {"composite >= explicit (Table 3)",
+                                           "N2F2 composite >= 3-level LangSplat-like",
+                                           "composite T=1 (paper) >= T=0.1"}
+    assert all(math.isfinite(c["delta"]) and -1 <= c["delta"] <= 1 for c in paired)
+    for row in data["timing"]["rows"]:
+        assert all(row[k] > 0 for k in ("render_s", "query_1_s", "per_query_s"))
+    assert [r["mode"] for r in data["timing"]["rows"]] == ["composite", "explicit", "levels"]
+    # The oracle picks, per pair, the best of the explicit mode's candidate scales.
+    nested = data["evals"]["nested-k1"]["T1"]
+    for box in ("exact", "scaled"):
+        assert nested["scores"]["oracle"][box]["miou"] >= nested["scores"]["explicit"][box]["miou"] - 1e-9
+    for png in ("methods.png", "loss_curves.png"):
+        assert (out / png).stat().st_size > 0
+
+
+def test_gamma_sharpens_as_the_temperature_drops(tiny):
+    gamma = {g["temperature"]: g for g in tiny["result"]["gamma"]}
+    assert set(gamma) == {1.0, 0.1}
+    for g in gamma.values():
+        assert g["scales"] == 12  # D = 12, k = 1
+        assert g["max_gamma_mean"] >= 1.0 / g["scales"] - 1e-7  # a distribution's max is at least uniform
+        assert 1.0 - 1e-5 <= g["effective_scales_mean"] * (1 + 1e-6) and g["effective_scales_mean"] <= 12 + 1e-4
+        assert g["prefix_weight_at"]["1"] == pytest.approx(1.0, abs=1e-5)  # r_1 = sum of all gamma
+    # The entropy of softmax(z / T) grows with T: fewer effective scales at T = 0.1.
+    assert gamma[0.1]["effective_scales_mean"] <= gamma[1.0]["effective_scales_mean"] + 1e-6
+    assert gamma[0.1]["max_gamma_mean"] >= gamma[1.0]["max_gamma_mean"] - 1e-7
+
+
+def test_rerun_reuses_runs_and_evaluations(tiny):
+    out = tiny["out"]
+    fields = {p: p.stat().st_mtime_ns for p in (out / "runs").glob("*/field.pt")}
+    evals = {p: p.stat().st_mtime_ns for p in (out / "runs").glob("*/eval*/eval.json")}
+    assert len(fields) == 2 and len(evals) == 3  # nested (T = 1 and 0.1) and levels
+    again = run_bench(out, tiny["config"], scene=tiny["scene"], gaussians=tiny["root"] / "gaussians.ply",
+                      log=lambda s: None)
+    assert {p: p.stat().st_mtime_ns for p in (out / "runs").glob("*/field.pt")} == fields
+    assert {p: p.stat().st_mtime_ns for p in (out / "runs").glob("*/eval*/eval.json")} == evals
+    assert all(r["reused"] for r in again["runs"].values())
+    assert [c["delta"] for c in again["claims"]] == pytest.approx([c["delta"] for c in tiny["result"]["claims"]],
+                                                                  nan_ok=True)
+
+
+def test_bad_input_is_one_clear_error(tmp_path, capsys):
+    rc = main(["--out", str(tmp_path / "o"), "--scene", str(tmp_path / "missing"), "--quiet"])
+    assert rc == 2
+    assert "scene folder does not exist" in capsys.readouterr().err
+    assert main(["--out", str(tmp_path / "o"), "--iterations", "0", "--quiet"]) == 2
+
+
+def test_scaled_step_keeps_the_number_of_scales():
+    # Worked by hand: paper k -> floor(512 / k) scales; at D, k = floor(D / scales).
+    assert [scaled_step(k, 128) for k in (1, 8, 32, 128, 170)] == [1, 2, 8, 32, 42]
+    assert [scaled_step(k, 512) for k in (1, 8, 32, 128, 170)] == [1, 8, 32, 128, 170]
+    assert [scaled_step(k, 32) for k in (1, 8, 32, 128, 170)] == [1, 1, 2, 8, 10]
+    for k in (8, 32, 128, 170):
+        assert 128 // scaled_step(k, 128) == 512 // k
+    # Settings that map to the same k share a run.
+    assert run_name(VARIANTS["k8"], 32) == run_name(VARIANTS["nested"], 32) == "nested-k1"
+    assert run_name(VARIANTS["mlp"], 128) == "nested-k1-mlp"
+
+
+def test_activation_meter_counts_saved_storages_once():
+    a = torch.randn(1000, requires_grad=True)
+    with ActivationMeter(exclude=[a]) as meter:
+        b = a.exp()  # saves its result b (4000 bytes)
+        (b * b).sum().backward()  # saves b twice: the same storage, counted once
+        meter.end_step()
+        c = a * 2.0  # saves nothing but the scalar; a itself is excluded
+        c.sum().backward()
+        meter.end_step()
+    assert meter.steps[0] == 4000
+    assert meter.steps[1] == 0
+    assert meter.peak_bytes == 4000
+
+
+def test_paired_difference_and_convergence_by_hand():
+    def ev(ious, hits):
+        pairs = [{"frame": "f", "category": q, "iou": i, "hit": h} for q, i, h in zip("abc", ious, hits)]
+        return {"scores": {"m": {"exact": {"pairs": pairs}}}}
+
+    d = paired_difference(ev([0.5, 0.2, 0.9], [1, 0, 1]), "m", ev([0.3, 0.2, 0.6], [0, 0, 1]), "m", "exact")
+    diffs = np.array([0.2, 0.0, 0.3])
+    assert d["delta"] == pytest.approx(diffs.mean())
+    assert d["se"] == pytest.approx(diffs.std(ddof=1) / math.sqrt(3))
+    assert d["pairs"] == 3
+    assert paired_difference(ev([0.5, 0.2, 0.9], [1, 0, 1]), "m", ev([0.3, 0.2, 0.6], [0, 0, 1]), "m", "exact",
+                             "hit")["delta"] == pytest.approx(1 / 3)
+    curves = {"fast": {"step": [10, 20, 30], "loss": [0.5, 0.1, 0.05]},
+              "slow": {"step": [10, 20, 30], "loss": [0.9, 0.5, 0.2]}}
+    c = convergence(curves)
+    assert c == {"target_loss": 0.2, "fast": 20, "slow": 30}
