@@ -140,3 +140,26 @@ def test_paired_difference_and_convergence_by_hand():
               "slow": {"step": [10, 20, 30], "loss": [0.9, 0.5, 0.2]}}
     c = convergence(curves)
     assert c == {"target_loss": 0.2, "fast": 20, "slow": 30}
+
+
+def test_a_longer_bench_continues_a_shorter_run_exactly(tiny, tmp_path):
+    """4 steps then 2 more (the bench continues the checkpoint) = 6 steps at once."""
+    from dataclasses import replace
+
+    from n2f2.eval.bench import BenchData, train_variant
+    from n2f2.field import load_field
+
+    out, root = tiny["out"], tiny["root"]
+    data = BenchData(tiny["scene"], root / "gaussians.ply", out / "data" / "bank", tiny["scene"] / "label")
+    six = replace(tiny["config"], iterations=6)
+    short = tmp_path / "short"
+    train_variant(VARIANTS["nested"], data, short, tiny["config"], log=lambda s: None)
+    continued = train_variant(VARIANTS["nested"], data, short, six, log=lambda s: None)
+    fresh = train_variant(VARIANTS["nested"], data, tmp_path / "fresh", six, log=lambda s: None)
+    assert continued["steps"] == fresh["steps"] == 6 and not continued["reused"]
+    a, _ = load_field(short / "field.pt")
+    b, _ = load_field(tmp_path / "fresh" / "field.pt")
+    for (name, x), (_, y) in zip(a.state_dict().items(), b.state_dict().items()):
+        torch.testing.assert_close(x, y, msg=name)
+    # (The loss curves differ only in where points are logged: each session logs its last step.)
+    assert continued["curve"]["step"][-1] == fresh["curve"]["step"][-1] == 6

@@ -1,21 +1,36 @@
 """The evaluation stage: LangSplat's LERF-OVS protocol (segmentation IoU and localization
 accuracy), the 3D-OVS protocol, retrieval metrics, and Markdown / PNG reports."""
 
-from .metrics import (QueryDeltas, RetrievalScores, per_query_scores, query_deltas, recall_at_k,
-                      segment_mean_relevancy, segment_ranks)
-from .ovs3d import Ovs3dLabels, Ovs3dScores, evaluate_ovs3d, read_ovs3d_segmentations
-from .protocol import (LANGSPLAT_BOX_SIZE, LANGSPLAT_THRESHOLD, LERF_REFERENCE_WIDTH, PairRecord,
-                       PairResult, ProtocolConfig, SceneScores, box_filter, evaluate_frame_category,
-                       evaluate_label_dir, evaluate_scene, langsplat_relevancy, localization_hit,
-                       majority_filter, resolve_box_size, resolve_majority_radius,
-                       segmentation_mask, smoothed_relevancy)
+from .._lazy import lazy_exports
 
-__all__ = [
-    "LANGSPLAT_BOX_SIZE", "LANGSPLAT_THRESHOLD", "LERF_REFERENCE_WIDTH", "PairRecord", "PairResult",
-    "ProtocolConfig", "SceneScores", "box_filter", "evaluate_frame_category", "evaluate_label_dir",
-    "evaluate_scene", "langsplat_relevancy", "localization_hit", "majority_filter",
-    "resolve_box_size", "resolve_majority_radius", "segmentation_mask", "smoothed_relevancy",
-    "Ovs3dLabels", "Ovs3dScores", "evaluate_ovs3d", "read_ovs3d_segmentations",
-    "QueryDeltas", "RetrievalScores", "per_query_scores", "query_deltas", "recall_at_k",
-    "segment_mean_relevancy", "segment_ranks",
-]
+__getattr__, __all__ = lazy_exports(__name__, {
+    "QueryDeltas": "metrics",
+    "RetrievalScores": "metrics",
+    "per_query_scores": "metrics",
+    "query_deltas": "metrics",
+    "recall_at_k": "metrics",
+    "segment_mean_relevancy": "metrics",
+    "segment_ranks": "metrics",
+    "Ovs3dLabels": "ovs3d",
+    "Ovs3dScores": "ovs3d",
+    "evaluate_ovs3d": "ovs3d",
+    "read_ovs3d_segmentations": "ovs3d",
+    "LANGSPLAT_BOX_SIZE": "protocol",
+    "LANGSPLAT_THRESHOLD": "protocol",
+    "LERF_REFERENCE_WIDTH": "protocol",
+    "PairRecord": "protocol",
+    "PairResult": "protocol",
+    "ProtocolConfig": "protocol",
+    "SceneScores": "protocol",
+    "box_filter": "protocol",
+    "evaluate_frame_category": "protocol",
+    "evaluate_label_dir": "protocol",
+    "evaluate_scene": "protocol",
+    "langsplat_relevancy": "protocol",
+    "localization_hit": "protocol",
+    "majority_filter": "protocol",
+    "resolve_box_size": "protocol",
+    "resolve_majority_radius": "protocol",
+    "segmentation_mask": "protocol",
+    "smoothed_relevancy": "protocol",
+})

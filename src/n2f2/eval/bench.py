@@ -106,7 +106,7 @@ class BenchConfig:
     """Settings of :func:`run_bench`. Defaults: the full bench on the default demo scene, sized to
     finish in about 30 minutes on 2 CPU cores once the Gaussians exist (see :meth:`quick`)."""
 
-    iterations: int = 600  # training steps per variant (TrainConfig.cpu() uses 1000)
+    iterations: int = 1000  # training steps per variant (as TrainConfig.cpu())
     dim: int = 128  # D of every field (paper 512; k is scaled to keep the number of scales)
     pixels_per_step: int = 4096
     variants: tuple[str, ...] = DEFAULT_VARIANTS
@@ -363,7 +363,8 @@ def train_variant(spec: VariantSpec, data: BenchData, run_dir: Path, config: Ben
     paths = {"scene": str(data.scene_dir.resolve()), "gaussians": str(data.gaussians.resolve()),
              "bank": str(data.bank_dir.resolve())}
     saved = saved_configs(run_dir) if (run_dir / CHECKPOINT_NAME).is_file() else None
-    same = saved is not None and saved == (field_config, train_config) and _same_inputs(run_dir, paths)
+    inputs_ok = saved is not None and _same_inputs(run_dir, paths)
+    same = inputs_ok and saved == (field_config, train_config)
     if same and (run_dir / FIELD_NAME).is_file() and (run_dir / REPORT_NAME).is_file():
         log(f"[bench] {run_dir.name}: trained with the same settings, reused")
         report = json.loads((run_dir / REPORT_NAME).read_text())
@@ -371,19 +372,27 @@ def train_variant(spec: VariantSpec, data: BenchData, run_dir: Path, config: Ben
         report["memory"] = json.loads(memory_path.read_text()) if memory_path.is_file() else None
         report["reused"] = True
         return report
-    if not same:
+    # A shorter run with otherwise identical settings is continued: the learning rates are
+    # constant and the checkpoint holds the optimiser and sampler state, so N steps then M more
+    # are the same optimisation as N + M steps at once.
+    ignore = dict(iterations=0, checkpoint_every=0)
+    extend = inputs_ok and not same and saved[0] == field_config and \
+        replace(saved[1], **ignore) == replace(train_config, **ignore) and \
+        _checkpoint_step(run_dir) <= train_config.iterations
+    resume = same or extend
+    if not resume:
         for stale in (CHECKPOINT_NAME, FIELD_NAME, REPORT_NAME, MEMORY_NAME):
             (run_dir / stale).unlink(missing_ok=True)
     log(f"[bench] {run_dir.name}: training {spec.variant} ({spec.backbone}), D={field_config.dim}, "
         f"k={field_config.step_size}, {train_config.iterations} steps"
-        + (" (resumed)" if same else ""))
+        + (" (resumed)" if same else " (continuing a shorter run)" if extend else ""))
     scene = load_scene(data.scene_dir)
     bank = SegmentBank.open(data.bank_dir)
     gaussians = read_ply(data.gaussians)
     meter = ActivationMeter()
     with meter:
         report = train_field(scene, gaussians, bank, run_dir, field_config=field_config, config=train_config,
-                             resume=same, paths=paths, progress=config.progress, callback=meter.end_step)
+                             resume=resume, paths=paths, progress=config.progress, callback=meter.end_step)
     params = field_parameter_count(field_config, int(bank.embed_dim))
     F_dim = _rasterized_channels(field_config)
     memory = {"parameters": params, "parameter_mb": params * 4 / 2**20,
@@ -404,6 +413,15 @@ def _rasterized_channels(field_config: Any) -> int:
     if field_config.backbone == "triplane":
         return int(field_config.plane_channels)
     return 3 + 6 * int(field_config.pe_frequencies)
+
+
+def _checkpoint_step(run_dir: Path) -> int:
+    """The step of ``run_dir``'s checkpoint (what a resumed run continues from)."""
+    import torch
+
+    from ..train.trainer import CHECKPOINT_NAME
+
+    return int(torch.load(run_dir / CHECKPOINT_NAME, map_location="cpu", weights_only=False)["step"])
 
 
 def _same_inputs(run_dir: Path, paths: Mapping[str, str]) -> bool:
@@ -1200,7 +1218,7 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--bank", default=None, metavar="DIR",
                    help="segment bank of the scene (default: build it into OUT/data/bank: ground-truth "
                         "segments, caption embeddings)")
-    p.add_argument("--iterations", type=int, default=None, help="training steps per variant (default 600; quick 150)")
+    p.add_argument("--iterations", type=int, default=None, help="training steps per variant (default 1000; quick 150)")
     p.add_argument("--dim", type=int, default=None,
                    help="feature dims D of every field (default 128; quick 32; paper 512). k is scaled to "
                         "keep each paper setting's number of scales")

@@ -2,10 +2,19 @@
 the Gaussian centres, and the zero-initialised scale-aware projection ``W [E, D]``
 (paper Sec. 3.1-3.2)."""
 
-from .model import (FieldConfig, NestedField, bbox_from_points, build_field, check_embed_dim,
-                    gaussian_features, level_blocks, load_field, prefix_mask, save_field)
-from .triplane import PositionalEncoding, TriPlane
+from .._lazy import lazy_exports
 
-__all__ = ["FieldConfig", "NestedField", "PositionalEncoding", "TriPlane", "bbox_from_points",
-           "build_field", "check_embed_dim", "gaussian_features", "level_blocks", "load_field",
-           "prefix_mask", "save_field"]
+__getattr__, __all__ = lazy_exports(__name__, {
+    "FieldConfig": "model",
+    "NestedField": "model",
+    "bbox_from_points": "model",
+    "build_field": "model",
+    "check_embed_dim": "model",
+    "gaussian_features": "model",
+    "level_blocks": "model",
+    "load_field": "model",
+    "prefix_mask": "model",
+    "save_field": "model",
+    "PositionalEncoding": "triplane",
+    "TriPlane": "triplane",
+})

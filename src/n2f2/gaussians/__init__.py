@@ -1,10 +1,17 @@
 """The 3D Gaussian Splatting stage: the model, INRIA PLY input/output, initialisation and RGB
 fitting (``n2f2 fit-gaussians``)."""
 
-from .fit import FitConfig, FitReport, fit_gaussians
-from .init import init_from_points, init_random_in_frusta
-from .model import Gaussians, rgb_to_sh, sh_to_rgb
-from .ply import read_ply, write_ply
+from .._lazy import lazy_exports
 
-__all__ = ["FitConfig", "FitReport", "fit_gaussians", "Gaussians", "init_from_points", "init_random_in_frusta", "read_ply", "write_ply",
-           "rgb_to_sh", "sh_to_rgb"]
+__getattr__, __all__ = lazy_exports(__name__, {
+    "FitConfig": "fit",
+    "FitReport": "fit",
+    "fit_gaussians": "fit",
+    "init_from_points": "init",
+    "init_random_in_frusta": "init",
+    "Gaussians": "model",
+    "rgb_to_sh": "model",
+    "sh_to_rgb": "model",
+    "read_ply": "ply",
+    "write_ply": "ply",
+})

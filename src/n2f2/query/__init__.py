@@ -3,14 +3,29 @@ scale modes, 2D relevancy, segmentation and localization, 3D selection and PLY e
 
 Importing this package is cheap and has no side effects (no model is loaded)."""
 
-from .composite import (DEFAULT_CANONICAL, canonical_scores, composite_weights, prefix_dot,
-                        prefix_sq_norms, prefix_weights, premultiply, supervised_dims, to_blocks)
-from .engine import (MODES, QueryConfig, QueryEngine, QueryResult, ViewCache, build_composite_cache,
-                     build_linear_cache, build_prefix_cache, export_selection_ply)
-from .relevancy import DEFAULT_NEGATIVES, normalize_features, relevancy, relevancy_from_scores
+from .._lazy import lazy_exports
 
-__all__ = ["DEFAULT_CANONICAL", "DEFAULT_NEGATIVES", "MODES", "QueryConfig", "QueryEngine", "QueryResult",
-           "ViewCache", "build_composite_cache", "build_linear_cache", "build_prefix_cache",
-           "canonical_scores", "composite_weights", "export_selection_ply", "normalize_features",
-           "prefix_dot", "prefix_sq_norms", "prefix_weights", "premultiply", "relevancy",
-           "relevancy_from_scores", "supervised_dims", "to_blocks"]
+__getattr__, __all__ = lazy_exports(__name__, {
+    "DEFAULT_CANONICAL": "composite",
+    "canonical_scores": "composite",
+    "composite_weights": "composite",
+    "prefix_dot": "composite",
+    "prefix_sq_norms": "composite",
+    "prefix_weights": "composite",
+    "premultiply": "composite",
+    "supervised_dims": "composite",
+    "to_blocks": "composite",
+    "MODES": "engine",
+    "QueryConfig": "engine",
+    "QueryEngine": "engine",
+    "QueryResult": "engine",
+    "ViewCache": "engine",
+    "build_composite_cache": "engine",
+    "build_linear_cache": "engine",
+    "build_prefix_cache": "engine",
+    "export_selection_ply": "engine",
+    "DEFAULT_NEGATIVES": "relevancy",
+    "normalize_features": "relevancy",
+    "relevancy": "relevancy",
+    "relevancy_from_scores": "relevancy",
+})

@@ -13,7 +13,7 @@ Names are imported lazily, so ``import n2f2.segments`` (the CLI does it) stays c
 
 from __future__ import annotations
 
-import importlib
+from .._lazy import lazy_exports
 
 _EXPORTS = {
     "SegmentBank": "bank", "ImageSegments": "bank", "build_bank": "bank", "SegmentAndEncode": "bank",
@@ -25,10 +25,4 @@ _EXPORTS = {
     "segment_scales": "lifting", "LiftSettings": "lifting",
 }
 
-__all__ = sorted(_EXPORTS)
-
-
-def __getattr__(name: str):
-    if name in _EXPORTS:
-        return getattr(importlib.import_module(f".{_EXPORTS[name]}", __name__), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__, __all__ = lazy_exports(__name__, _EXPORTS)

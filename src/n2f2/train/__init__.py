@@ -6,7 +6,7 @@ Names are imported lazily so ``import n2f2.train`` (the CLI does it) stays cheap
 
 from __future__ import annotations
 
-import importlib
+from .._lazy import lazy_exports
 
 _EXPORTS = {
     "TrainConfig": "trainer", "train_field": "trainer", "field_preset": "trainer",
@@ -16,10 +16,4 @@ _EXPORTS = {
     "evaluate_cosine_by_level": "evaluate", "cosine_table": "evaluate",
 }
 
-__all__ = sorted(_EXPORTS)
-
-
-def __getattr__(name: str):
-    if name in _EXPORTS:
-        return getattr(importlib.import_module(f".{_EXPORTS[name]}", __name__), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__, __all__ = lazy_exports(__name__, _EXPORTS)
