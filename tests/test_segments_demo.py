@@ -54,6 +54,11 @@ def test_lifted_scales_rank_like_true_extents(demo):
     assert spearmanr(scales, extent)[0] >= 0.9
     medians = [np.median(scales[level == lv]) for lv in range(3)]  # part, object, group
     assert medians[0] < medians[1] < medians[2]
+    # bank.json reports the same check for users (computed independently above).
+    check = json.loads((bank_dir / "bank.json").read_text())["ground_truth_check"]
+    assert check["spearman_scale_vs_true_extent"] == pytest.approx(spearmanr(scales, extent)[0])
+    assert list(check["median_scale_by_level"].values()) == pytest.approx(medians)
+    assert list(check["median_scale_by_level"]) == ["part", "object", "group"]
     # GT layers are the part / object / group levels of regions.json
     assert all(regions[int(r)]["level"] == lv for r, lv in zip(region, level))
 

@@ -357,12 +357,16 @@ def build_bank(scene, source: SegmentSource, depth: DepthProvider, out: str | Pa
     bar.close()
 
     # Fit the quantile transform over every valid segment of the scene.
-    all_scales, n_total, n_empty, n_degenerate, n_layers = [], 0, 0, 0, []
+    all_scales, all_sources, n_total, n_empty, n_degenerate, n_layers = [], [], 0, 0, 0, []
     for stem in stems:
         d = _record_dir(out, stem)
         sc, va, ar = np.load(d / "scales.npy"), np.load(d / "valid.npy"), np.load(d / "areas.npy")
         n_layers.append(int(np.load(d / "layers.npy", mmap_mode="r").shape[0]))
         all_scales.append(sc[va])
+        if all_sources is not None and (d / "source_ids.npy").is_file():
+            all_sources.append(np.load(d / "source_ids.npy")[va])
+        else:  # segments without ground-truth region ids (SAM, classical, LangSplat)
+            all_sources = None
         n_total += sc.size
         n_empty += int((ar == 0).sum())
         n_degenerate += int(((ar > 0) & ~va).sum())
@@ -379,7 +383,32 @@ def build_bank(scene, source: SegmentSource, depth: DepthProvider, out: str | Pa
               "seconds_per_image": float(np.mean(times)) if times else None}
     stats = {"scale_median": float(np.median(scales)), "scale_min": float(scales.min()),
              "scale_max": float(scales.max())}
+    check = None
+    if all_sources is not None and scene.ground_truth is not None:
+        check = ground_truth_scale_check(scales, np.concatenate(all_sources), scene.ground_truth.regions)
     meta = {**header, "complete": True, "source": str(scene.root), "quantile": bins.to_dict(),
-            "counts": counts, "scale_stats": stats, "timing": timing}
+            "counts": counts, "scale_stats": stats, "timing": timing, "ground_truth_check": check}
     write_json(meta_path, meta)
-    return {"bank": str(out), "counts": counts, "timing": timing, "scale_stats": stats}
+    return {"bank": str(out), "counts": counts, "timing": timing, "scale_stats": stats,
+            "ground_truth_check": check}
+
+
+def ground_truth_scale_check(scales: np.ndarray,  # [S] lifted scales of the valid segments
+                             region_ids: np.ndarray,  # [S] ground-truth region of each segment
+                             regions: dict,  # the demo scene's regions.json
+                             ) -> dict:
+    """How well lifting worked, where the true regions are known (the demo scene): Spearman rank
+    correlation of the lifted scales with the regions' true 3D extents, and the median scale per
+    hierarchy level (it should grow from parts to objects to groups)."""
+    from scipy.stats import spearmanr
+
+    table = {int(r["id"]): r for r in regions["regions"]}
+    extent = np.array([table[int(r)]["extent"] for r in region_ids], dtype=np.float64)
+    level = np.array([table[int(r)]["level"] for r in region_ids])
+    names = list(regions.get("levels", []))
+    medians = {}
+    for lv in sorted(set(level.tolist())):
+        name = names[lv] if isinstance(lv, int) and lv < len(names) else str(lv)
+        medians[name] = float(np.median(scales[level == lv]))
+    rho = float(spearmanr(scales, extent)[0]) if scales.size > 1 else float("nan")
+    return {"spearman_scale_vs_true_extent": rho, "segments": int(scales.size), "median_scale_by_level": medians}

@@ -118,6 +118,11 @@ def _finish(report: dict) -> int:
     print(f"segments: {c['images']} images, {c['segments']} segments ({c['valid']} lifted, "
           f"{c['dropped_degenerate']} degenerate dropped, {c['dropped_empty']} empty), "
           f"median scale {s['scale_median']:.4g}{per} -> {report['bank']}")
+    check = report.get("ground_truth_check")
+    if check:
+        medians = ", ".join(f"{k} {v:.3g}" for k, v in check["median_scale_by_level"].items())
+        print(f"segments: lifted scale vs true region extent: Spearman {check['spearman_scale_vs_true_extent']:.3f}; "
+              f"median scale by level: {medians}")
     return 0
 
 
