@@ -27,7 +27,7 @@ rendering rasterizes, and ``decode`` is the 3-layer MLP.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Optional
 
@@ -35,6 +35,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from ..config import ConfigDict
 from ..errors import InputError
 from ..io import save_torch
 from .triplane import PositionalEncoding, TriPlane
@@ -47,7 +48,7 @@ FIELD_VERSION = 1
 
 
 @dataclass
-class FieldConfig:
+class FieldConfig(ConfigDict):
     """Architecture of the feature field. Defaults are the CPU preset; :meth:`paper` gives the
     paper's sizes (TriPlane 512^2 x 64, MLP hidden 256, D = 512)."""
 
@@ -81,13 +82,6 @@ class FieldConfig:
         base.update(overrides)
         return FieldConfig(**base)
 
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-    @staticmethod
-    def from_dict(d: dict) -> "FieldConfig":
-        known = {f.name for f in fields(FieldConfig)}
-        return FieldConfig(**{k: v for k, v in d.items() if k in known})
 
 
 def mlp(in_dim: int, hidden: int, out_dim: int, num_layers: int) -> nn.Sequential:

@@ -20,7 +20,6 @@ from typing import Any, Optional, Sequence
 import numpy as np
 import torch
 import torch.nn.functional as F
-from torch import Tensor
 
 from ..field.model import NestedField, gaussian_features
 from .trainer import bank_cameras, frozen_geometry, render_features

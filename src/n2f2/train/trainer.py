@@ -28,15 +28,16 @@ from __future__ import annotations
 import resource
 import shutil
 import time
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import dataclass, fields
 from pathlib import Path
-from typing import Any, Callable, Optional, Union
+from typing import Any, Callable, ClassVar, Optional, Union
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from ..config import ConfigDict
 from ..errors import InputError
 from ..field.model import FieldConfig, NestedField, bbox_from_points, save_field
 from ..io import save_torch, write_json
@@ -52,9 +53,11 @@ _CHECKPOINT_FORMAT = "n2f2-field-checkpoint-v1"
 
 # ------------------------------------------------------------------------------------ config
 @dataclass
-class TrainConfig:
+class TrainConfig(ConfigDict):
     """Optimisation settings. Defaults are the paper's (30k iterations, GPU); :meth:`cpu` is the
     preset for the built-in demo scene on a 2-core CPU."""
+
+    PRESETS: ClassVar[tuple[str, ...]] = ("cpu", "paper")  # see the static methods of those names
 
     iterations: int = 30_000
     views_per_step: int = 1  # views rendered per step; pixels are sampled across them
@@ -87,20 +90,6 @@ class TrainConfig:
         """The built-in demo scene (40 views of 160x120) in a few minutes on 2 cores."""
         return TrainConfig(iterations=1000, pixels_per_step=4096, checkpoint_every=250, blend_cache=True)
 
-    @staticmethod
-    def preset(name: str) -> "TrainConfig":
-        presets = {"cpu": TrainConfig.cpu, "paper": TrainConfig.paper}
-        if name not in presets:
-            raise ValueError(f"unknown preset {name!r}; choose from {sorted(presets)}")
-        return presets[name]()
-
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-    @staticmethod
-    def from_dict(d: dict) -> "TrainConfig":
-        known = {f.name for f in fields(TrainConfig)}
-        return TrainConfig(**{k: v for k, v in d.items() if k in known})
 
 
 def field_preset(name: str, **overrides: Any) -> FieldConfig:
