@@ -269,6 +269,36 @@ def test_small_fit_lowers_loss(tiny_scene, tmp_path):
     assert g.num != init.num  # densification ran (clone/split/prune)
 
 
+@pytest.mark.parametrize("every, resets, prune_big", [(10, [10, 20], True), (0, [], False)])
+def test_opacity_reset_schedule_and_off_switch(tiny_scene, tmp_path, monkeypatch, every, resets, prune_big):
+    """Resets happen every N steps until densification ends; 0 turns them off, and then large
+    Gaussians are never pruned (3DGS prunes them only after the first reset)."""
+    seen, big = [], []
+    real_reset, real_densify = fit_mod.reset_opacity, fit_mod.densify_and_prune
+    step = {"n": 0}
+
+    def counting_reset(g, adam):
+        seen.append(step["n"])
+        return real_reset(g, adam)
+
+    def recording_densify(*args, prune_big, **kw):
+        big.append(prune_big)
+        return real_densify(*args, prune_big=prune_big, **kw)
+
+    real_loss = fit_mod.photometric_loss
+
+    def counting_loss(*args, **kw):
+        step["n"] += 1
+        return real_loss(*args, **kw)
+
+    monkeypatch.setattr(fit_mod, "reset_opacity", counting_reset)
+    monkeypatch.setattr(fit_mod, "densify_and_prune", recording_densify)
+    monkeypatch.setattr(fit_mod, "photometric_loss", counting_loss)
+    fit_gaussians(tiny_scene, _tiny_config(opacity_reset_every=every), tmp_path, progress=False)
+    assert seen == resets  # densify_until = 25: no reset at 30
+    assert big == [prune_big]  # densification runs once, at step 20 (after the reset at 10)
+
+
 def test_nan_step_is_skipped_and_not_checkpointed(tiny_scene, tmp_path, monkeypatch):
     calls = {"n": 0}
     real = fit_mod.photometric_loss
