@@ -167,3 +167,23 @@ def test_a_longer_bench_continues_a_shorter_run_exactly(tiny, tmp_path):
         torch.testing.assert_close(x, y, msg=name)
     # (The loss curves differ only in where points are logged: each session logs its last step.)
     assert continued["curve"]["step"][-1] == fresh["curve"]["step"][-1] == 6
+
+
+def test_an_interrupted_extension_is_finished_not_reused(tiny, tmp_path):
+    """A checkpoint with the longer run's settings beside the shorter run's field and report (what
+    an interrupted extension leaves) is resumed to the full step count, never reported as done."""
+    import shutil
+    from dataclasses import replace
+
+    from n2f2.eval.bench import BenchData, train_variant
+
+    out, root = tiny["out"], tiny["root"]
+    data = BenchData(tiny["scene"], root / "gaussians.ply", out / "data" / "bank", tiny["scene"] / "label")
+    six = replace(tiny["config"], iterations=6)
+    short, full = tmp_path / "short", tmp_path / "full"
+    train_variant(VARIANTS["nested"], data, short, tiny["config"], log=lambda s: None)
+    train_variant(VARIANTS["nested"], data, full, six, log=lambda s: None)
+    shutil.copy(full / "checkpoint.pt", short / "checkpoint.pt")  # the 4-step field.pt stays
+    again = train_variant(VARIANTS["nested"], data, short, six, log=lambda s: None)
+    assert not again["reused"] and again["steps"] == 6
+    assert json.loads((short / "train_report.json").read_text())["steps"] == 6

@@ -365,7 +365,11 @@ def train_variant(spec: VariantSpec, data: BenchData, run_dir: Path, config: Ben
     saved = saved_configs(run_dir) if (run_dir / CHECKPOINT_NAME).is_file() else None
     inputs_ok = saved is not None and _same_inputs(run_dir, paths)
     same = inputs_ok and saved == (field_config, train_config)
-    if same and (run_dir / FIELD_NAME).is_file() and (run_dir / REPORT_NAME).is_file():
+    # An interrupted run (or an interrupted extension of a shorter one) has a checkpoint with
+    # these settings but a field and report of fewer steps: only a finished run is reused.
+    finished = same and (run_dir / FIELD_NAME).is_file() and (run_dir / REPORT_NAME).is_file() and \
+        json.loads((run_dir / REPORT_NAME).read_text()).get("steps") == train_config.iterations
+    if finished:
         log(f"[bench] {run_dir.name}: trained with the same settings, reused")
         report = json.loads((run_dir / REPORT_NAME).read_text())
         memory_path = run_dir / MEMORY_NAME
