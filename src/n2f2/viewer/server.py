@@ -198,22 +198,33 @@ class Viewer:
     def render(self, key: str, view: Any) -> tuple[Any, bool]:
         """Render (or fetch from the LRU cache) everything the viewer's modes need for a camera."""
         with self.lock:
-            if key in self._renders:
-                self._renders.move_to_end(key)
-                return self._renders[key], True
-            cache = self.engine.render_view(view, modes=self.modes, rgb=True)
-            self._renders[key] = cache
-            while len(self._renders) > self.limits.render_cache_size:
-                self._renders.popitem(last=False)
-            return cache, False
+            return self._render_locked(key, view)
 
-    def query(self, view_cache: Any, texts: list[str], mode: str) -> list[dict]:
+    def _render_locked(self, key: str, view: Any) -> tuple[Any, bool]:
+        if key in self._renders:
+            self._renders.move_to_end(key)
+            return self._renders[key], True
+        cache = self.engine.render_view(view, modes=self.modes, rgb=True)
+        self._renders[key] = cache
+        while len(self._renders) > self.limits.render_cache_size:
+            self._renders.popitem(last=False)
+        return cache, False
+
+    def render_and_query(self, key: str, view: Any, texts: list[str], mode: str) -> tuple[Any, list[dict]]:
+        """A query request's engine work under one hold of the lock, so that concurrent requests
+        finish one after another: with two holds (render, then query) every queued render ran
+        before any query, and all 50 requests of a burst finished together at its end. The PNG
+        encoding runs outside the lock."""
+        with self.lock:
+            cache, _ = self._render_locked(key, view)
+            result = self.engine.query(cache, texts, mode=mode)
+        return cache, self._results(cache, texts, result)
+
+    def _results(self, view_cache: Any, texts: list[str], result: Any) -> list[dict]:
         from matplotlib import colormaps
 
         from ..eval.protocol import box_filter, max_locations, resolve_box_size, segmentation_mask
 
-        with self.lock:
-            result = self.engine.query(view_cache, texts, mode=mode)
         rel = result.relevancy.float().cpu().numpy()  # [Q, H, W]
         rgb = view_cache.rgb.float().cpu().numpy()
         cmap = colormaps["turbo"]
@@ -351,8 +362,7 @@ def create_app(viewer: Viewer):
         mode = viewer.parse_mode(data.get("mode"))
         key, view = viewer.parse_camera(data.get("camera", {"view": 0}))
         t0 = time.perf_counter()
-        cache, _ = await run_in_threadpool(viewer.render, key, view)
-        results = await run_in_threadpool(viewer.query, cache, texts, mode)
+        cache, results = await run_in_threadpool(viewer.render_and_query, key, view, texts, mode)
         return {"rgb_png": png_base64(cache.rgb.float().cpu().numpy()), "width": cache.width,
                 "height": cache.height, "mode": mode, "results": results,
                 "timing_ms": 1000 * (time.perf_counter() - t0)}
