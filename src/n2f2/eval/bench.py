@@ -1263,10 +1263,11 @@ def _cos_names(result: Mapping) -> list[str]:
     return []
 
 
-def _cos_cells(cos: Optional[Mapping]) -> list[str]:
+def _cos_cells(cos: Optional[Mapping], key: str = "cosine") -> list[str]:
+    """``key`` = "cosine" (mean over pixels) or "region_cosine" (mean over (view, region))."""
     if not cos:
         return []
-    return [("-" if v["cosine"] is None else f"{v['cosine']:.3f}") for v in cos["levels"].values()]
+    return [("-" if v.get(key) is None else f"{v[key]:.3f}") for v in cos["levels"].values()]
 
 
 def _cosine_table(result: Mapping, variant_runs: Mapping[str, str]) -> str:
@@ -1277,10 +1278,14 @@ def _cosine_table(result: Mapping, variant_runs: Mapping[str, str]) -> str:
     for v, name in variant_runs.items():
         r = result["runs"][name]
         if r.get("cosine") and v in ("nested", "flat", "levels", "mlp"):
-            rows.append([VARIANTS[v].title] + _cos_cells(r["cosine"]) + [f"{r['final_loss']:.5f}"])
+            rows.append([VARIANTS[v].title] + _cos_cells(r["cosine"]) + _cos_cells(r["cosine"], "region_cosine")
+                        + [f"{r['final_loss']:.5f}"])
     if not rows:
         return "Not computed.\n"
-    return markdown_table(["variant"] + [f"cos {n}" for n in names] + ["final train loss"], rows)
+    # Pixel means weigh a level's regions by their area (at the group level the room, floor and
+    # wall, is most of the image); region means weigh every (view, region) alike. Both are shown.
+    return markdown_table(["variant"] + [f"cos {n} (pixels)" for n in names]
+                          + [f"cos {n} (regions)" for n in names] + ["final train loss"], rows)
 
 
 # ------------------------------------------------------------------------------ CLI

@@ -195,16 +195,19 @@ class Viewer:
         return mode
 
     # -------------------------------------------------------------- work
-    def render(self, key: str, view: Any) -> tuple[Any, bool]:
-        """Render (or fetch from the LRU cache) everything the viewer's modes need for a camera."""
+    def render(self, key: str, view: Any, mode: str = "composite") -> tuple[Any, bool]:
+        """Render (or fetch from the LRU cache) what ``mode`` needs for a camera."""
         with self.lock:
-            return self._render_locked(key, view)
+            return self._render_locked(key, view, mode)
 
-    def _render_locked(self, key: str, view: Any) -> tuple[Any, bool]:
+    def _render_locked(self, key: str, view: Any, mode: str) -> tuple[Any, bool]:
+        # Cached per (camera, mode): the explicit mode's per-scale caches cost about 3x the
+        # composite one's (416 vs 127 ms on a demo view), so they are made only when asked for.
+        key = f"{key}|{mode}"
         if key in self._renders:
             self._renders.move_to_end(key)
             return self._renders[key], True
-        cache = self.engine.render_view(view, modes=self.modes, rgb=True)
+        cache = self.engine.render_view(view, modes=[mode], rgb=True)
         self._renders[key] = cache
         while len(self._renders) > self.limits.render_cache_size:
             self._renders.popitem(last=False)
@@ -216,7 +219,7 @@ class Viewer:
         before any query, and all 50 requests of a burst finished together at its end. The PNG
         encoding runs outside the lock."""
         with self.lock:
-            cache, _ = self._render_locked(key, view)
+            cache, _ = self._render_locked(key, view, mode)
             result = self.engine.query(cache, texts, mode=mode)
         return cache, self._results(cache, texts, result)
 
