@@ -11,9 +11,10 @@ Times are wall-clock medians; ``ns/pair`` = (forward + backward wall time) / pix
 pairs the forward pass evaluated (padding included). ``CPU ns/pair`` uses the process CPU time
 instead (summed over threads); on a shared machine it is the steadier of the two.
 
-The cases run with ``OMP_WAIT_POLICY=PASSIVE`` unless the variable is set: with the default
-(spinning) policy, two torch threads on a machine shared with other busy processes were measured
-10x slower than one thread; passive waiting removes that.
+The cases run with the caller's ``OMP_WAIT_POLICY`` (OpenMP's default when unset, as the
+``n2f2`` batch commands). On an idle machine the default is the fast one; on a machine shared
+with other busy processes, ``OMP_WAIT_POLICY=PASSIVE`` or ``--threads 1`` avoids the spin-wait
+slowdown (two threads were measured 10x slower than one there).
 
 Scenes are random: Gaussians spread through the view frustum at depths 2..6, random rotations,
 anisotropic scales sized so that each pixel is covered by a few tens of Gaussians (like a
@@ -109,10 +110,10 @@ def main() -> None:
     scenes = SCENES[:2] if args.quick else SCENES
     channels = CHANNELS[:2] if args.quick else CHANNELS
     env = dict(os.environ)
-    env.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     load = os.getloadavg()[0]
     print(f"torch backend, {os.cpu_count()} CPUs visible, 1-min load average {load:.1f} at start; "
-          f"OMP_WAIT_POLICY={env['OMP_WAIT_POLICY']}; peak memory = growth of max RSS in a fresh process")
+          f"OMP_WAIT_POLICY={env.get('OMP_WAIT_POLICY', '(OpenMP default)')}; "
+          "peak memory = growth of max RSS in a fresh process")
     print()
     print("| Gaussians | image | C | fwd ms | bwd ms | pairs evaluated | ns/pair (fwd+bwd) | CPU ns/pair | peak extra RSS MiB |")
     print("|---|---|---|---|---|---|---|---|---|")

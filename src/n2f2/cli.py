@@ -9,9 +9,14 @@ import importlib
 import os
 import sys
 
-# Under CPU contention (2 cores), OpenMP's default spin-waiting made torch up to 10x slower
-# (measured: 27 vs 312 ns per pixel-Gaussian pair). Must be set before torch is imported.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+# OpenMP reads its wait policy once, when torch loads, so it is chosen before any stage module
+# is imported. Batch commands (fit, train, demo, run, ...) keep OpenMP's default (spin briefly,
+# then sleep): on an idle 2-core machine PASSIVE made a 300-step demo fit 2.7x slower (92 vs
+# 34 s wall, a third of it in the kernel). The viewer computes while other request threads
+# run, the contention under which spin-waiting made torch up to 10x slower, so it waits
+# passively. Setting OMP_WAIT_POLICY yourself overrides both; when several jobs share 2 cores,
+# OMP_WAIT_POLICY=PASSIVE or OMP_NUM_THREADS=1 avoids the spin-wait slowdown.
+PASSIVE_WAIT_COMMANDS = ("view",)
 
 from . import __version__
 from .errors import N2F2Error
@@ -48,7 +53,14 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _choose_omp_wait_policy(argv: list[str]) -> None:
+    command = next((a for a in argv if not a.startswith("-")), None)
+    if command in PASSIVE_WAIT_COMMANDS:
+        os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+
 def main(argv: list[str] | None = None) -> int:
+    _choose_omp_wait_policy(sys.argv[1:] if argv is None else [str(a) for a in argv])
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):

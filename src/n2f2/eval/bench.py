@@ -1351,7 +1351,6 @@ def main(argv: Optional[list[str]] = None) -> int:
 
     from ..errors import N2F2Error
 
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # see n2f2/cli.py
     p = argparse.ArgumentParser(prog="n2f2 bench")
     _add_arguments(p)
     args = p.parse_args(argv)
