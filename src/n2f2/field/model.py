@@ -83,7 +83,6 @@ class FieldConfig(ConfigDict):
         return FieldConfig(**base)
 
 
-
 def mlp(in_dim: int, hidden: int, out_dim: int, num_layers: int) -> nn.Sequential:
     """``num_layers`` linear layers with ReLU between them (none after the last)."""
     dims = [in_dim] + [hidden] * (num_layers - 1) + [out_dim]

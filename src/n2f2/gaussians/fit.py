@@ -125,7 +125,6 @@ class FitConfig(ConfigDict):
         )
 
 
-
 @dataclass
 class FitReport:
     """What :func:`fit_gaussians` writes to ``fit_report.json``."""

@@ -91,7 +91,6 @@ class TrainConfig(ConfigDict):
         return TrainConfig(iterations=1000, pixels_per_step=4096, checkpoint_every=250, blend_cache=True)
 
 
-
 def field_preset(name: str, **overrides: Any) -> FieldConfig:
     """``"cpu"``: FieldConfig defaults (D = 128, TriPlane 128^2 x 32); ``"paper"``: 512, 512^2 x 64."""
     if name == "paper":
