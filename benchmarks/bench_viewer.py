@@ -62,11 +62,10 @@ def load_test(url: str, requests: int) -> dict:
 def screenshot(url: str, path: str, query: str = "lid of the teapot") -> None:
     from playwright.sync_api import sync_playwright
 
+    from n2f2.viewer.browser import launch_chromium
+
     with sync_playwright() as p:
-        browser = p.chromium.launch(
-            executable_path="/usr/bin/chromium", headless=True,
-            args=["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                  "--disable-background-networking", "--disable-component-update", "--disable-sync"])
+        browser = launch_chromium(p)
         try:
             page = browser.new_page(viewport={"width": 1200, "height": 860})
             page.goto(url + "/")

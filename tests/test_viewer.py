@@ -20,9 +20,9 @@ import pytest
 fastapi = pytest.importorskip("fastapi")
 from fastapi.testclient import TestClient  # noqa: E402
 
+from n2f2.viewer.browser import CHROMIUM_PATH, launch_chromium  # noqa: E402
 from n2f2.viewer.server import Viewer, ViewerLimits, create_app  # noqa: E402
 
-CHROMIUM = "/usr/bin/chromium"
 
 
 @pytest.fixture(scope="module")
@@ -190,17 +190,14 @@ def test_fifty_concurrent_queries_finish_without_error(live_server, trained_run)
     print(f"\n50 concurrent queries: p50 {np.percentile(lat, 50):.0f} ms, p95 {np.percentile(lat, 95):.0f} ms")
 
 
-@pytest.mark.skipif(not Path(CHROMIUM).exists(),
+@pytest.mark.skipif(not Path(CHROMIUM_PATH).exists(),
                     reason="Debian chromium is not installed (apt-get install chromium); .ci/run installs it")
 def test_browser_types_a_query_and_sees_the_overlay(live_server, trained_run, tmp_path):
     sync_api = pytest.importorskip("playwright.sync_api")
     shot_dir = Path(os.environ.get("N2F2_SCREENSHOT_DIR", tmp_path))
     shot_dir.mkdir(parents=True, exist_ok=True)
     with sync_api.sync_playwright() as p:
-        browser = p.chromium.launch(
-            executable_path=CHROMIUM, headless=True,
-            args=["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                  "--disable-background-networking", "--disable-component-update", "--disable-sync"])
+        browser = launch_chromium(p)
         try:
             page = browser.new_page(viewport={"width": 1100, "height": 800})
             page.goto(live_server + "/")

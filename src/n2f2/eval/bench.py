@@ -367,11 +367,10 @@ def train_variant(spec: VariantSpec, data: BenchData, run_dir: Path, config: Ben
     same = inputs_ok and saved == (field_config, train_config)
     # An interrupted run (or an interrupted extension of a shorter one) has a checkpoint with
     # these settings but a field and report of fewer steps: only a finished run is reused.
-    finished = same and (run_dir / FIELD_NAME).is_file() and (run_dir / REPORT_NAME).is_file() and \
-        json.loads((run_dir / REPORT_NAME).read_text()).get("steps") == train_config.iterations
-    if finished:
+    report = json.loads((run_dir / REPORT_NAME).read_text()) \
+        if same and (run_dir / FIELD_NAME).is_file() and (run_dir / REPORT_NAME).is_file() else None
+    if report is not None and report.get("steps") == train_config.iterations:
         log(f"[bench] {run_dir.name}: trained with the same settings, reused")
-        report = json.loads((run_dir / REPORT_NAME).read_text())
         memory_path = run_dir / MEMORY_NAME
         report["memory"] = json.loads(memory_path.read_text()) if memory_path.is_file() else None
         report["reused"] = True
