@@ -16,16 +16,14 @@ The cases run with the caller's ``OMP_WAIT_POLICY`` (OpenMP's default when unset
 with other busy processes, ``OMP_WAIT_POLICY=PASSIVE`` or ``--threads 1`` avoids the spin-wait
 slowdown (two threads were measured 10x slower than one there).
 
-Scenes are random: Gaussians spread through the view frustum at depths 2..6, random rotations,
-anisotropic scales sized so that each pixel is covered by a few tens of Gaussians (like a
-trained 3DGS scene), opacities uniform in [0.05, 0.95], random features.
+Scenes are random (:func:`n2f2.render.reference.random_scene`): Gaussians spread through the
+view frustum, sized so that each pixel is covered by a few tens of them, like a trained 3DGS.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import resource
 import statistics
@@ -38,33 +36,13 @@ CHANNELS = [3, 64, 512]
 GOAL_NS_PER_PAIR = 20.0
 
 
-def make_scene(n: int, size: int, channels: int, seed: int = 0):
-    import numpy as np
-    import torch
-
-    from n2f2.cameras import Camera
-
-    g = torch.Generator().manual_seed(seed)
-    focal = size * 0.9  # ~58 degree field of view
-    camera = Camera(focal, focal, size / 2, size / 2, size, size, R=np.eye(3), t=np.zeros(3))
-    z = torch.rand(n, generator=g) * 4 + 2
-    xy = (torch.rand(n, 2, generator=g) - 0.5) * 1.1 * size / focal * z[:, None]
-    means = torch.cat([xy, z[:, None]], 1)
-    # Projected standard deviation ~ 1.2 * size / sqrt(n) pixels, times a log-uniform spread.
-    sigma_px = 1.2 * size / math.sqrt(n) * torch.exp(torch.randn(n, 3, generator=g) * 0.4)
-    scales = sigma_px * z[:, None] / focal
-    quats = torch.randn(n, 4, generator=g)
-    opac = torch.rand(n, generator=g) * 0.9 + 0.05
-    feats = torch.rand(n, channels, generator=g)
-    return [means, quats, scales, opac, feats], camera
-
-
 def run_case(n: int, size: int, channels: int, repeats: int) -> dict:
     import torch
 
     from n2f2.render import rasterize
+    from n2f2.render.reference import random_scene
 
-    params, camera = make_scene(n, size, channels)
+    params, camera = random_scene(n, size, channels)
     params = [p.requires_grad_() for p in params]
     w = torch.rand(size, size, channels)
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux

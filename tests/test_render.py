@@ -233,6 +233,37 @@ def test_backends_on_cpu():
     assert ("gsplat" in sys.modules) == had_gsplat  # auto never imports gsplat for CPU tensors
 
 
+def _gsplat_on_cuda() -> bool:
+    if not torch.cuda.is_available():
+        return False
+    from n2f2.render.gsplat_backend import gsplat_usable
+
+    return gsplat_usable(torch.device("cuda"))
+
+
+@pytest.mark.skipif(not _gsplat_on_cuda(), reason="needs CUDA and gsplat")
+def test_gsplat_matches_torch_backend_on_cuda():
+    """Both backends on the GPU with gsplat's fixed alpha clamp: same image, alpha, depth and
+    gradients (benchmarks/compare_gsplat.py prints the full comparison)."""
+    from n2f2.render.reference import random_scene
+
+    params, cam = random_scene(3000, 64, 16, device="cuda")
+    outs, grads = [], []
+    for backend in ("torch", "gsplat"):
+        ps = [p.clone().requires_grad_() for p in params]
+        out = rasterize(*ps, cam, backend=backend, alpha_clamp=0.999)
+        (out.features.sum() + out.alpha.sum() + (out.depth * out.alpha).sum()).backward()
+        outs.append(out)
+        grads.append([p.grad for p in ps])
+    (a, b), both = outs, (outs[0].alpha > 0.5) & (outs[1].alpha > 0.5)
+    assert outs[1].n_pairs is None and a.n_pairs is not None  # each backend really ran
+    torch.testing.assert_close(a.features, b.features, atol=1e-3, rtol=0)
+    torch.testing.assert_close(a.alpha, b.alpha, atol=1e-3, rtol=0)
+    torch.testing.assert_close(a.depth * both, b.depth * both, atol=1e-3 * float(a.depth.detach().max()), rtol=0)
+    for ga, gb in zip(*grads):
+        assert float((ga - gb).abs().max()) <= 1e-2 * float(ga.abs().max())
+
+
 # ------------------------------------------------------------------------------------- SH
 def test_sh_basis_is_orthonormal():
     # Fibonacci sphere: the mean of Y_i Y_j over the sphere times 4 pi is the identity.

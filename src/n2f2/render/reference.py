@@ -114,3 +114,36 @@ def rasterize_reference(
     depth = torch.where(alpha_img > 0, dsum / alpha_img.clamp_min(1e-30), torch.zeros_like(dsum))
     return RenderOutput(features=feat, alpha=alpha_img, depth=depth,
                         means2d=means2d, radii=contributes.to(torch.int32))
+
+
+def random_scene(
+    n: int,  # number of Gaussians
+    size: int,  # square image side in pixels
+    channels: int,  # feature width C
+    seed: int = 0,
+    *,
+    device: torch.device | str = "cpu",
+) -> tuple[list[Tensor], Camera]:
+    """Random Gaussians in front of a ``size`` x ``size`` camera, for benchmarks and backend
+    comparisons: ``[means [N, 3], quats [N, 4], scales [N, 3], opacities [N], features [N, C]]``.
+
+    Centres spread through the view frustum at depths 2..6, random rotations, anisotropic
+    scales sized so that each pixel is covered by a few tens of Gaussians (like a trained 3DGS
+    scene), opacities uniform in [0.05, 0.95], features uniform in [0, 1]."""
+    import math
+
+    import numpy as np
+
+    g = torch.Generator().manual_seed(seed)
+    focal = size * 0.9  # ~58 degree field of view
+    camera = Camera(focal, focal, size / 2, size / 2, size, size, R=np.eye(3), t=np.zeros(3))
+    z = torch.rand(n, generator=g) * 4 + 2
+    xy = (torch.rand(n, 2, generator=g) - 0.5) * 1.1 * size / focal * z[:, None]
+    means = torch.cat([xy, z[:, None]], 1)
+    # Projected standard deviation ~ 1.2 * size / sqrt(n) pixels, times a log-uniform spread.
+    sigma_px = 1.2 * size / math.sqrt(n) * torch.exp(torch.randn(n, 3, generator=g) * 0.4)
+    scales = sigma_px * z[:, None] / focal
+    quats = torch.randn(n, 4, generator=g)
+    opacities = torch.rand(n, generator=g) * 0.9 + 0.05
+    features = torch.rand(n, channels, generator=g)
+    return [t.to(device) for t in (means, quats, scales, opacities, features)], camera
