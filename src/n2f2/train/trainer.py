@@ -87,7 +87,14 @@ class TrainConfig(ConfigDict):
 
     @staticmethod
     def cpu() -> "TrainConfig":
-        """The built-in demo scene (40 views of 160x120) in a few minutes on 2 cores."""
+        """The built-in demo scene (40 views of 160x120) in a few minutes on 2 cores.
+
+        Short for the method: on the demo scene, nested beats the flat ablation in held-out
+        cosine at every hierarchy level only with longer training (measured on a GPU with the
+        same Gaussians and bank: D = 512 for 3000 steps, or D = 128 for 10k; pixel means). With
+        this preset's 1000 steps at D = 128 the coarsest segments (room, wall) share ~5 leading
+        dims and the group level trails the flat field: use ``--iterations`` and ``--dim`` when
+        minutes matter less."""
         return TrainConfig(iterations=1000, pixels_per_step=4096, checkpoint_every=250, blend_cache=True)
 
 
