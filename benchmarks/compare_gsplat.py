@@ -77,9 +77,9 @@ def compare(params: list, camera, repeats: int = 5, seed: int = 0) -> dict:
 
 
 def _print_table(rows: list[tuple[str, dict]]) -> None:
-    grads = [f"d{n[:5]}" for n in PARAM_NAMES]
-    print("| case | max |dF| | mean |dF| | max |dalpha| | max |ddepth| (alpha>0.5) | " + " | ".join(grads)
-          + " (max rel) | torch fwd/bwd ms | gsplat fwd/bwd ms |")
+    grads = [f"grad {n} (rel)" for n in PARAM_NAMES]
+    print("| case | image max abs diff | image mean abs diff | alpha max abs diff | depth max abs diff (alpha>0.5) | "
+          + " | ".join(grads) + " | torch fwd/bwd ms | gsplat fwd/bwd ms |")
     print("|---" * (8 + len(grads) - 1) + "|")
     for name, r in rows:
         g = " | ".join(f"{r[f'grad_{n}']:.1e}" for n in PARAM_NAMES)
