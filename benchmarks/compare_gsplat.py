@@ -94,6 +94,8 @@ def main() -> None:
     ap.add_argument("--gaussians", metavar="PLY", help="fitted Gaussians (INRIA PLY) to render with --scene")
     ap.add_argument("--repeats", type=int, default=5, help="timed runs per case (median)")
     args = ap.parse_args()
+    if args.repeats < 1:
+        ap.error("--repeats must be at least 1")
     if not torch.cuda.is_available():
         raise SystemExit("compare_gsplat: needs a CUDA device")
     from n2f2.render.gsplat_backend import gsplat_usable
