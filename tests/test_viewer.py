@@ -24,7 +24,6 @@ from n2f2.viewer.browser import CHROMIUM_PATH, launch_chromium  # noqa: E402
 from n2f2.viewer.server import Viewer, ViewerLimits, create_app  # noqa: E402
 
 
-
 @pytest.fixture(scope="module")
 def viewer(trained_run):
     from n2f2.query.engine import QueryEngine

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any, ClassVar, Optional
 
 import numpy as np
 import torch
@@ -51,6 +51,8 @@ FIELD_VERSION = 1
 class FieldConfig(ConfigDict):
     """Architecture of the feature field. Defaults are the CPU preset; :meth:`paper` gives the
     paper's sizes (TriPlane 512^2 x 64, MLP hidden 256, D = 512)."""
+
+    PRESETS: ClassVar[tuple[str, ...]] = ("cpu", "paper")  # see the static methods of those names
 
     backbone: str = "triplane"  # "triplane" (TriPlane + MLP) | "mlp" (positional encoding + MLP)
     dim: int = 128  # D, feature-field dims = number of quantized scales (paper: 512)
@@ -74,6 +76,11 @@ class FieldConfig(ConfigDict):
             raise ValueError(f"step size k must be in [1, D={self.dim}], got {self.step_size}")
         if self.num_layers < 1 or self.hidden < 1:
             raise ValueError("the MLP needs at least one layer and a positive hidden width")
+
+    @staticmethod
+    def cpu() -> "FieldConfig":
+        """The defaults: D = 128, TriPlane 128^2 x 32 (the built-in demo scene on 2 cores)."""
+        return FieldConfig()
 
     @staticmethod
     def paper(**overrides: Any) -> "FieldConfig":

@@ -28,7 +28,7 @@ from __future__ import annotations
 import resource
 import shutil
 import time
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any, Callable, ClassVar, Optional, Union
 
@@ -103,12 +103,8 @@ class TrainConfig(ConfigDict):
 
 
 def field_preset(name: str, **overrides: Any) -> FieldConfig:
-    """``"cpu"``: FieldConfig defaults (D = 128, TriPlane 128^2 x 32); ``"paper"``: 512, 512^2 x 64."""
-    if name == "paper":
-        return FieldConfig.paper(**overrides)
-    if name == "cpu":
-        return FieldConfig(**overrides)
-    raise ValueError(f"unknown preset {name!r}; choose from ['cpu', 'paper']")
+    """``FieldConfig.preset(name)`` ("cpu" or "paper") with ``overrides`` applied."""
+    return replace(FieldConfig.preset(name), **overrides)
 
 
 # ------------------------------------------------------------------------------------ loss
