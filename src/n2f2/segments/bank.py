@@ -408,7 +408,7 @@ def ground_truth_scale_check(scales: np.ndarray,  # [S] lifted scales of the val
     names = list(regions.get("levels", []))
     medians = {}
     for lv in sorted(set(level.tolist())):
-        name = names[lv] if isinstance(lv, int) and lv < len(names) else str(lv)
+        name = names[lv] if lv < len(names) else str(lv)
         medians[name] = float(np.median(scales[level == lv]))
     rho = float(spearmanr(scales, extent)[0]) if scales.size > 1 else float("nan")
     return {"spearman_scale_vs_true_extent": rho, "segments": int(scales.size), "median_scale_by_level": medians}
