@@ -29,7 +29,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, ClassVar, Optional
+from typing import Any, Callable, ClassVar, Optional
 
 import numpy as np
 import torch
@@ -173,6 +173,17 @@ class NestedField(nn.Module):
 
     def encode(self, xyz_normalised: Tensor) -> Tensor:  # [N, 3] in [-1, 1] -> [N, F]
         return self.backbone(xyz_normalised)
+
+    def fixed_point_encoder(self, xyz: Tensor) -> Callable[[], Tensor]:  # xyz [N, 3] world
+        """``lambda: encode(normalize(xyz))`` for points that stay put while the field trains
+        (the frozen Gaussian centres), with what does not depend on the parameters computed
+        once: the TriPlane's bilinear taps, or the whole (parameter-free) positional encoding."""
+        xyz_n = self.normalize(xyz.detach())
+        if isinstance(self.backbone, TriPlane):
+            taps = self.backbone.taps(xyz_n)
+            return lambda: self.backbone.sample(taps)
+        encoded = self.encode(xyz_n).detach()
+        return lambda: encoded
 
     def decode(self, features: Tensor) -> Tensor:  # [..., F] -> theta [..., D]
         return self.mlp(features)

@@ -156,13 +156,17 @@ def render_features(geometry: dict[str, Tensor], features: Tensor,  # [N, C]
 
 def pixel_theta(field: NestedField, geometry: dict[str, Tensor], batch: PixelBatch, deferred: bool,
                 cameras: Optional[list] = None, cache: Optional[BlendCache] = None,
+                encoder: Optional[Callable[[], Tensor]] = None,
                 ) -> Tensor:  # -> theta [P, D] for the batch's pixels
     """theta(u) at the sampled pixels. Slot k of the batch is ``cameras[k]`` (rasterized now) or
-    the k-th view of ``cache`` (cached blending weights).
+    the k-th view of ``cache`` (cached blending weights). ``encoder``: the field's
+    :meth:`~n2f2.field.model.NestedField.fixed_point_encoder` of the Gaussian centres (built here
+    when not given; a training loop builds it once).
 
     Deferred (training, paper): the backbone features [N, F] are blended and the MLP runs per
     pixel. Non-deferred (test-time form): the MLP runs per Gaussian and D channels are blended."""
-    per_gaussian = field.encode(field.normalize(geometry["means"])) if deferred else field(geometry["means"])
+    encoder = encoder or field.fixed_point_encoder(geometry["means"])
+    per_gaussian = encoder() if deferred else field.decode(encoder())
     if cache is not None:
         rendered = cache.blend(per_gaussian, batch.slot, batch.pixel)  # [P, C]
     else:
@@ -307,6 +311,8 @@ def train_field(
         except MemoryError as e:  # large scenes: rasterize every step instead
             cache_info = {"used": False, "reason": str(e)}
 
+    encoder = field.fixed_point_encoder(geometry["means"])  # the centres are frozen
+
     def checkpoint_blob() -> dict:
         return {"format": _CHECKPOINT_FORMAT, "step": step,
                 "field_state": {k: v.detach().cpu().clone() for k, v in field.state_dict().items()},
@@ -332,7 +338,7 @@ def train_field(
             views = [usable[i] for i in torch.randperm(len(usable), generator=generator)[:config.views_per_step].tolist()]
         batch = sample_pixels([segments[v] for v in views], config.pixels_per_step, generator)
         theta = pixel_theta(field, geometry, _to(batch, device), config.deferred,
-                            cameras=[cameras[v] for v in views], cache=cache)
+                            cameras=[cameras[v] for v in views], cache=cache, encoder=encoder)
         mask = field.supervision_mask(batch.scale.to(device))
         phi = field.project(theta, mask)
         loss, l2, cos = hierarchical_loss(phi, batch.target.to(device), config.cos_weight)
