@@ -22,7 +22,7 @@ from n2f2.segments.bins import scale_to_dims
 from n2f2.segments.lifting import gt_depth_provider
 from n2f2.segments.segmenters import GroundTruthSegmenter
 from n2f2.train.evaluate import evaluate_cosine_by_level, match_regions_to_segments
-from n2f2.train.sampling import (ViewSegments, covering_probabilities, sample_pixels, sample_segments,
+from n2f2.train.sampling import (SegmentPool, ViewSegments, covering_probabilities, sample_pixels, sample_segments,
                                  segment_weights)
 from n2f2.train.trainer import (CHECKPOINT_NAME, FIELD_NAME, REPORT_NAME, TrainConfig, bank_cameras,
                                 frozen_geometry, hierarchical_loss, render_features, train_field)
@@ -125,6 +125,22 @@ def test_pixels_uniform_over_covered_pixels_of_views():
     a = batch.slot == 0
     assert all(seg_of[p] == s for p, s in zip(batch.pixel[a].tolist(), batch.segment[a].tolist()))
     torch.testing.assert_close(batch.target[a], torch.eye(3, 4)[batch.segment[a]])
+
+
+def test_pool_of_views_with_different_layer_counts():
+    """Views whose records have 1 and 2 layers pool together; every sampled segment covers
+    its pixel in its own view, and both layers of the 2-layer view get sampled."""
+    la = np.array([[[0, 0, -1], [1, 1, -1]]], np.int32)  # 1 layer, 2 segments
+    lb = np.stack([np.full((2, 3), 0, np.int32), np.array([[1, -1, 2], [1, -1, 2]], np.int32)])  # 2 layers
+    va = ViewSegments.from_record(0, _Record(la, [2, 2], [True, True]))
+    vb = ViewSegments.from_record(1, _Record(lb, [6, 2, 2], [True, True, True]))
+    batch = SegmentPool.from_views([va, vb]).sample(4000, torch.Generator().manual_seed(3))
+    layers = [la.reshape(1, -1), lb.reshape(2, -1)]
+    for slot, pixel, seg in zip(batch.slot.tolist(), batch.pixel.tolist(), batch.segment.tolist()):
+        assert seg in layers[slot][:, pixel]
+    b = batch.slot == 1
+    assert set(batch.segment[b].tolist()) == {0, 1, 2}
+    torch.testing.assert_close(batch.target[b], torch.eye(3, 4)[batch.segment[b]])
 
 
 # ---------------------------------------------------------------------------------- loss

@@ -105,26 +105,54 @@ def sample_segments(candidates: Tensor,  # [P, L]
     return candidates.gather(1, choice[:, None]).squeeze(1)
 
 
+@dataclass
+class SegmentPool:
+    """The covered pixels of several views and their candidate segments, concatenated so that a
+    step samples all its pixels and segments with a few tensor ops (no loop over views)."""
+
+    slot: Tensor  # [K] long, index into the pooled views of each covered pixel
+    pixel: Tensor  # [K] long, flat pixel index in that view
+    candidates: Tensor  # [K, L] long, pooled segment ids covering the pixel, -1 = none
+    weights: Tensor  # [S] float64, 1 / log(area) of each pooled segment
+    local: Tensor  # [S] long, the segment's id within its view
+    quantized: Tensor  # [S] float32
+    embeddings: Tensor  # [S, E] float32
+
+    @staticmethod
+    def from_views(views: list[ViewSegments]) -> "SegmentPool":
+        L = max((v.layers.shape[0] for v in views), default=0)
+        slot, pixel, cand, weights, local, quant, emb = [], [], [], [], [], [], []
+        first = 0  # pooled id of the view's segment 0
+        for k, v in enumerate(views):
+            c = v.layers[:, v.covered].t()  # [K_v, L_v]
+            c = torch.where(c >= 0, c + first, c)
+            cand.append(torch.nn.functional.pad(c, (0, L - c.shape[1]), value=-1))
+            slot.append(torch.full_like(v.covered, k))
+            pixel.append(v.covered)
+            S = v.weights.shape[0]
+            weights.append(v.weights)
+            local.append(torch.arange(S))
+            quant.append(v.quantized)
+            emb.append(v.embeddings)
+            first += S
+        if not views:
+            raise ValueError("no views to sample from")
+        return SegmentPool(torch.cat(slot), torch.cat(pixel), torch.cat(cand), torch.cat(weights),
+                           torch.cat(local), torch.cat(quant), torch.cat(emb))
+
+    def sample(self, num_pixels: int, generator: torch.Generator) -> PixelBatch:
+        """``num_pixels`` covered pixels, uniform (with replacement), each with one covering
+        segment chosen ∝ 1 / log(area)."""
+        if self.pixel.numel() == 0:
+            raise ValueError("no pixel of the selected views is covered by a valid segment")
+        pick = torch.randint(self.pixel.numel(), (num_pixels,), generator=generator)
+        seg = sample_segments(self.candidates[pick], self.weights, generator)  # [P] pooled id
+        return PixelBatch(self.slot[pick], self.pixel[pick], self.local[seg], self.quantized[seg],
+                          self.embeddings[seg])
+
+
 def sample_pixels(views: list[ViewSegments], num_pixels: int, generator: torch.Generator) -> PixelBatch:
     """``num_pixels`` pixels uniform over the covered pixels of ``views`` (with replacement),
-    each with one covering segment chosen ∝ 1 / log(area)."""
-    counts = torch.tensor([len(v.covered) for v in views], dtype=torch.long)
-    total = int(counts.sum())
-    if total == 0:
-        raise ValueError("no pixel of the selected views is covered by a valid segment")
-    flat = torch.randint(total, (num_pixels,), generator=generator)  # uniform over covered pixels
-    offsets = torch.cumsum(counts, 0) - counts
-    slot = torch.searchsorted(torch.cumsum(counts, 0), flat, right=True)  # [P]
-    slots, pixels, segs, scales, targets = [], [], [], [], []
-    for k, v in enumerate(views):
-        sel = slot == k
-        if not bool(sel.any()):
-            continue
-        pix = v.covered[flat[sel] - offsets[k]]  # [p]
-        seg = sample_segments(v.layers[:, pix].t(), v.weights, generator)  # [p]
-        slots.append(torch.full_like(pix, k))
-        pixels.append(pix)
-        segs.append(seg)
-        scales.append(v.quantized[seg])
-        targets.append(v.embeddings[seg])
-    return PixelBatch(torch.cat(slots), torch.cat(pixels), torch.cat(segs), torch.cat(scales), torch.cat(targets))
+    each with one covering segment chosen ∝ 1 / log(area). (A loop that samples the same views
+    every step builds their :class:`SegmentPool` once.)"""
+    return SegmentPool.from_views(views).sample(num_pixels, generator)

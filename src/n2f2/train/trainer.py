@@ -42,7 +42,7 @@ from ..errors import InputError
 from ..field.model import FieldConfig, NestedField, bbox_from_points, save_field
 from ..io import save_torch, write_json
 from .blend import BlendCache, build_blend_cache
-from .sampling import PixelBatch, ViewSegments, sample_pixels
+from .sampling import PixelBatch, SegmentPool, ViewSegments
 
 FIELD_NAME = "field.pt"
 CHECKPOINT_NAME = "checkpoint.pt"
@@ -312,6 +312,9 @@ def train_field(
             cache_info = {"used": False, "reason": str(e)}
 
     encoder = field.fixed_point_encoder(geometry["means"])  # the centres are frozen
+    # Pixels uniform across all training images (blend cache: every view is at hand each step).
+    every_view = cache is not None or config.views_per_step >= len(usable)
+    pool_all = SegmentPool.from_views([segments[v] for v in usable]) if every_view else None
 
     def checkpoint_blob() -> dict:
         return {"format": _CHECKPOINT_FORMAT, "step": step,
@@ -332,11 +335,12 @@ def train_field(
     field.train()
     while step < config.iterations:
         t0, c0 = time.perf_counter(), time.process_time()
-        if cache is not None or config.views_per_step >= len(usable):  # uniform across all training images
-            views = usable
+        if every_view:
+            views, pool = usable, pool_all
         else:  # only the views rasterized this step
             views = [usable[i] for i in torch.randperm(len(usable), generator=generator)[:config.views_per_step].tolist()]
-        batch = sample_pixels([segments[v] for v in views], config.pixels_per_step, generator)
+            pool = SegmentPool.from_views([segments[v] for v in views])
+        batch = pool.sample(config.pixels_per_step, generator)
         theta = pixel_theta(field, geometry, _to(batch, device), config.deferred,
                             cameras=[cameras[v] for v in views], cache=cache, encoder=encoder)
         mask = field.supervision_mask(batch.scale.to(device))
