@@ -269,6 +269,34 @@ def test_small_fit_lowers_loss(tiny_scene, tmp_path):
     assert g.num != init.num  # densification ran (clone/split/prune)
 
 
+def test_depth_spread_of_two_stacked_gaussians():
+    """Two wide Gaussians on the optical axis at z1 < z2: at the centre pixel the blended
+    weights are alpha1 and alpha2 (1 - alpha1), and the spread is sum w z^2 - (sum w z)^2 / sum w."""
+    cam = Camera(20.0, 20.0, 8.0, 8.0, 16, 16, R=np.eye(3), t=np.zeros(3))
+    z = torch.tensor([2.0, 3.0])
+    o = torch.tensor([0.6, 0.9])
+    g = Gaussians(torch.stack([torch.zeros(2), torch.zeros(2), z], 1), torch.tensor([[1.0, 0, 0, 0]] * 2),
+                  torch.log(torch.tensor([[5.0, 5.0, 0.01]] * 2)), torch.logit(o), torch.zeros(2, 1, 3))
+    extent = 2.0
+    _, spread = fit_mod._render_with_depth_spread(g, cam, FitConfig(), extent)
+    w = torch.stack([o[0], o[1] * (1 - o[0])])  # alphas at the centre are the opacities (to ~1e-5)
+    zs = z / extent
+    expected = (w * zs * zs).sum() - (w * zs).sum() ** 2 / w.sum()
+    assert float(spread[8, 8].detach()) == pytest.approx(float(expected), rel=1e-3)
+    # One Gaussian alone: nothing to spread.
+    _, single = fit_mod._render_with_depth_spread(g.subset(torch.tensor([0])), cam, FitConfig(), extent)
+    assert float(single.detach().abs().max()) < 1e-5
+
+
+def test_fit_with_depth_spread_runs_and_lowers_loss(tiny_scene, tmp_path):
+    cfg = replace(_tiny_config(), depth_spread_weight=1.0)
+    train, _ = split_views(tiny_scene, cfg.test_every)
+    before = _mean_l1(fit_mod.initial_gaussians(tiny_scene, cfg, None), tiny_scene, train)
+    report = fit_gaussians(tiny_scene, cfg, tmp_path, progress=False)
+    assert report.skipped_steps == 0
+    assert _mean_l1(read_ply(tmp_path / "gaussians.ply"), tiny_scene, train) < 0.9 * before
+
+
 @pytest.mark.parametrize("every, resets, prune_big", [(10, [10, 20], True), (0, [], False)])
 def test_opacity_reset_schedule_and_off_switch(tiny_scene, tmp_path, monkeypatch, every, resets, prune_big):
     """Resets happen every N steps until densification ends; 0 turns them off, and then large
@@ -382,3 +410,10 @@ def test_resume_with_bad_checkpoint_is_a_clear_error(tiny_scene, tmp_path, capsy
     (tmp_path / "checkpoint.pt").write_bytes(b"not a checkpoint")
     assert cli_main(_cli_args(tiny_scene.root, tmp_path, 5) + ["--resume"]) == 2
     assert "checkpoint.pt" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("value", ["-1", "nan"])
+def test_negative_or_nan_depth_spread_is_a_clear_error(tiny_scene, tmp_path, capsys, value):
+    assert cli_main(_cli_args(tiny_scene.root, tmp_path / "out", 5) + ["--depth-spread", value]) == 2
+    assert "--depth-spread must be >= 0" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()

@@ -24,6 +24,8 @@ def register(subparsers) -> None:
     p.add_argument("--checkpoint-every", type=int, default=None, metavar="N",
                    help="write a checkpoint every N steps (default: the preset's; 0: only at the end)")
     p.add_argument("--max-gaussians", type=int, default=None, metavar="N", help="cap on the Gaussian count")
+    p.add_argument("--depth-spread", type=float, default=None, metavar="W", dest="depth_spread_weight",
+                   help="weight of the depth-spread regulariser (cpu preset 1.0, paper 0 = off as 3DGS)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--device", default="cpu", help="torch device (default cpu)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -37,17 +39,18 @@ def run(args: argparse.Namespace) -> int:
     from ..errors import InputError
     from .fit import FitConfig, fit_gaussians, saved_config
 
-    for name in ("steps", "checkpoint_every", "max_gaussians"):
+    for name, flag in (("steps", "--steps"), ("checkpoint_every", "--checkpoint-every"),
+                       ("max_gaussians", "--max-gaussians"), ("depth_spread_weight", "--depth-spread")):
         value = getattr(args, name)
-        if value is not None and value < 0:
-            raise InputError(None, f"--{name.replace('_', '-')} must be >= 0, got {value}")
+        if value is not None and not value >= 0:  # NaN too
+            raise InputError(None, f"{flag} must be >= 0, got {value}")
     if args.downscale <= 0:
         raise InputError(None, f"--downscale must be > 0, got {args.downscale}")
     # A resumed run keeps the checkpoint's schedule; only explicit flags change it.
     base = saved_config(args.out) if args.resume else None
     config = base or replace(FitConfig.preset(args.preset), seed=args.seed)
     config = replace(config, device=args.device)
-    overrides = {k: getattr(args, k) for k in ("steps", "checkpoint_every", "max_gaussians")
+    overrides = {k: getattr(args, k) for k in ("steps", "checkpoint_every", "max_gaussians", "depth_spread_weight")
                  if getattr(args, k) is not None}
     config = replace(config, **overrides)
     scene = load_scene(args.data, downscale=args.downscale)

@@ -18,7 +18,7 @@ _FIELD_OPTIONS = {
     "step_size": (int, "k of the dimension-scale mapping, paper Table 6 (1)"),
 }
 _TRAIN_OPTIONS = {
-    "iterations": (int, "optimisation steps (cpu 1000, paper 30000)"),
+    "iterations": (int, "optimisation steps (cpu 3000, paper 30000)"),
     "views_per_step": (int, "views rasterized per step without --blend-cache (1)"),
     "render_downscale": (int, "render training views downscaled by this integer factor (1 = bank resolution)"),
     "pixels_per_step": (int, "sampled pixels per step (4096)"),
@@ -39,7 +39,7 @@ def register(subparsers) -> None:
     p.add_argument("--segments", required=True, metavar="BANK", help="segment bank folder (`n2f2 segments`)")
     p.add_argument("--out", required=True, metavar="DIR", help="run folder")
     p.add_argument("--preset", choices=["cpu", "paper"], default=None,
-                   help="cpu: small field, 1000 steps (default without CUDA); paper: D=512, 512^2x64 "
+                   help="cpu: small field, 3000 steps (default without CUDA); paper: D=512, 512^2x64 "
                         "planes, 30k steps (default with --device cuda)")
     for name, (typ, text) in {**_FIELD_OPTIONS, **_TRAIN_OPTIONS}.items():
         flag = "--" + name.replace("_", "-")
