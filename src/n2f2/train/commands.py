@@ -173,6 +173,7 @@ def run_eval_field(args: argparse.Namespace) -> int:
     result = evaluate_cosine_by_level(field, gaussians, scene, bank, views, device=args.device)
     result["run"] = str(run)
     write_json(args.out or run / "eval_field.json", result)
-    cells = ", ".join(f"{k} {v['cosine']:.4f}" for k, v in result["levels"].items() if v["cosine"] is not None)
-    print(f"eval-field: mean cosine on {len(views)} {args.views} views: {cells}")
+    cells = ", ".join(f"{k} {v['cosine']:.4f} / {v['region_cosine']:.4f}"
+                      for k, v in result["levels"].items() if v["cosine"] is not None)
+    print(f"eval-field: mean cosine (pixels / regions) on {len(views)} {args.views} views: {cells}")
     return 0
