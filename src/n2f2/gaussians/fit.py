@@ -59,9 +59,9 @@ class FitConfig(ConfigDict):
     # Weight of the depth-spread regulariser: the pixel mean of sqrt(sum_i w_i (z_i - zbar)^2),
     # z in units of the extent, i.e. the spread of the depths blended into a pixel (times
     # sqrt(alpha)). It pulls the Gaussians along a ray onto one depth, like Mip-NeRF 360's
-    # distortion loss (see FitConfig.cpu for what it does on the demo scene). The square root keeps pixels on depth edges (table rim against the far
-    # floor) from dominating; the squared form cost 2-3x more PSNR for the same depth gain.
-    # 0: off, as in 3DGS.
+    # distortion loss (see FitConfig.cpu for what it does on the demo scene). The square root
+    # keeps pixels on depth edges (table rim against the far floor) from dominating; the
+    # squared form cost 2-3x more PSNR for the same depth gain. 0: off, as in 3DGS.
     depth_spread_weight: float = 0.0
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)  # colour behind the Gaussians
 

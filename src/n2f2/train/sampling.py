@@ -120,7 +120,9 @@ class SegmentPool:
 
     @staticmethod
     def from_views(views: list[ViewSegments]) -> "SegmentPool":
-        L = max((v.layers.shape[0] for v in views), default=0)
+        if not views:
+            raise ValueError("no views to sample from")
+        L = max(v.layers.shape[0] for v in views)
         slot, pixel, cand, weights, local, quant, emb = [], [], [], [], [], [], []
         first = 0  # pooled id of the view's segment 0
         for k, v in enumerate(views):
@@ -135,8 +137,6 @@ class SegmentPool:
             quant.append(v.quantized)
             emb.append(v.embeddings)
             first += S
-        if not views:
-            raise ValueError("no views to sample from")
         return SegmentPool(torch.cat(slot), torch.cat(pixel), torch.cat(cand), torch.cat(weights),
                            torch.cat(local), torch.cat(quant), torch.cat(emb))
 
