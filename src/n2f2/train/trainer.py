@@ -67,7 +67,8 @@ class TrainConfig(ConfigDict):
     # Precompute each training view's sparse blending weights once (the Gaussians are frozen,
     # so rasterizing is a fixed linear map; see train/blend.py) instead of rasterizing every
     # step; then every step samples pixels across all training views. Exact, ~1.8x faster on
-    # CPU (86 vs 157 ms per demo step); falls back to rasterizing when the cache would exceed blend_cache_mb.
+    # CPU (86 vs 157 ms per demo step); falls back to rasterizing when the cache would exceed
+    # blend_cache_mb.
     blend_cache: bool = False
     blend_cache_mb: float = 1024.0
     pixels_per_step: int = 4096  # sampled pixels (each with one sampled segment) per step
