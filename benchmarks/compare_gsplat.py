@@ -110,7 +110,7 @@ def main() -> None:
     if args.scene:
         from n2f2.data import load_scene
         from n2f2.gaussians.ply import read_ply
-        from n2f2.render.sh import eval_sh
+        from n2f2.render import view_colors
 
         if not args.gaussians:
             raise SystemExit("compare_gsplat: --scene needs --gaussians")
@@ -118,8 +118,7 @@ def main() -> None:
         gs = read_ply(args.gaussians).to(device)
         for i, cam in enumerate(scene.cameras):
             with torch.no_grad():
-                center = torch.as_tensor(cam.center, dtype=torch.float32, device=device)
-                colors = eval_sh(gs.sh, gs.means - center, gs.sh_degree).clamp_min(0)
+                colors = view_colors(gs, cam).clamp_min(0)
             params = [gs.means.detach(), gs.quats.detach(), gs.scales.detach(), gs.opacities.detach(), colors]
             rows.append((f"view {i} ({gs.num} G, {cam.width}x{cam.height}, C=3)", compare(params, cam, args.repeats)))
     else:

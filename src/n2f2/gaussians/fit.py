@@ -469,12 +469,11 @@ def depth_spread_penalty(spread: Tensor) -> Tensor:  # spread [H, W] from _rende
 def _render_with_depth_spread(g: Gaussians, camera, config: FitConfig, extent: float):
     """Render colours plus the per-pixel depth spread ``sum_i w_i z_i^2 - (sum_i w_i z_i)^2 /
     alpha`` (z / extent), from one extra rasterized channel. Returns (output, spread [H, W])."""
-    from ..render import eval_sh, rasterize
+    from ..render import rasterize, view_colors
 
     means = g.means
     cam = camera.to_torch(device=means.device, dtype=means.dtype)
-    center = torch.as_tensor(camera.center, dtype=means.dtype, device=means.device)
-    colors = eval_sh(g.sh, means - center, int(g.sh_degree))  # [N, 3]
+    colors = view_colors(g, camera)  # [N, 3]
     z = (means @ cam["viewmat"][2, :3] + cam["viewmat"][2, 3]) / extent  # [N] camera z / extent
     background = torch.tensor((*config.background, 0.0), dtype=means.dtype, device=means.device)
     out = rasterize(means, g.quats, g.scales, g.opacities, torch.cat([colors, (z * z)[:, None]], 1), camera,

@@ -22,7 +22,7 @@ from n2f2.cameras import Camera
 from n2f2.errors import N2F2Error
 from n2f2.render.sh import eval_sh, num_sh_bases
 
-__all__ = ["RenderOutput", "rasterize", "render_rgb", "eval_sh", "num_sh_bases"]
+__all__ = ["RenderOutput", "rasterize", "render_rgb", "view_colors", "eval_sh", "num_sh_bases"]
 
 BACKENDS = ("auto", "torch", "gsplat")
 
@@ -119,6 +119,22 @@ def rasterize(
                         radii=raw["radii"], n_pairs=raw.get("n_pairs"))
 
 
+def view_colors(
+    gaussians: Any,  # has means [N, 3], sh [N, K, 3] and optionally sh_degree
+    camera: Camera,
+    sh_degree: int | None = None,  # default: gaussians.sh_degree (or the largest K allows)
+) -> Tensor:  # [N, 3] colours seen from ``camera`` (view direction = camera centre -> Gaussian)
+    """Per-Gaussian colours from spherical harmonics for one camera."""
+    sh = gaussians.sh
+    if sh_degree is None:
+        sh_degree = getattr(gaussians, "sh_degree", None)
+    if sh_degree is None:
+        sh_degree = int(round(sh.shape[1] ** 0.5)) - 1
+    means = gaussians.means
+    center = torch.as_tensor(camera.center, dtype=means.dtype, device=means.device)
+    return eval_sh(sh, means - center, int(sh_degree))
+
+
 def render_rgb(
     gaussians: Any,  # has means [N,3], quats [N,4], scales [N,3], opacities [N], sh [N,K,3], sh_degree
     camera: Camera,
@@ -127,14 +143,6 @@ def render_rgb(
     background: Tensor | Sequence[float] | None = (0.0, 0.0, 0.0),
     **kw: Any,  # passed to rasterize (backend, eps2d, alpha_clamp, ...)
 ) -> RenderOutput:
-    """Render colours from spherical harmonics (view direction = camera centre -> Gaussian)."""
-    sh = gaussians.sh
-    if sh_degree is None:
-        sh_degree = getattr(gaussians, "sh_degree", None)
-    if sh_degree is None:
-        sh_degree = int(round(sh.shape[1] ** 0.5)) - 1
-    means = gaussians.means
-    center = torch.as_tensor(camera.center, dtype=means.dtype, device=means.device)
-    colors = eval_sh(sh, means - center, int(sh_degree))
-    return rasterize(means, gaussians.quats, gaussians.scales, gaussians.opacities, colors, camera,
-                     background=background, **kw)
+    """Render colours from spherical harmonics (:func:`view_colors`)."""
+    return rasterize(gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities,
+                     view_colors(gaussians, camera, sh_degree), camera, background=background, **kw)
