@@ -168,6 +168,7 @@ def test_run_on_nerfstudio_scene_with_langsplat_features(demo, tmp_path, capsys)
     bank = SegmentBank.open(run / "bank")
     assert bank.encoder_spec["name"] == "captions" and bank.segmenter_spec["name"] == "langsplat"
     assert bank.meta["lifting"]["depth_source"] == "render"  # no ground-truth depth in this scene
+    assert bank.meta["lifting"]["scale_measure"] == "extent"  # the cpu preset's
     result = json.loads((run / "eval" / "eval.json").read_text())
     for mode in ("composite", "explicit", "oracle"):
         score = result["scores"][mode]["exact"]
@@ -182,3 +183,15 @@ def test_run_on_nerfstudio_scene_with_langsplat_features(demo, tmp_path, capsys)
     for stage in stages:
         assert f"[{stage}] up to date" in out
     assert json.loads((run / "stages.json").read_text()) == stages
+
+
+def test_scale_measure_follows_the_preset(tmp_path):
+    from n2f2.pipeline import RunOptions, resolve_defaults
+
+    def measure(**kw):
+        return resolve_defaults(RunOptions(data=tmp_path, out=tmp_path / "run", **kw)).scale_measure
+
+    assert measure() == "extent"
+    assert measure(preset="paper") == "eigenvalue"
+    assert measure(preset="paper", scale_measure="extent") == "extent"
+    assert measure(scale_measure="eigenvalue") == "eigenvalue"

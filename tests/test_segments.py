@@ -20,7 +20,8 @@ from n2f2.io import write_png
 from n2f2.segments.bank import SegmentBank, build_bank
 from n2f2.segments.bins import QuantileScaleBins, scale_to_dims, three_level_groups
 from n2f2.segments.langsplat import LangSplatSource, read_langsplat
-from n2f2.segments.lifting import LiftSettings, erode_layers, lift_view, segment_medians, segment_scales
+from n2f2.segments.lifting import (LiftSettings, erode_layers, lift_view, segment_medians, segment_quantiles,
+                                   segment_scales)
 from n2f2.segments.segmenters import (SegmentSet, greedy_mask_nms, layers_to_masks, mask_nms, pack_layers,
                                       relabel_label_maps, segment_areas, segment_layers)
 
@@ -277,6 +278,50 @@ def test_segment_medians_match_numpy():
     got = segment_medians(ids, vals, 8)
     want = [np.median(vals[ids == k]) if (ids == k).any() else np.nan for k in range(8)]
     np.testing.assert_allclose(got, want, equal_nan=True)
+    for q in (0.0, 0.02, 0.37, 0.98, 1.0):
+        got = segment_quantiles(ids, vals, 8, q)
+        want = [np.quantile(vals[ids == k], q) if (ids == k).any() else np.nan for k in range(8)]
+        np.testing.assert_allclose(got, want, equal_nan=True, rtol=1e-12)
+
+
+def test_extent_scale_matches_brute_force():
+    """scale_measure="extent": per segment, principal axes of its points' covariance, the
+    [2, 98] percentile range of the points' coordinates along each, summed squares."""
+    rng = np.random.default_rng(3)
+    H, W = 30, 40
+    lab = cv2.resize(rng.integers(0, 6, (5, 6)).astype(np.uint8), (W, H), interpolation=cv2.INTER_NEAREST)
+    layers = np.stack([lab.astype(np.int32), np.full((H, W), -1, np.int32)])
+    layers[1, 10:25, 5:35] = 6  # a segment overlapping the others (second layer)
+    points = rng.normal(size=(H, W, 3)) * np.array([3.0, 1.0, 0.2]) + np.array([50.0, 7.0, -2.0])
+    valid = rng.uniform(size=(H, W)) > 0.1
+    settings = LiftSettings(erode=False, scale_measure="extent")
+    scales, _ = segment_scales(layers, points, valid, 7, settings)
+    for k in range(7):
+        pts = points[(layers == k).any(axis=0) & valid]
+        axes = np.linalg.eigh(np.cov(pts.T, bias=True))[1]
+        proj = (pts - pts.mean(axis=0)) @ axes
+        lo, hi = np.percentile(proj, [2, 98], axis=0)
+        assert scales[k] == pytest.approx(((hi - lo) ** 2).sum(), rel=1e-5)
+
+
+def test_extent_scale_known_plane():
+    """A 3 x 32 pixel strip on a fronto-parallel plane at depth 2: with the percentile at 0 the
+    extent is the squared diagonal of the strip's lifted rectangle (by hand)."""
+    H, W, f = 20, 40, 20.0
+    cam = Camera(f, f, W / 2, H / 2, W, H)
+    layers = np.full((1, H, W), -1, np.int32)
+    layers[0, 5:8, 4:36] = 0
+    settings = LiftSettings(erode=False, scale_measure="extent", extent_percentile=0.0)
+    scales, _ = lift_view(layers, np.full((H, W), 2.0), np.ones((H, W), bool), cam, 1, settings)
+    width, height = 31 / f * 2.0, 2 / f * 2.0  # centre-to-centre spans of 32 columns and 3 rows
+    assert scales[0] == pytest.approx(width ** 2 + height ** 2, rel=1e-5)
+
+
+def test_lift_settings_reject_unknown_measure():
+    with pytest.raises(ValueError, match="scale_measure"):
+        LiftSettings(scale_measure="diameter")
+    with pytest.raises(ValueError, match="extent_percentile"):
+        LiftSettings(extent_percentile=50.0)
 
 
 def test_depth_outliers_are_rejected():

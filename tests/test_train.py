@@ -25,7 +25,7 @@ from n2f2.train.evaluate import evaluate_cosine_by_level, match_regions_to_segme
 from n2f2.train.sampling import (SegmentPool, ViewSegments, covering_probabilities, sample_pixels, sample_segments,
                                  segment_weights)
 from n2f2.train.trainer import (CHECKPOINT_NAME, FIELD_NAME, REPORT_NAME, TrainConfig, bank_cameras,
-                                frozen_geometry, hierarchical_loss, render_features, train_field)
+                                frozen_geometry, hierarchical_loss, jitter_scales, render_features, train_field)
 
 FIELD = FieldConfig(dim=12, plane_resolution=16, plane_channels=4, hidden=32)
 
@@ -151,6 +151,22 @@ def test_hierarchical_loss_known_values():
     assert l2.item() == pytest.approx((1 + 1 + 0 + 1) / 4)  # mean squared error
     assert cos.item() == pytest.approx((1.0 + 0.0) / 2)  # mean of 1 - cos
     assert loss.item() == pytest.approx(0.75 + 0.0005)
+
+
+def test_scale_jitter_stays_in_range_and_spreads():
+    s = torch.tensor([0.0, 0.5, 0.99]).repeat(4000)
+    g = torch.Generator().manual_seed(0)
+    assert jitter_scales(s, 0.0, g) is s  # off: nothing drawn
+    assert torch.equal(g.get_state(), torch.Generator().manual_seed(0).get_state())
+    out = jitter_scales(s, 0.05, g).view(4000, 3)
+    assert out.min() >= 0 and out.max() < 1
+    assert (out - s.view(4000, 3)).abs().max() <= 0.05 + 1e-7
+    mid = out[:, 1]
+    assert mid.min() < 0.46 and mid.max() > 0.54 and abs(mid.mean().item() - 0.5) < 0.005  # ~uniform
+    with pytest.raises(ValueError, match="scale_jitter"):
+        TrainConfig(scale_jitter=float("nan"))
+    with pytest.raises(ValueError, match="scale_jitter"):
+        TrainConfig(scale_jitter=-0.1)
 
 
 # ---------------------------------------------------------------------------------- training
@@ -352,6 +368,9 @@ def test_cli_train_and_eval(setup, tmp_path, capsys):
     assert cli_main(["train", *common, "--downscale", "2", "--iterations", "1"]) == 2
     err = capsys.readouterr().err
     assert "bank.json" in err and "Traceback" not in err
+    assert cli_main(["train", *common, "--scale-jitter", "nan", "--iterations", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "scale_jitter" in err and "Traceback" not in err
 
 
 # ---------------------------------------------------------------------------------- evaluation
@@ -383,6 +402,7 @@ def test_evaluate_cosine_matches_slow_reference(setup):
         theta_g = field(geometry["means"])
     W = field.W.detach().double()
     total = {0: [0.0, 0], 1: [0.0, 0], 2: [0.0, 0]}
+    in_view = {}  # (view, level) -> [cos sum, pixels]
     for v in (0, 2):
         theta = render_features(geometry, theta_g, bank_cameras(scene, bank)[v]).detach().double()
         rec = bank.record(v)
@@ -401,8 +421,20 @@ def test_evaluate_cosine_matches_slow_reference(setup):
                 e = torch.tensor(np.asarray(rec.embeddings[s], dtype=np.float64))
                 for p in np.flatnonzero(R.reshape(-1)):
                     phi = W[:, :M] @ theta[p, :M]
-                    total[level][0] += float(phi @ e / max(phi.norm() * e.norm(), 1e-8))
+                    c = float(phi @ e / max(phi.norm() * e.norm(), 1e-8))
+                    total[level][0] += c
                     total[level][1] += 1
+                    acc = in_view.setdefault((v, level), [0.0, 0])
+                    acc[0] += c
+                    acc[1] += 1
     for level, name in enumerate(("part", "object", "group")):
         assert res["levels"][name]["pixels"] == total[level][1] > 0
         assert res["levels"][name]["cosine"] == pytest.approx(total[level][0] / total[level][1], abs=1e-5)
+    assert [row["view"] for row in res["per_view"]] == [0, 2]
+    for row in res["per_view"]:
+        for level, name in enumerate(("part", "object", "group")):
+            acc = in_view.get((row["view"], level))
+            if acc is None:
+                assert row[name] is None
+            else:
+                assert row[name] == pytest.approx(acc[0] / acc[1], abs=1e-5)

@@ -107,6 +107,9 @@ class RunOptions:
     dim: int | None = None  # feature-field dims D (None: the preset's)
     variant: str | None = None
     depth_source: str = "render"
+    # Segment scale measure (LiftSettings.scale_measure); None: the preset's ("extent" for cpu,
+    # "eigenvalue" -- the paper's -- for paper).
+    scale_measure: str | None = None
     downscale: float = 1.0
     modes: tuple[str, ...] = ("composite", "explicit", "oracle")
     device: str = "cpu"
@@ -122,6 +125,7 @@ def resolve_defaults(opt: RunOptions) -> RunOptions:
     """Fill in the scene-dependent defaults:
 
     * segmenter: ``ground-truth`` on a demo scene, else ``sam`` (the paper's);
+    * scale measure: ``eigenvalue`` (the paper's) with the paper preset, else ``extent``;
     * encoder: with ``langsplat_features``, the encoder an n2f2 export recorded beside them
       (``encoder.json``), else ``clip`` (LangSplat's own features are CLIP); otherwise
       ``captions`` (the offline MiniLM stand-in) on a demo scene, else ``clip``."""
@@ -138,7 +142,8 @@ def resolve_defaults(opt: RunOptions) -> RunOptions:
         encoder = recorded["name"] if recorded else "clip"
     if encoder is None:
         encoder = "captions" if demo else "clip"
-    return replace(opt, segmenter=segmenter, encoder=encoder)
+    scale_measure = opt.scale_measure or ("eigenvalue" if opt.preset == "paper" else "extent")
+    return replace(opt, segmenter=segmenter, encoder=encoder, scale_measure=scale_measure)
 
 
 def run_pipeline(opt: RunOptions, log=print) -> dict:
@@ -186,11 +191,13 @@ def run_pipeline(opt: RunOptions, log=print) -> dict:
     bank = out / "bank"
     if opt.langsplat_features is not None:
         feats = Path(opt.langsplat_features)
-        seg_args = ["segments-from-langsplat", data, "--features", feats, "--encoder", opt.encoder]
+        seg_args = ["segments-from-langsplat", data, "--features", feats, "--encoder", opt.encoder,
+                    "--scale-measure", opt.scale_measure]
         seg_key = stage_key(scene=sdig, gaussians=gdig, features=tree_digest(feats), args=seg_args[3:],
                             depth=opt.depth_source, model=opt.model)
     else:
-        seg_args = ["segments", data, "--segmenter", opt.segmenter, "--encoder", opt.encoder]
+        seg_args = ["segments", data, "--segmenter", opt.segmenter, "--encoder", opt.encoder,
+                    "--scale-measure", opt.scale_measure]
         seg_key = stage_key(scene=sdig, gaussians=gdig, args=seg_args[2:], depth=opt.depth_source, model=opt.model)
     seg_args += ["--out", bank, "--gaussians", ply, "--depth-source", opt.depth_source, *common, *quiet]
     if opt.model:
@@ -261,6 +268,11 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--variant", choices=["nested", "flat", "levels"], default=None, help="field variant (default nested)")
     p.add_argument("--depth-source", choices=["render", "gt"], default="render",
                    help="lift segments with the Gaussians' rendered depth (default) or the demo scene's exact depth")
+    p.add_argument("--scale-measure", choices=["eigenvalue", "extent"], default=None,
+                   help="segment scale: eigenvalue = largest covariance eigenvalue of its 3D points (paper); "
+                        "extent = squared diagonal of their robust oriented box (not in the paper; fewer "
+                        "segments measured smaller than their own parts). Default: the preset's (cpu "
+                        "extent, paper eigenvalue)")
     p.add_argument("--modes", nargs="+", default=["composite", "explicit", "oracle"], help="evaluation modes")
     p.add_argument("--downscale", type=float, default=1.0, help="image downscale factor, as 3DGS -r")
     p.add_argument("--device", default="cpu", help="torch device (default cpu)")
@@ -278,7 +290,7 @@ def _run_options(args: argparse.Namespace, data: Path, out: Path) -> RunOptions:
         langsplat_features=Path(args.langsplat_features) if args.langsplat_features else None,
         labels=Path(args.labels) if args.labels else None, preset=args.preset, fit_steps=args.fit_steps,
         train_steps=args.train_steps, dim=args.dim, variant=args.variant, depth_source=args.depth_source,
-        downscale=args.downscale, modes=tuple(args.modes), device=args.device, quiet=args.quiet)
+        scale_measure=args.scale_measure, downscale=args.downscale, modes=tuple(args.modes), device=args.device, quiet=args.quiet)
 
 
 def _cmd_run(args: argparse.Namespace) -> int:

@@ -37,7 +37,7 @@ import numpy as np
 from ..errors import InputError
 from ..io import write_json
 from .bins import QuantileScaleBins
-from .lifting import DepthProvider, LiftSettings, lift_view
+from .lifting import SCALE_DESCRIPTIONS, DepthProvider, LiftSettings, lift_view
 from .segmenters import SegmentSet, layers_to_masks, segment_layers
 
 BANK_FORMAT = "n2f2-segment-bank"
@@ -317,8 +317,7 @@ def build_bank(scene, source: SegmentSource, depth: DepthProvider, out: str | Pa
         "scene": scene_fingerprint(scene),
         "segmenter": source.segmenter_spec,
         "encoder": source.encoder_spec,
-        "lifting": {**asdict(lift), "depth_source": depth_source,
-                    "scale": "largest eigenvalue of the covariance of the lifted points (length^2)"},
+        "lifting": {**asdict(lift), "depth_source": depth_source, "scale": SCALE_DESCRIPTIONS[lift.scale_measure]},
     }
     meta_path = out / "bank.json"
     if meta_path.exists():

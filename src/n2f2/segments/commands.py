@@ -21,6 +21,10 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--depth-source", choices=["render", "gt"], default="render",
                    help="render: expected depth of --gaussians (paper, default); gt: the demo scene's "
                         "exact depth maps")
+    p.add_argument("--scale-measure", choices=["eigenvalue", "extent"], default="eigenvalue",
+                   help="segment scale from its 3D points: eigenvalue = largest eigenvalue of their "
+                        "covariance (paper, default); extent = squared diagonal of their robust oriented "
+                        "box (2nd-98th percentile along each principal axis; not in the paper)")
     p.add_argument("--downscale", type=float, default=1.0, help="image downscale factor, as 3DGS -r (default 1)")
     p.add_argument("--device", default="cpu", help="torch device for models and rendering (default cpu)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -126,6 +130,12 @@ def _finish(report: dict) -> int:
     return 0
 
 
+def _lift_settings(args: argparse.Namespace):
+    from .lifting import LiftSettings
+
+    return LiftSettings(scale_measure=args.scale_measure)
+
+
 def run_segments(args: argparse.Namespace) -> int:
     from .bank import SegmentAndEncode, build_bank
     from .encoders import ClipEncoder, DEFAULT_CLIP_MODEL, get_encoder
@@ -139,7 +149,7 @@ def run_segments(args: argparse.Namespace) -> int:
     else:
         encoder = get_encoder("captions", device=args.device)
     report = build_bank(scene, SegmentAndEncode(segmenter, encoder), depth, args.out,
-                        depth_source=args.depth_source, progress=not args.quiet)
+                        depth_source=args.depth_source, lift=_lift_settings(args), progress=not args.quiet)
     return _finish(report)
 
 
@@ -158,7 +168,8 @@ def run_from_langsplat(args: argparse.Namespace) -> int:
     scene = _load(args)
     depth = _depth_provider(args, scene)
     source = LangSplatSource(features, spec)
-    report = build_bank(scene, source, depth, args.out, depth_source=args.depth_source, progress=not args.quiet)
+    report = build_bank(scene, source, depth, args.out, depth_source=args.depth_source, lift=_lift_settings(args),
+                        progress=not args.quiet)
     return _finish(report)
 
 

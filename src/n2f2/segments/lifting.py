@@ -20,6 +20,12 @@ import numpy as np
 from ..cameras import Camera
 from ..errors import InputError
 
+SCALE_DESCRIPTIONS = {  # LiftSettings.scale_measure -> what bank.json records
+    "eigenvalue": "largest eigenvalue of the covariance of the lifted points (length^2)",
+    "extent": "squared diagonal of the robust oriented box of the lifted points (length^2)",
+}
+SCALE_MEASURES = tuple(SCALE_DESCRIPTIONS)
+
 # A depth provider returns, for view i, z-depth [H, W] and a validity mask [H, W].
 DepthProvider = Callable[[int], tuple[np.ndarray, np.ndarray]]
 
@@ -36,6 +42,20 @@ class LiftSettings:
     # dominate the covariance of a small segment. None disables it.
     outlier_mads: Optional[float] = 3.0
     outlier_min_rel: float = 0.02
+    # How a segment's lifted points become one scale (only their order matters: scales are
+    # quantile-binned). "eigenvalue" (paper): largest eigenvalue of their covariance.
+    # "extent" (not in the paper): squared diagonal of their robust oriented box, the
+    # [p, 100 - p] percentile range (p = extent_percentile) along each principal axis. The
+    # eigenvalue of a segment can be smaller than that of a part of it (many pixels of a near
+    # table pull a room's variance down below its far wall's); the extent far less often.
+    scale_measure: str = "eigenvalue"
+    extent_percentile: float = 2.0
+
+    def __post_init__(self) -> None:
+        if self.scale_measure not in SCALE_MEASURES:
+            raise ValueError(f"scale_measure must be one of {SCALE_MEASURES}, got {self.scale_measure!r}")
+        if not 0.0 <= self.extent_percentile < 50.0:
+            raise ValueError(f"extent_percentile must be in [0, 50), got {self.extent_percentile}")
 
 
 def erode_layers(layers: np.ndarray) -> np.ndarray:  # [L, H, W] int -> [L, H, W] int32
@@ -62,11 +82,13 @@ def _counts(layers: np.ndarray, valid: np.ndarray, S: int) -> np.ndarray:
     return np.bincount(ids[ids >= 0], minlength=S)[:S]
 
 
-def segment_medians(ids: np.ndarray,  # [P] segment id of each sample (>= 0)
-                    values: np.ndarray,  # [P]
-                    S: int) -> np.ndarray:
-    """[S] median of ``values`` per segment (NaN for segments without samples), by one
-    lexicographic sort instead of a loop over segments."""
+def segment_quantiles(ids: np.ndarray,  # [P] segment id of each sample (>= 0)
+                      values: np.ndarray,  # [P]
+                      S: int,
+                      q: float) -> np.ndarray:
+    """[S] ``q``-quantile (0..1, linear interpolation as ``np.quantile``) of ``values`` per
+    segment (NaN for segments without samples), by one lexicographic sort instead of a loop
+    over segments."""
     out = np.full(S, np.nan)
     if ids.size == 0:
         return out
@@ -75,10 +97,19 @@ def segment_medians(ids: np.ndarray,  # [P] segment id of each sample (>= 0)
     counts = np.bincount(ids, minlength=S)[:S]
     starts = np.cumsum(counts) - counts
     has = counts > 0
-    lo = starts[has] + (counts[has] - 1) // 2
-    hi = starts[has] + counts[has] // 2
-    out[has] = 0.5 * (v[lo] + v[hi])
+    pos = q * (counts[has] - 1)
+    lo = np.floor(pos).astype(np.int64)
+    hi = np.ceil(pos).astype(np.int64)
+    frac = pos - lo
+    out[has] = (1 - frac) * v[starts[has] + lo] + frac * v[starts[has] + hi]
     return out
+
+
+def segment_medians(ids: np.ndarray,  # [P] segment id of each sample (>= 0)
+                    values: np.ndarray,  # [P]
+                    S: int) -> np.ndarray:
+    """[S] median of ``values`` per segment (NaN for segments without samples)."""
+    return segment_quantiles(ids, values, S, 0.5)
 
 
 def select_pixels(layers: np.ndarray,  # [L, H, W] int32 segment ids
@@ -142,8 +173,9 @@ def segment_scales(layers: np.ndarray,  # [L, H, W] int32 segment ids, -1 = none
                    settings: Optional[LiftSettings] = None,
                    depth: Optional[np.ndarray] = None,  # [H, W] z-depth for outlier rejection
                    ) -> tuple[np.ndarray, np.ndarray]:
-    """Physical scale of every segment: the largest eigenvalue of the covariance of its lifted
-    pixels (see :func:`select_pixels`). Returns ``(scales [S] float32, NaN for degenerate
+    """Physical scale of every segment from its lifted pixels (see :func:`select_pixels`): the
+    largest eigenvalue of their covariance, or with ``scale_measure="extent"`` the squared
+    diagonal of their robust oriented box (:func:`robust_extent`). Returns ``(scales [S] float32, NaN for degenerate
     segments, num_points [S] int64)``. A segment with fewer than ``min_points`` usable pixels
     is degenerate."""
     st = settings or LiftSettings()
@@ -160,9 +192,39 @@ def segment_scales(layers: np.ndarray,  # [L, H, W] int32 segment ids, -1 = none
     mean = first / n
     cov = second / n[..., None] - mean[:, :, None] * mean[:, None, :]
     cov = 0.5 * (cov + cov.transpose(0, 2, 1))
-    largest = np.linalg.eigvalsh(cov)[:, -1]
+    if st.scale_measure == "extent":
+        largest = robust_extent(sel, pts, mean, cov, st.extent_percentile)
+    else:
+        largest = np.linalg.eigvalsh(cov)[:, -1]
     scales = np.where(ok, np.maximum(largest, 0.0), np.nan).astype(np.float32)
     return scales, count.astype(np.int64)
+
+
+def robust_extent(layers: np.ndarray,  # [L, H, W] int32, only pixels to use
+                  points: np.ndarray,  # [H, W, 3] float64
+                  mean: np.ndarray,  # [S, 3] per-segment mean of its points
+                  cov: np.ndarray,  # [S, 3, 3] per-segment covariance
+                  percentile: float) -> np.ndarray:  # [S] float64 (length^2), NaN without points
+    """Squared diagonal of each segment's robust oriented box: along each principal axis of
+    its points (eigenvectors of ``cov``), the range between the ``percentile`` and
+    ``100 - percentile`` percentiles of the points' coordinates; summed squares of the three."""
+    S = mean.shape[0]
+    axes = np.linalg.eigh(cov)[1]  # [S, 3, 3] columns = principal axes
+    ids_all, proj_all = [], []
+    for layer in layers:
+        pix = layer >= 0
+        ids = layer[pix]
+        if ids.size:
+            proj_all.append(np.einsum("pi,pij->pj", points[pix] - mean[ids], axes[ids]))  # [P, 3]
+            ids_all.append(ids)
+    if not ids_all:
+        return np.full(S, np.nan)
+    ids, proj = np.concatenate(ids_all), np.concatenate(proj_all)
+    q = percentile / 100.0
+    total = np.zeros(S)
+    for c in range(3):
+        total += (segment_quantiles(ids, proj[:, c], S, 1.0 - q) - segment_quantiles(ids, proj[:, c], S, q)) ** 2
+    return total
 
 
 def lift_view(layers: np.ndarray,  # [L, H, W]

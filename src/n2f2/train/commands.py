@@ -24,6 +24,8 @@ _TRAIN_OPTIONS = {
     "pixels_per_step": (int, "sampled pixels per step (4096)"),
     "checkpoint_every": (int, "write checkpoint.pt every N steps; 0: only at the end"),
     "cos_weight": (float, "lambda of the cosine loss (0.001)"),
+    "scale_jitter": (float, "uniform noise added to each sampled quantized scale before B(s) (cpu 0.03, "
+                            "paper 0 = off; not in the paper)"),
 }
 
 
@@ -176,4 +178,8 @@ def run_eval_field(args: argparse.Namespace) -> int:
     cells = ", ".join(f"{k} {v['cosine']:.4f} / {v['region_cosine']:.4f}"
                       for k, v in result["levels"].items() if v["cosine"] is not None)
     print(f"eval-field: mean cosine (pixels / regions) on {len(views)} {args.views} views: {cells}")
+    names = list(result["levels"])
+    for row in result["per_view"]:
+        print(f"  view {row['view']:3d}: " + ", ".join(
+            f"{n} {row[n]:.4f}" if row[n] is not None else f"{n} n/a" for n in names))
     return 0

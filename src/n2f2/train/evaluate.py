@@ -67,7 +67,9 @@ def evaluate_cosine_by_level(
     """Mean cosine similarity between phi(u, s) and the teacher embedding of the ground-truth
     segment covering u, per hierarchy level (see module docstring). Returns
     ``{"levels": {name: {"cosine": pixel mean, "region_cosine": mean over (view, region),
-    "pixels", "regions", "unmatched_regions"}}, "views": [...]}``."""
+    "pixels", "regions", "unmatched_regions"}}, "views": [...], "per_view": [{"view": v,
+    name: pixel mean in view v or None}, ...]}``. The per-view means show how much one view's
+    coarse segments can move a level's mean (a few large segments carry most of its pixels)."""
     from ..segments.segmenters import resize_nearest
 
     if scene.ground_truth is None:
@@ -78,7 +80,9 @@ def evaluate_cosine_by_level(
     theta_g = gaussian_features(field, geometry["means"])  # [N, D] test time: MLP per Gaussian
     cameras = bank_cameras(scene, bank)
     sums = {n: [0.0, 0, [], 0] for n in names}  # cos sum, pixels, per-region means, unmatched
+    per_view = []
     for v in views:
+        per_view.append({"view": int(v), **{n: None for n in names}})
         theta = render_features(geometry, theta_g, cameras[v])  # [H*W, D]
         rec = bank.record(v)
         layers = np.asarray(rec.layers)
@@ -103,6 +107,7 @@ def evaluate_cosine_by_level(
             phi = field.project(theta[pix_t], field.supervision_mask(quantized[segs]))  # [P, E]
             cos = F.cosine_similarity(phi, embeddings[segs], dim=-1, eps=1e-8)  # [P]
             sums[name][0] += float(cos.sum())
+            per_view[-1][name] = float(cos.mean())
             sums[name][1] += len(pix)
             seg_sum = torch.bincount(segs, weights=cos.double(), minlength=len(quantized))
             seg_count = torch.bincount(segs, minlength=len(quantized))
@@ -112,7 +117,7 @@ def evaluate_cosine_by_level(
         levels[name] = {"cosine": total / count if count else None,
                         "region_cosine": float(np.mean(per_region)) if per_region else None,
                         "pixels": count, "regions": len(per_region), "unmatched_regions": unmatched}
-    return {"levels": levels, "views": [int(v) for v in views], "min_iou": min_iou}
+    return {"levels": levels, "views": [int(v) for v in views], "per_view": per_view, "min_iou": min_iou}
 
 
 def cosine_table(results: dict[str, dict]) -> str:

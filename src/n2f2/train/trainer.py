@@ -41,6 +41,7 @@ from ..config import ConfigDict
 from ..errors import InputError
 from ..field.model import FieldConfig, NestedField, bbox_from_points, save_field
 from ..io import save_torch, write_json
+from ..segments.bins import ONE_MINUS_EPS
 from .blend import BlendCache, build_blend_cache
 from .sampling import PixelBatch, SegmentPool, ViewSegments
 
@@ -75,6 +76,14 @@ class TrainConfig(ConfigDict):
     lr_triplane: float = 0.0016  # x scene extent (paper)
     lr_mlp: float = 0.00125  # MLP and W (paper)
     cos_weight: float = 0.001  # lambda of the cosine term (paper)
+    # Not in the paper: add uniform noise in [-scale_jitter, scale_jitter] to each sampled
+    # segment's quantized scale before B(s) (0 = off, the paper). A segment's lifted scale
+    # varies from view to view, so its M(s) does too; jitter makes phi(u, s) vary smoothly in s.
+    scale_jitter: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.scale_jitter < 1.0:  # NaN fails too
+            raise ValueError(f"scale_jitter must be in [0, 1), got {self.scale_jitter}")
     deferred: bool = True  # rasterize backbone features, MLP per pixel (paper, training only)
     holdout: bool = True  # leave scene.json's test_views out of training
     checkpoint_every: int = 500  # 0: only at the end
@@ -125,6 +134,18 @@ def hierarchical_loss(phi: Tensor,  # [P, E] scale-aware features
     l2 = F.mse_loss(phi, target)
     cos = (1.0 - F.cosine_similarity(phi, target, dim=-1, eps=1e-8)).mean()
     return l2 + cos_weight * cos, l2, cos
+
+
+def jitter_scales(scale: Tensor,  # [P] quantized scales in [0, 1)
+                  amount: float,
+                  generator: torch.Generator) -> Tensor:  # [P]
+    """``scale`` plus uniform noise in [-amount, amount], kept in [0, 1) (TrainConfig.scale_jitter).
+    ``amount == 0`` returns ``scale`` itself and draws nothing, so the random stream (and a
+    run) stays the paper's."""
+    if amount <= 0:
+        return scale
+    noise = torch.rand(scale.shape, generator=generator, dtype=scale.dtype) * 2 - 1
+    return (scale + amount * noise).clamp(0.0, ONE_MINUS_EPS)
 
 
 # ------------------------------------------------------------------------------------ data
@@ -351,7 +372,8 @@ def train_field(
         batch = pool.sample(config.pixels_per_step, generator)
         theta = pixel_theta(field, geometry, _to(batch, device), config.deferred,
                             cameras=[cameras[v] for v in views], cache=cache, encoder=encoder)
-        mask = field.supervision_mask(batch.scale.to(device))
+        scale = jitter_scales(batch.scale, config.scale_jitter, generator)
+        mask = field.supervision_mask(scale.to(device))
         phi = field.project(theta, mask)
         loss, l2, cos = hierarchical_loss(phi, batch.target.to(device), config.cos_weight)
         optimizer.zero_grad(set_to_none=True)
