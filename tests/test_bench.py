@@ -41,7 +41,13 @@ def test_report_has_the_tables_and_finite_numbers(tiny):
                     "## Nested vs non-nested", "## Composite temperature T", "## Query time breakdown (paper Table 4"):
         assert heading in md, heading
     assert "exact 30 px" in md and "scaled 1 px" in md  # both boxes, named with their sizes
+    assert "segment scales: extent measure, training scale jitter 0.03 (paper: eigenvalue, 0)" in md
     data = json.loads((out / "bench.json").read_text())
+    bank = json.loads((out / "data" / "bank" / "bank.json").read_text())
+    assert bank["lifting"]["scale_measure"] == data["data"]["scale_measure"] == "extent"
+    for name in data["runs"]:
+        report = json.loads((out / "runs" / name / "train_report.json").read_text())
+        assert report["train_config"]["scale_jitter"] == 0.03
     assert set(data["runs"]) == {"nested-k1", "levels"}
     for name in data["runs"]:
         assert (out / "runs" / name / "field.pt").is_file()
@@ -100,6 +106,9 @@ def test_bad_input_is_one_clear_error(tmp_path, capsys):
     assert rc == 2
     assert "scene folder does not exist" in capsys.readouterr().err
     assert main(["--out", str(tmp_path / "o"), "--iterations", "0", "--quiet"]) == 2
+    capsys.readouterr()
+    assert main(["--out", str(tmp_path / "o"), "--scale-jitter", "-0.1", "--quiet"]) == 2
+    assert "scale_jitter" in capsys.readouterr().err
 
 
 def test_scaled_step_keeps_the_number_of_scales():

@@ -109,6 +109,10 @@ class BenchConfig:
     iterations: int = 1000  # training steps per variant (TrainConfig.cpu() has 3000; 1000 keeps ~30 min)
     dim: int = 128  # D of every field (paper 512; k is scaled to keep the number of scales)
     pixels_per_step: int = 4096
+    # The demo pipeline's (cpu preset) departures from the paper; "eigenvalue" and 0.0 are the
+    # paper's. See LiftSettings.scale_measure and TrainConfig.scale_jitter.
+    scale_measure: str = "extent"
+    scale_jitter: float = 0.03
     variants: tuple[str, ...] = DEFAULT_VARIANTS
     temperatures: tuple[float, ...] = TEMPERATURES  # composite T evaluated on the k=1 nested run
     timing_repeats: int = 5  # medians over this many repeats in the timing breakdown
@@ -130,6 +134,12 @@ class BenchConfig:
             raise ValueError(f"iterations must be >= 1, got {self.iterations}")
         if self.dim < 3:
             raise ValueError(f"dim must be >= 3, got {self.dim}")
+        from ..segments.lifting import SCALE_MEASURES
+
+        if self.scale_measure not in SCALE_MEASURES:
+            raise ValueError(f"scale_measure must be one of {SCALE_MEASURES}, got {self.scale_measure!r}")
+        if not 0.0 <= self.scale_jitter < 1.0:
+            raise ValueError(f"scale_jitter must be in [0, 1), got {self.scale_jitter}")
         if not self.temperatures or any(not t > 0 for t in self.temperatures):
             raise ValueError(f"temperatures must be positive, got {self.temperatures}")
         self.variants = tuple(dict.fromkeys(self.variants))
@@ -223,7 +233,7 @@ def prepare_data(out: Path, config: BenchConfig, scene: Optional[Union[str, Path
     else:
         bank_dir = data / "bank"
         key = {"scene": str(scene_dir.resolve()), "gaussians": file_digest(ply),
-               "segmenter": "ground-truth", "encoder": "captions"}
+               "segmenter": "ground-truth", "encoder": "captions", "scale_measure": config.scale_measure}
         key_path = data / DATA_KEY_NAME
         recorded = json.loads(key_path.read_text()) if key_path.is_file() else None
         built["bank"] = not ((bank_dir / "bank.json").is_file() and recorded == key)
@@ -244,7 +254,8 @@ def prepare_data(out: Path, config: BenchConfig, scene: Optional[Union[str, Path
                                           min_alpha=LiftSettings().min_alpha)
             source = SegmentAndEncode(get_segmenter("ground-truth", scene=scene_obj),
                                       get_encoder("captions", device=config.device))
-            build_bank(scene_obj, source, depth, bank_dir, progress=config.progress)
+            build_bank(scene_obj, source, depth, bank_dir, lift=LiftSettings(scale_measure=config.scale_measure),
+                       progress=config.progress)
             write_json(key_path, key)
     seconds["bank"] = time.perf_counter() - t0
     return BenchData(scene_dir, ply, bank_dir, label_dir, built, seconds)
@@ -358,7 +369,7 @@ def train_variant(spec: VariantSpec, data: BenchData, run_dir: Path, config: Ben
     field_config = FieldConfig(dim=config.dim, variant=spec.variant, backbone=spec.backbone,
                                step_size=scaled_step(spec.paper_step, config.dim) if spec.variant == "nested" else 1)
     train_config = replace(TrainConfig.cpu(), iterations=config.iterations, pixels_per_step=config.pixels_per_step,
-                           seed=config.seed, device=config.device,
+                           scale_jitter=config.scale_jitter, seed=config.seed, device=config.device,
                            checkpoint_every=max(50, config.iterations // 4))
     paths = {"scene": str(data.scene_dir.resolve()), "gaussians": str(data.gaussians.resolve()),
              "bank": str(data.bank_dir.resolve())}
@@ -688,7 +699,10 @@ def run_bench(out: Union[str, Path], config: Optional[BenchConfig] = None, *,
         "format": "n2f2-bench-v1",
         "config": asdict(config),
         "data": {"scene": str(data.scene_dir), "gaussians": str(data.gaussians), "bank": str(data.bank_dir),
-                 "labels": str(data.label_dir), "built": data.built},
+                 "labels": str(data.label_dir), "built": data.built,
+                 # what the bank was built with (a given --bank need not match config.scale_measure)
+                 "scale_measure": json.loads((data.bank_dir / "bank.json").read_text())["lifting"].get(
+                     "scale_measure", "eigenvalue")},
         "environment": _environment(),
         "variant_runs": variant_runs,
         "steps": {name: scaled_step(VARIANTS[v].paper_step, config.dim) for v, name in variant_runs.items()
@@ -1024,6 +1038,8 @@ def markdown_bench(result: Mapping, runs: Mapping[str, dict], variant_runs: Mapp
         f"- every field: D = {cfg['dim']}, TriPlane {first['field_config']['plane_resolution']}^2 x "
         f"{first['field_config']['plane_channels']}, MLP hidden {first['field_config']['hidden']}, "
         f"{cfg['iterations']} steps of {cfg['pixels_per_step']} pixels, seed {cfg['seed']}, one seed per variant\n"
+        f"- segment scales: {result['data'].get('scale_measure', 'eigenvalue')} measure, training scale jitter "
+        f"{cfg.get('scale_jitter', 0.0)} (paper: eigenvalue, 0)\n"
         f"- step sizes (paper D = 512 -> this D = {cfg['dim']}, keeping floor(512 / k) scales): {k_map or 'n/a'}\n"
         f"- protocol: LangSplat's, always both boxes: **{bt['exact']}** (LangSplat's, sized for ~986 px-wide "
         f"images) and **{bt['scaled']}** (scaled to the image width). On the small demo renders the 30 px box "
@@ -1305,6 +1321,11 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"variants to run (default all: {' '.join(VARIANTS)})")
     p.add_argument("--temperatures", nargs="+", type=float, default=None, metavar="T",
                    help="composite temperatures evaluated on the N2F2 run (default 1 0.1 0.01; 1 = paper)")
+    p.add_argument("--scale-measure", choices=["eigenvalue", "extent"], default=None,
+                   help="segment scale measure of the bank the bench builds (default extent, as the cpu "
+                        "pipeline; eigenvalue = the paper's)")
+    p.add_argument("--scale-jitter", type=float, default=None,
+                   help="TrainConfig.scale_jitter of every run (default 0.03, as the cpu preset; 0 = the paper)")
     p.add_argument("--quick", action="store_true",
                    help="a few minutes: small generated scene, D = 32, 150 steps")
     p.add_argument("--device", default="cpu", help="torch device (default cpu)")
@@ -1334,6 +1355,9 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         over["variants"] = tuple(args.variants)
     if args.temperatures:
         over["temperatures"] = tuple(args.temperatures)
+    for name in ("scale_measure", "scale_jitter"):
+        if getattr(args, name) is not None:
+            over[name] = getattr(args, name)
     try:
         config = BenchConfig.quick(**over) if args.quick else BenchConfig(**over)
     except ValueError as e:
