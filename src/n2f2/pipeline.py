@@ -16,6 +16,7 @@ from typing import Callable
 
 from .errors import InputError
 from .io import write_json
+from .segments.lifting import SCALE_MEASURES
 
 STAGES_FILE = "stages.json"
 
@@ -268,7 +269,7 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--variant", choices=["nested", "flat", "levels"], default=None, help="field variant (default nested)")
     p.add_argument("--depth-source", choices=["render", "gt"], default="render",
                    help="lift segments with the Gaussians' rendered depth (default) or the demo scene's exact depth")
-    p.add_argument("--scale-measure", choices=["eigenvalue", "extent"], default=None,
+    p.add_argument("--scale-measure", choices=list(SCALE_MEASURES), default=None,
                    help="segment scale: eigenvalue = largest covariance eigenvalue of its 3D points (paper); "
                         "extent = squared diagonal of their robust oriented box (not in the paper; fewer "
                         "segments measured smaller than their own parts). Default: the preset's (cpu "
@@ -290,7 +291,8 @@ def _run_options(args: argparse.Namespace, data: Path, out: Path) -> RunOptions:
         langsplat_features=Path(args.langsplat_features) if args.langsplat_features else None,
         labels=Path(args.labels) if args.labels else None, preset=args.preset, fit_steps=args.fit_steps,
         train_steps=args.train_steps, dim=args.dim, variant=args.variant, depth_source=args.depth_source,
-        scale_measure=args.scale_measure, downscale=args.downscale, modes=tuple(args.modes), device=args.device, quiet=args.quiet)
+        scale_measure=args.scale_measure, downscale=args.downscale, modes=tuple(args.modes), device=args.device,
+        quiet=args.quiet)
 
 
 def _cmd_run(args: argparse.Namespace) -> int:

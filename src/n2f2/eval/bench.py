@@ -47,6 +47,7 @@ from typing import Any, Callable, Mapping, Optional, Sequence, Union
 import numpy as np
 
 from ..errors import InputError
+from ..segments.lifting import SCALE_MEASURES
 
 PAPER_DIM = 512
 PAPER_STEPS = (1, 8, 32, 128, 170)  # paper Table 6
@@ -134,8 +135,6 @@ class BenchConfig:
             raise ValueError(f"iterations must be >= 1, got {self.iterations}")
         if self.dim < 3:
             raise ValueError(f"dim must be >= 3, got {self.dim}")
-        from ..segments.lifting import SCALE_MEASURES
-
         if self.scale_measure not in SCALE_MEASURES:
             raise ValueError(f"scale_measure must be one of {SCALE_MEASURES}, got {self.scale_measure!r}")
         if not 0.0 <= self.scale_jitter < 1.0:
@@ -1321,7 +1320,7 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"variants to run (default all: {' '.join(VARIANTS)})")
     p.add_argument("--temperatures", nargs="+", type=float, default=None, metavar="T",
                    help="composite temperatures evaluated on the N2F2 run (default 1 0.1 0.01; 1 = paper)")
-    p.add_argument("--scale-measure", choices=["eigenvalue", "extent"], default=None,
+    p.add_argument("--scale-measure", choices=list(SCALE_MEASURES), default=None,
                    help="segment scale measure of the bank the bench builds (default extent, as the cpu "
                         "pipeline; eigenvalue = the paper's)")
     p.add_argument("--scale-jitter", type=float, default=None,

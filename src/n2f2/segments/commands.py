@@ -11,6 +11,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from .lifting import SCALE_MEASURES
+
 
 def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("data", metavar="DATA", help="scene folder (COLMAP sparse/0 or nerfstudio transforms.json)")
@@ -21,7 +23,7 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--depth-source", choices=["render", "gt"], default="render",
                    help="render: expected depth of --gaussians (paper, default); gt: the demo scene's "
                         "exact depth maps")
-    p.add_argument("--scale-measure", choices=["eigenvalue", "extent"], default="eigenvalue",
+    p.add_argument("--scale-measure", choices=list(SCALE_MEASURES), default="eigenvalue",
                    help="segment scale from its 3D points: eigenvalue = largest eigenvalue of their "
                         "covariance (paper, default); extent = squared diagonal of their robust oriented "
                         "box (2nd-98th percentile along each principal axis; not in the paper)")

@@ -2,7 +2,8 @@
 
 Each segment's pixels are unprojected with the view's depth (the fitted 3DGS's expected depth,
 or the demo scene's exact depth with ``--depth-source gt``); its scale is the largest
-eigenvalue of the covariance of those 3D points (units: scene length squared). The mask is
+eigenvalue of the covariance of those 3D points (the paper), or with ``scale_measure="extent"``
+the squared diagonal of their robust oriented box (units: scene length squared). The mask is
 eroded once with a 3 x 3 kernel first, so pixels on depth discontinuities at the segment's
 boundary (which belong to the background as often as to the segment) do not inflate it.
 

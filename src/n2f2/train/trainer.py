@@ -80,16 +80,16 @@ class TrainConfig(ConfigDict):
     # segment's quantized scale before B(s) (0 = off, the paper). A segment's lifted scale
     # varies from view to view, so its M(s) does too; jitter makes phi(u, s) vary smoothly in s.
     scale_jitter: float = 0.0
-
-    def __post_init__(self) -> None:
-        if not 0.0 <= self.scale_jitter < 1.0:  # NaN fails too
-            raise ValueError(f"scale_jitter must be in [0, 1), got {self.scale_jitter}")
     deferred: bool = True  # rasterize backbone features, MLP per pixel (paper, training only)
     holdout: bool = True  # leave scene.json's test_views out of training
     checkpoint_every: int = 500  # 0: only at the end
     log_every: int = 10  # loss-curve sampling and progress-bar refresh
     seed: int = 0
     device: str = "cpu"
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.scale_jitter < 1.0:  # NaN fails too
+            raise ValueError(f"scale_jitter must be in [0, 1), got {self.scale_jitter}")
 
     @staticmethod
     def paper() -> "TrainConfig":
