@@ -47,8 +47,9 @@ class LiftSettings:
     # quantile-binned). "eigenvalue" (paper): largest eigenvalue of their covariance.
     # "extent" (not in the paper): squared diagonal of their robust oriented box, the
     # [p, 100 - p] percentile range (p = extent_percentile) along each principal axis. The
-    # eigenvalue of a segment can be smaller than that of a part of it (many pixels of a near
-    # table pull a room's variance down below its far wall's); the extent far less often.
+    # eigenvalue of a segment can be smaller than that of one of its parts (on the demo scene
+    # in ~14 % of (view, parent, part) triples, often the room below its own wall); the
+    # extent in ~4 %.
     scale_measure: str = "eigenvalue"
     extent_percentile: float = 2.0
 
@@ -176,9 +177,9 @@ def segment_scales(layers: np.ndarray,  # [L, H, W] int32 segment ids, -1 = none
                    ) -> tuple[np.ndarray, np.ndarray]:
     """Physical scale of every segment from its lifted pixels (see :func:`select_pixels`): the
     largest eigenvalue of their covariance, or with ``scale_measure="extent"`` the squared
-    diagonal of their robust oriented box (:func:`robust_extent`). Returns ``(scales [S] float32, NaN for degenerate
-    segments, num_points [S] int64)``. A segment with fewer than ``min_points`` usable pixels
-    is degenerate."""
+    diagonal of their robust oriented box (:func:`robust_extent`). Returns ``(scales [S]
+    float32, NaN for degenerate segments, num_points [S] int64)``. A segment with fewer than
+    ``min_points`` usable pixels is degenerate."""
     st = settings or LiftSettings()
     S = int(num_segments)
     if S == 0:
@@ -194,10 +195,10 @@ def segment_scales(layers: np.ndarray,  # [L, H, W] int32 segment ids, -1 = none
     cov = second / n[..., None] - mean[:, :, None] * mean[:, None, :]
     cov = 0.5 * (cov + cov.transpose(0, 2, 1))
     if st.scale_measure == "extent":
-        largest = robust_extent(sel, pts, mean, cov, st.extent_percentile)
+        measure = robust_extent(sel, pts, mean, cov, st.extent_percentile)
     else:
-        largest = np.linalg.eigvalsh(cov)[:, -1]
-    scales = np.where(ok, np.maximum(largest, 0.0), np.nan).astype(np.float32)
+        measure = np.linalg.eigvalsh(cov)[:, -1]
+    scales = np.where(ok, np.maximum(measure, 0.0), np.nan).astype(np.float32)
     return scales, count.astype(np.int64)
 
 
