@@ -22,7 +22,7 @@ from n2f2.segments.bins import scale_to_dims
 from n2f2.segments.lifting import gt_depth_provider
 from n2f2.segments.segmenters import GroundTruthSegmenter
 from n2f2.train.evaluate import evaluate_cosine_by_level, match_regions_to_segments
-from n2f2.train.sampling import (SegmentPool, ViewSegments, covering_probabilities, sample_pixels, sample_segments,
+from n2f2.train.sampling import (SegmentPool, ViewSegments, covering_probabilities, sample_segments,
                                  segment_weights)
 from n2f2.train.trainer import (CHECKPOINT_NAME, FIELD_NAME, REPORT_NAME, TrainConfig, bank_cameras,
                                 frozen_geometry, hierarchical_loss, jitter_scales, render_features, train_field)
@@ -115,7 +115,7 @@ def test_pixels_uniform_over_covered_pixels_of_views():
     va = ViewSegments.from_record(0, _Record(la, [2, 1, 1], [True, True, False]))
     vb = ViewSegments.from_record(1, _Record(lb, [6], [True]))
     assert va.covered.tolist() == [0, 1, 3] and len(vb.covered) == 6
-    batch = sample_pixels([va, vb], 27000, torch.Generator().manual_seed(1))
+    batch = SegmentPool.from_views([va, vb]).sample(27000, torch.Generator().manual_seed(1))
     counts = np.bincount((batch.slot * 6 + batch.pixel).numpy(), minlength=12)
     covered = [0, 1, 3] + [6 + i for i in range(6)]
     assert set(np.nonzero(counts)[0]) == set(covered)  # never an uncovered pixel

@@ -11,7 +11,7 @@ from .._lazy import lazy_exports
 _EXPORTS = {
     "TrainConfig": "trainer", "train_field": "trainer", "field_preset": "trainer",
     "hierarchical_loss": "trainer", "saved_configs": "trainer",
-    "ViewSegments": "sampling", "SegmentPool": "sampling", "sample_pixels": "sampling", "sample_segments": "sampling",
+    "ViewSegments": "sampling", "SegmentPool": "sampling", "sample_segments": "sampling",
     "segment_weights": "sampling", "covering_probabilities": "sampling",
     "evaluate_cosine_by_level": "evaluate", "cosine_table": "evaluate",
 }

@@ -150,9 +150,3 @@ class SegmentPool:
         return PixelBatch(self.slot[pick], self.pixel[pick], self.local[seg], self.quantized[seg],
                           self.embeddings[seg])
 
-
-def sample_pixels(views: list[ViewSegments], num_pixels: int, generator: torch.Generator) -> PixelBatch:
-    """``num_pixels`` pixels uniform over the covered pixels of ``views`` (with replacement),
-    each with one covering segment chosen ∝ 1 / log(area). (A loop that samples the same views
-    every step builds their :class:`SegmentPool` once.)"""
-    return SegmentPool.from_views(views).sample(num_pixels, generator)
