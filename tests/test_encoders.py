@@ -221,3 +221,134 @@ def test_classical_segmenter_and_captions_guard(tmp_path, captions):
     assert len(np.unique(out.layers[0])) >= len(np.unique(out.layers[1]))  # finer scale, more segments
     with pytest.raises(InputError, match="ground-truth"):
         SegmentAndEncode(seg, captions)
+
+
+# ----------------------------------------------------------------------------- SAM post-processing
+def _sam_postprocess_reference(low, T, resized, original):
+    """SAM's ``postprocess_masks`` as written in segment-anything: upsample to T x T, crop the
+    padding, upsample to the image size."""
+    x = torch.nn.functional.interpolate(low[:, None], size=(T, T), mode="bilinear", align_corners=False)
+    x = x[..., : resized[0], : resized[1]]
+    return torch.nn.functional.interpolate(x, size=original, mode="bilinear", align_corners=False)[:, 0]
+
+
+@pytest.mark.parametrize("H, W", [(40, 56), (56, 40), (64, 64), (37, 101), (300, 7)])
+def test_sam_postprocess_equals_sams_two_step_upsampling(tiny_sam_model, H, W):
+    """Upsampling only the unpadded low-res rows / columns gives SAM's logits exactly."""
+    seg = SamSegmenter(tiny_sam_model, SamSettings())
+    _, (h, w) = seg.preprocess(np.zeros((H, W, 3), np.float32))
+    low = torch.randn(5, 16, 16, generator=torch.Generator().manual_seed(H * W))
+    want = _sam_postprocess_reference(low, 64, (h, w), (H, W))
+    got = seg.postprocess_masks(low, (h, w), (H, W))
+    assert got.shape == (5, H, W)
+    torch.testing.assert_close(got, want, atol=1e-5, rtol=1e-5)
+
+
+def test_sam_filter_masks_in_chunks_matches_sams_stability(tiny_sam_model, monkeypatch):
+    """Stability on the image-resolution logits (SAM's definition, computed here from the
+    reference upsampling), the same whether masks are upsampled all at once or one by one."""
+    import n2f2.segments.segmenters as segmenters
+
+    st = SamSettings(stability_score_thresh=0.8)
+    seg = SamSegmenter(tiny_sam_model, st)
+    H, W = 40, 56
+    _, (h, w) = seg.preprocess(np.zeros((H, W, 3), np.float32))
+    # Discs of radius r with logit slope s: steep ones are stable, shallow ones are not.
+    gen = torch.Generator().manual_seed(3)
+    yy, xx = torch.meshgrid(torch.arange(16.0), torch.arange(16.0), indexing="ij")
+    centre, radius = 2 + 9 * torch.rand(12, 2, generator=gen), 2 + 4 * torch.rand(12, generator=gen)
+    slope = torch.logspace(-1, 1, 12)
+    dist = ((yy - centre[:, 0, None, None]) ** 2 + (xx - centre[:, 1, None, None]) ** 2).sqrt()
+    low = slope[:, None, None] * (radius[:, None, None] - dist)
+    low[0] = -10.0  # empty mask: dropped
+    logits = _sam_postprocess_reference(low, 64, (h, w), (H, W))
+    hi = (logits > 1).flatten(1).sum(1).double()
+    lo = (logits > -1).flatten(1).sum(1).double()
+    stability = hi / lo.clamp_min(1)
+    want = torch.nonzero((stability >= 0.8) & (logits > 0).flatten(1).any(1)).flatten()
+    assert 0 < len(want) < 12  # the random logits give both kinds
+    for budget in (1 << 24, 1):  # all at once; one mask per chunk
+        monkeypatch.setattr(segmenters, "UPSAMPLE_BUDGET", budget)
+        masks, stab, kept = seg.filter_masks(low, (h, w), (H, W))
+        assert kept.tolist() == want.tolist()
+        assert torch.equal(masks, logits[want] > 0)
+        torch.testing.assert_close(stab.double(), stability[want], atol=1e-6, rtol=0)
+
+
+# ----------------------------------------------------------------------------- CLI with saved models
+def test_cli_segments_with_models_saved_as_folders(tmp_path, tiny_sam_model, tiny_clip):
+    """Models saved with ``save_pretrained`` load through ``n2f2 segments --sam-model DIR
+    --clip-model DIR`` (and the older ``--model DIR``), and the bank holds the in-memory CLIP's
+    embeddings of its masks: the folders carried the weights."""
+    from transformers import SamModel
+
+    from n2f2.cli import main
+    from n2f2.data import load_scene
+    from n2f2.data.synthetic import generate_demo_scene
+
+    scene_dir = tmp_path / "scene"
+    generate_demo_scene(scene_dir, num_views=2, width=48, height=36, supersample=1, num_points=200,
+                        show_progress=False)
+    # A random SAM whose masks pass the default (paper) filters: predicted IoU 1, logits with a
+    # spread of ~30 (most masks stable).
+    sam = SamModel(tiny_sam_model.config)
+    sam.load_state_dict(tiny_sam_model.state_dict())
+    with torch.no_grad():
+        head = sam.mask_decoder.iou_prediction_head.proj_out
+        head.weight.zero_()
+        head.bias.fill_(1.0)
+        image = load_scene(scene_dir).image(0)
+        pixels, _ = SamSegmenter(sam).preprocess(image)
+        points = torch.rand(1, 8, 1, 2, generator=torch.Generator().manual_seed(0)) * 48
+        spread = sam(pixel_values=pixels, input_points=points, multimask_output=True).pred_masks.std()
+        for mlp in sam.mask_decoder.output_hypernetworks_mlps:
+            mlp.proj_out.weight.mul_(30.0 / spread)
+            mlp.proj_out.bias.mul_(30.0 / spread)
+    sam_dir, clip_dir = tmp_path / "sam", tmp_path / "clip"
+    sam.save_pretrained(sam_dir)
+    tiny_clip.model.save_pretrained(clip_dir)
+    tiny_clip.tokenizer.save_pretrained(clip_dir)
+
+    common = ["segments", str(scene_dir), "--segmenter", "sam", "--sam-model", str(sam_dir), "--encoder", "clip",
+              "--depth-source", "gt", "--quiet"]
+    assert main(common + ["--clip-model", str(clip_dir), "--out", str(tmp_path / "bank")]) == 0
+    assert main(common + ["--model", str(clip_dir), "--out", str(tmp_path / "bank2")]) == 0
+    bank = SegmentBank.open(tmp_path / "bank")
+    assert bank.segmenter_spec["model_id"] == str(sam_dir) and bank.encoder_spec["model_id"] == str(clip_dir)
+    assert bank.segmenter_spec["points_per_side"] == 32 and bank.segmenter_spec["pred_iou_thresh"] == 0.7
+    assert bank.counts["segments"] > 0
+    scene = load_scene(scene_dir)
+    for i in range(2):
+        rec = bank.record(i)
+        want = tiny_clip.encode_segments(scene.image(i), rec.masks())
+        np.testing.assert_allclose(rec.embeddings.astype(np.float32), want.numpy(), atol=2e-3)
+        assert np.array_equal(SegmentBank.open(tmp_path / "bank2").record(i).embeddings, rec.embeddings)
+
+
+def test_greedy_nms_with_settled_masks_matches_full_nms():
+    """Masks that already survived NMS together need no mutual intersections: NMS of them plus
+    new masks gives the same result as NMS measuring every pair."""
+    from n2f2.segments.segmenters import greedy_mask_nms
+
+    rng = np.random.default_rng(5)
+    H, W = 20, 24
+
+    def boxes(n):
+        m = np.zeros((n, H, W), bool)
+        for k in range(n):
+            y0, x0 = rng.integers(0, H - 4), rng.integers(0, W - 4)
+            m[k, y0:y0 + rng.integers(3, H - y0 + 1), x0:x0 + rng.integers(3, W - x0 + 1)] = True
+        return torch.from_numpy(m)
+
+    first, first_scores = boxes(30), torch.from_numpy(rng.uniform(size=30)).float()
+    kept = greedy_mask_nms(first, first_scores, 0.5)
+    assert 0 < len(kept) < 30
+    new, new_scores = boxes(25), torch.from_numpy(rng.uniform(size=25)).float()
+    masks = torch.cat([first[kept], new])
+    scores = torch.cat([first_scores[kept], new_scores])
+    full = greedy_mask_nms(masks, scores, 0.5)
+    assert greedy_mask_nms(masks, scores, 0.5, settled=len(kept)).tolist() == full.tolist()
+    assert len(full) < len(masks)  # new masks suppressed some
+    # all settled: nothing to measure, nothing suppressed
+    assert sorted(greedy_mask_nms(masks[:len(kept)], scores[:len(kept)], 0.5, settled=len(kept)).tolist()) \
+        == list(range(len(kept)))

@@ -133,10 +133,27 @@ def test_colmap_zero_distortion_model_is_accepted(tmp_path: Path) -> None:
     assert (c.fx, c.fy, c.cx, c.cy) == (100.0, 110.0, 32.0, 24.0)
 
 
-@pytest.mark.parametrize("line", ["1 OPENCV 64 48 100 110 32 24 0.1 0 0 0",
-                                  "1 SIMPLE_RADIAL 64 48 100 32 24 -0.02",
-                                  "1 OPENCV_FISHEYE 64 48 100 110 32 24 0 0 0 0"])
-def test_colmap_distorted_model_is_rejected(tmp_path: Path, line: str) -> None:
+@pytest.mark.parametrize("line, kind, coeffs", [
+    # OpenCV's distCoeffs order is (k1, k2, p1, p2, k3, k4, k5, k6); cv2.fisheye's (k1..k4).
+    ("1 OPENCV 64 48 100 110 32 24 0.1 0 0.01 0.02", "perspective", (0.1, 0, 0.01, 0.02, 0, 0, 0, 0)),
+    ("1 SIMPLE_RADIAL 64 48 100 32 24 -0.02", "perspective", (-0.02, 0, 0, 0, 0, 0, 0, 0)),
+    ("1 FULL_OPENCV 64 48 100 110 32 24 1 2 3 4 5 6 7 8", "perspective", (1, 2, 3, 4, 5, 6, 7, 8)),
+    ("1 OPENCV_FISHEYE 64 48 100 110 32 24 0 0 0 0", "fisheye", (0, 0, 0, 0)),
+    ("1 RADIAL_FISHEYE 64 48 100 32 24 0.1 0.2", "fisheye", (0.1, 0.2, 0, 0)),
+])
+def test_colmap_distorted_model_reads_its_lens(tmp_path: Path, line: str, kind: str, coeffs: tuple) -> None:
+    (tmp_path / "cameras.txt").write_text(line + "\n")
+    (tmp_path / "images.txt").write_text("1 1 0 0 0 0 0 0 1 x.png\n\n")
+    s = read_colmap_scene(tmp_path)
+    c, lens = s.cameras[0], s.lenses[0]
+    assert (c.fx, c.cx, c.cy) == (100.0, 32.0, 24.0)
+    assert (lens.kind, lens.coeffs) == (kind, coeffs)
+    assert lens.name == "COLMAP " + line.split()[1]
+
+
+@pytest.mark.parametrize("line", ["1 FOV 64 48 100 110 32 24 0.3",
+                                  "1 THIN_PRISM_FISHEYE 64 48 100 110 32 24 0 0 0 0 0 0 0 0"])
+def test_colmap_unsupported_model_is_rejected(tmp_path: Path, line: str) -> None:
     (tmp_path / "cameras.txt").write_text(line + "\n")
     (tmp_path / "images.txt").write_text("1 1 0 0 0 0 0 0 1 x.png\n\n")
     with pytest.raises(InputError, match="image_undistorter") as e:
@@ -376,9 +393,9 @@ def test_cli_missing_file_path_and_bad_json(scene_dir: Path) -> None:
     assert_clean_error(run_inspect(scene_dir), "transforms.json", "not valid JSON")
 
 
-def test_cli_distorted_camera(tmp_path: Path) -> None:
+def test_cli_unsupported_camera_model(tmp_path: Path) -> None:
     write_images(tmp_path, 1)
     (tmp_path / "sparse").mkdir()
-    (tmp_path / "sparse" / "cameras.txt").write_text("1 OPENCV 32 24 40 40 16 12 0.1 0 0 0\n")
+    (tmp_path / "sparse" / "cameras.txt").write_text("1 FOV 32 24 40 40 16 12 0.3\n")
     (tmp_path / "sparse" / "images.txt").write_text("1 1 0 0 0 0 0 0 1 frame_00001.png\n\n")
-    assert_clean_error(run_inspect(tmp_path), "cameras.txt", "OPENCV", "colmap image_undistorter")
+    assert_clean_error(run_inspect(tmp_path), "cameras.txt", "FOV", "colmap image_undistorter")

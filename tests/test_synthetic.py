@@ -345,3 +345,201 @@ def test_contact_sheet(scene_dir, tmp_path):
     out = write_contact_sheet(scene_dir, tmp_path / "sheet.png", max_views=3)
     with Image.open(out) as im:
         assert im.size[0] > im.size[1] > 100
+
+
+# ----------------------------------------------------------------------------- the default layout
+# Content digest of the fixture's tabletop scene (pixels, depth, region ids, point sources,
+# region table, queries) as written by the generator before layouts existed: the default
+# layout must keep rendering exactly that scene (the demo numbers depend on it).
+TABLETOP_DIGEST = "6b87a9bc8e4ffa90bbd8c452481761062cf3c8649ddc2e16e86e3272835421fa"
+
+
+def _content_digest(scene_dir: Path) -> str:
+    import hashlib
+
+    from PIL import Image
+
+    h = hashlib.sha256()
+    for img in sorted((scene_dir / "images").glob("*.png")):
+        with Image.open(img) as im:
+            h.update(np.asarray(im.convert("RGB")).tobytes())
+        for sub in ("depth", "regions"):
+            h.update(np.load(scene_dir / sub / f"{img.stem}.npy").tobytes())
+    h.update(np.load(scene_dir / "points_source.npy").tobytes())
+    regions = json.loads((scene_dir / "regions.json").read_text())["regions"]
+    table = [[r["id"], r["level"], r["name"], r["caption"], r["parent"]] for r in regions]
+    h.update(json.dumps(table).encode())
+    h.update(json.dumps(json.loads((scene_dir / "queries.json").read_text()), sort_keys=True).encode())
+    return h.hexdigest()
+
+
+def test_default_layout_is_the_tabletop_unchanged(scene_dir):
+    assert json.loads((scene_dir / "scene.json").read_text())["layout"] == "tabletop"
+    assert _content_digest(scene_dir) == TABLETOP_DIGEST
+
+
+# ----------------------------------------------------------------------------- the lounge layout
+@pytest.fixture(scope="module")
+def lounge_dir(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("lounge") / "scene"
+    # a tabletop there first: a lounge generation replaces another layout's demo scene
+    generate_demo_scene(out, num_views=2, width=16, height=12, num_points=10, labelled_views=[1],
+                        show_progress=False)
+    generate_demo_scene(out, num_views=NUM_VIEWS, width=WIDTH, height=HEIGHT, seed=SEED,
+                        labelled_views=LABELLED, num_points=400, show_progress=False, layout="lounge")
+    return out
+
+
+@pytest.fixture(scope="module")
+def lounge_regions(lounge_dir) -> dict:
+    info = json.loads((lounge_dir / "regions.json").read_text())
+    assert info["levels"] == list(LEVELS)
+    return {r["id"]: r for r in info["regions"]}
+
+
+def test_lounge_files(lounge_dir):
+    meta = json.loads((lounge_dir / "scene.json").read_text())
+    assert meta["layout"] == "lounge" and meta["num_views"] == NUM_VIEWS
+    assert sorted(p.name for p in (lounge_dir / "images").iterdir()) == \
+        [f"frame_{i + 1:05d}.png" for i in range(NUM_VIEWS)]
+    for i in range(NUM_VIEWS):
+        d = np.load(lounge_dir / "depth" / f"frame_{i + 1:05d}.npy")
+        assert d.shape == (HEIGHT, WIDTH) and np.isfinite(d).all() and (d > 0).all()
+    assert sorted(p.stem for p in (lounge_dir / "label").glob("*.json")) == \
+        [f"frame_{v + 1:05d}" for v in LABELLED]
+    lines = [ln for ln in (lounge_dir / "sparse/0/points3D.txt").read_text().splitlines()
+             if ln and not ln.startswith("#")]
+    assert len(lines) == 400
+
+
+def test_lounge_is_a_different_scene(lounge_regions, regions):
+    names = {r["name"] for r in lounge_regions.values()}
+    # only the room's floor and walls share a name with the tabletop
+    assert names & {r["name"] for r in regions.values()} == {"room", "floor", "wall"}
+    captions = {r["caption"] for r in lounge_regions.values()}
+    for needed in ("the shade of the lamp", "the flowers in the vase", "a bowl of fruit",
+                   "the wheels of the toy car", "a stack of books", "a yellow cushion"):
+        assert needed in captions
+    assert sum(r["level"] == 2 for r in lounge_regions.values()) == 3
+
+
+def test_lounge_hierarchy(lounge_dir, lounge_regions):
+    regions = lounge_regions
+    assert len({r["name"] for r in regions.values()}) == len(regions)
+    parent_of = np.full(max(regions) + 1, -1)
+    for r in regions.values():
+        assert isinstance(r["caption"], str) and r["caption"]
+        if r["level"] == 2:
+            assert r["parent"] is None
+        else:
+            assert regions[r["parent"]]["level"] == r["level"] + 1
+            parent_of[r["id"]] = r["parent"]
+    has_parts = {r["parent"] for r in regions.values() if r["level"] == 0}
+    for v in range(NUM_VIEWS):
+        part, obj, group = _region_stack(lounge_dir, v)
+        assert (obj >= 0).all() and (group >= 0).all()
+        for level, layer in enumerate((part, obj, group)):
+            assert all(regions[int(rid)]["level"] == level for rid in np.unique(layer[layer >= 0]))
+        sel = part >= 0
+        assert (parent_of[part[sel]] == obj[sel]).all()
+        assert (parent_of[obj] == group).all()
+        assert (sel == np.isin(obj, list(has_parts))).all()
+
+
+def test_lounge_depth_lies_on_the_labelled_primitive(lounge_dir):
+    scene = build_demo_scene(SEED, layout="lounge")
+    cams = demo_cameras(NUM_VIEWS, WIDTH, HEIGHT, SEED, layout="lounge")
+    worst = 0.0
+    for v in range(NUM_VIEWS):
+        depth = np.load(lounge_dir / "depth" / f"frame_{v + 1:05d}.npy").astype(np.float64)
+        part, obj, _ = _region_stack(lounge_dir, v)
+        rows, cols = np.mgrid[0:HEIGHT, 0:WIDTH]
+        uv = np.stack([cols + 0.5, rows + 0.5], -1).reshape(-1, 2)
+        pts = cams[v].unproject(uv, depth.reshape(-1))
+        finest = np.where(part >= 0, part, obj).reshape(-1)
+        dist = np.full(len(pts), np.inf)
+        for prim in scene.primitives:
+            owner = prim.part if prim.part >= 0 else prim.object
+            sel = finest == owner
+            if sel.any():
+                dist[sel] = np.minimum(dist[sel], _boundary_distance(prim, pts[sel]))
+        worst = max(worst, float(dist.max()))
+    assert worst < 5e-5, worst  # float32 depth of up to ~10 m: about 1e-6 m of rounding
+
+
+def test_lounge_queries_and_labels(lounge_dir, lounge_regions):
+    queries = json.loads((lounge_dir / "queries.json").read_text())["queries"]
+    assert 12 <= len(queries) <= 24
+    assert {q["type"] for q in queries} == {"simple", "compound"}
+    assert len({q["query"] for q in queries}) == len(queries)
+    levels = set()
+    for q in queries:
+        assert q["region_ids"] and all(rid in lounge_regions for rid in q["region_ids"])
+        levels |= {lounge_regions[rid]["level"] for rid in q["region_ids"]}
+    assert levels == {0, 1, 2}
+    by_query = {q["query"]: q for q in queries}
+    name = {r["id"]: r["name"] for r in lounge_regions.values()}
+    assert {name[i] for i in by_query["book"]["region_ids"]} == {"red book", "green book", "blue book"}
+    assert set(by_query["yellow cushion"]["region_ids"]) < set(by_query["cushion"]["region_ids"])
+    assert by_query["shade of the lamp"]["type"] == "compound" and by_query["sofa"]["type"] == "simple"
+    checked = 0
+    for f in L.read_label_dir(lounge_dir / "label"):
+        stack = _region_stack(lounge_dir, f.view_index)
+        for q in queries:
+            gt = _gt_mask(stack, lounge_regions, q["region_ids"])
+            if gt.sum() >= 20:
+                iou = (gt & f.mask(q["query"])).sum() / (gt | f.mask(q["query"])).sum()
+                assert iou >= 0.9, (f.frame_name, q["query"], iou)
+                checked += 1
+    assert checked >= 20
+
+
+def test_lounge_walls_are_farther(lounge_dir, lounge_regions, scene_dir, regions):
+    """The lounge's walls are at x = +-7, y = +-5.5 m (the tabletop's at +-3 m), so its wall
+    pixels are about twice as deep."""
+    def wall_depths(folder, table):
+        wall = next(r["id"] for r in table.values() if r["name"] == "wall")
+        return np.concatenate([np.load(folder / "depth" / f"frame_{v + 1:05d}.npy")[
+            _region_stack(folder, v)[1] == wall] for v in range(NUM_VIEWS)])
+
+    lounge, tabletop = wall_depths(lounge_dir, lounge_regions), wall_depths(scene_dir, regions)
+    assert len(lounge) > 0.2 * NUM_VIEWS * WIDTH * HEIGHT and len(tabletop) > 0
+    assert np.median(lounge) > 1.6 * np.median(tabletop), (np.median(lounge), np.median(tabletop))
+
+
+def test_lounge_camera_path():
+    """A partial arc, lower than the tabletop's ring, with some views close to the table."""
+    n = 40
+    lounge = np.stack([c.center for c in demo_cameras(n, WIDTH, HEIGHT, SEED, layout="lounge")])
+    ring = np.stack([c.center for c in demo_cameras(n, WIDTH, HEIGHT, SEED)])
+    azimuth = np.sort(np.arctan2(lounge[:, 1], lounge[:, 0]))
+    gaps = np.diff(np.concatenate([azimuth, azimuth[:1] + 2 * np.pi]))
+    assert gaps.max() > np.radians(120)  # the ring's largest gap is about 9 degrees
+    assert np.median(lounge[:, 2]) < np.median(ring[:, 2]) - 0.3
+    assert np.ptp(lounge[:, 2]) > 0.4
+    # distance from the eye to the nearest point of the coffee table top (1.2 x 0.7 m, z 0.425)
+    nearest = np.stack([np.clip(lounge[:, 0], -0.6, 0.6), np.clip(lounge[:, 1], -0.35, 0.35),
+                        np.full(n, 0.425)], 1)
+    gap = np.linalg.norm(lounge - nearest, axis=1)
+    assert 3 <= (gap < 0.6).sum() <= n // 3 and (gap > 0.2).all()
+
+
+def test_unknown_layout():
+    with pytest.raises(ValueError, match="lounge"):
+        build_demo_scene(SEED, layout="attic")
+    with pytest.raises(ValueError, match="layout"):
+        demo_cameras(2, 16, 12, layout="attic")
+
+
+def test_demo_command_layout_is_part_of_the_cache_key(tmp_path, capsys):
+    from n2f2.cli import main
+
+    argv = ["demo", "--scene-only", "--out", str(tmp_path), "--views", "2", "--width", "16",
+            "--height", "12", "--quiet"]
+    assert main([*argv, "--layout", "lounge"]) == 0
+    assert json.loads((tmp_path / "scene/scene.json").read_text())["layout"] == "lounge"
+    assert main([*argv, "--layout", "lounge"]) == 0
+    assert "up to date" in capsys.readouterr().out
+    assert main(argv) == 0  # the default layout: regenerated
+    assert json.loads((tmp_path / "scene/scene.json").read_text())["layout"] == "tabletop"
+    assert (tmp_path / "contact_sheet.png").is_file()

@@ -171,6 +171,9 @@ def run_pipeline(opt: RunOptions, log=print) -> dict:
     cache = StageCache.open(out)
     quiet = ["--quiet"] if opt.quiet else []
     common = ["--downscale", opt.downscale, "--device", opt.device]
+    from .data.sfm import posed_scene_path
+
+    data = posed_scene_path(data, out / "sfm", progress=not opt.quiet, log=log)  # photos: pose them first
     sdig = scene_digest(data)
 
     # 1. Gaussians: fitted here, or given.
@@ -303,21 +306,25 @@ def _cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
-DEMO_QUERIES = ("teapot", "lid of the teapot", "bag of cookies", "cookies", "red mug", "handle of the blue mug")
+DEMO_QUERIES = {  # per demo layout
+    "tabletop": ("teapot", "lid of the teapot", "bag of cookies", "cookies", "red mug", "handle of the blue mug"),
+    "lounge": ("sofa", "shade of the lamp", "vase of flowers", "flowers", "red book", "wheels of the toy car"),
+}
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from .data.synthetic import generate_demo_scene, write_contact_sheet
+    from .data.synthetic import GENERATOR_VERSION, generate_demo_scene, write_contact_sheet
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     scene_dir = out / "scene"
     start = time.perf_counter()
-    key = stage_key(views=args.views, width=args.width, height=args.height, seed=args.seed)
+    key = stage_key(views=args.views, width=args.width, height=args.height, seed=args.seed, layout=args.layout,
+                    generator=GENERATOR_VERSION)
     cache = StageCache.open(out)
     regenerated = cache.run("demo-scene", key, [scene_dir / "scene.json", scene_dir / "regions.json"],
                             lambda: generate_demo_scene(scene_dir, num_views=args.views, width=args.width,
-                                                        height=args.height, seed=args.seed,
+                                                        height=args.height, seed=args.seed, layout=args.layout,
                                                         show_progress=not args.quiet))
     sheet = out / "contact_sheet.png"
     if regenerated or not sheet.exists():
@@ -329,7 +336,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     # A few relevancy PNGs for a person to look at (raw .npy beside each).
     scene_meta = json.loads((scene_dir / "scene.json").read_text())
     views = [int(v) for v in scene_meta.get("labelled_views", [0])[:2]]
-    _cli(["query", out / "run", *DEMO_QUERIES, "--views", *views, "--out", out / "queries",
+    _cli(["query", out / "run", *DEMO_QUERIES[args.layout], "--views", *views, "--out", out / "queries",
           *(["--quiet"] if args.quiet else [])])
     if result["eval"]:
         md = Path(result["eval"]).with_suffix(".md")
@@ -343,15 +350,19 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 def register(subparsers) -> None:
     p = subparsers.add_parser(
         "demo", help="generate the built-in demo scene and run the whole pipeline on it",
-        description="Generate the built-in synthetic tabletop scene (exact ground truth at part, object and "
-                    "group level), then fit Gaussians, build the segment bank (ground-truth segments; captions "
-                    "embedded by all-MiniLM-L6-v2, an offline stand-in for CLIP), train the nested field, "
+        description="Generate a built-in synthetic scene (--layout: a tabletop or a lounge; exact ground truth "
+                    "at part, object and group level), then fit Gaussians, build the segment bank (ground-truth "
+                    "segments; captions embedded by all-MiniLM-L6-v2, an offline stand-in for CLIP), train the nested field, "
                     "evaluate with LangSplat's protocol, and write a few relevancy PNGs.")
     p.add_argument("--out", default="demo_out", help="output folder (default: demo_out)")
     p.add_argument("--views", type=int, default=40, help="number of views (default: 40)")
     p.add_argument("--width", type=int, default=160, help="image width (default: 160)")
     p.add_argument("--height", type=int, default=120, help="image height (default: 120)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+    p.add_argument("--layout", choices=["tabletop", "lounge"], default="tabletop",
+                   help="scene layout: tabletop (round table with a tea set and snacks, 6 x 6 m room; every "
+                        "preset was tuned on it) or lounge (sofa, floor lamp and a coffee table with small "
+                        "objects in a 14 x 11 m room, on a partial arc with close views). Default: tabletop")
     p.add_argument("--scene-only", action="store_true", help="only generate the scene and its contact sheet")
     _add_run_options(p)
     p.set_defaults(func=_cmd_demo)
@@ -361,7 +372,8 @@ def register(subparsers) -> None:
         description="Fit Gaussians (or --gaussians), build the segment bank (or --langsplat-features), train "
                     "the nested field, and evaluate when labels exist. Each stage is skipped when its inputs "
                     "are unchanged (RUN/stages.json).")
-    r.add_argument("data", metavar="DATA", help="scene folder (COLMAP or nerfstudio)")
+    r.add_argument("data", metavar="DATA", help="scene folder (COLMAP or nerfstudio), or a folder of photos, "
+                                            "posed first by `n2f2 sfm` into DIR/sfm")
     r.add_argument("--out", required=True, metavar="DIR", help="run folder")
     _add_run_options(r)
     r.set_defaults(func=_cmd_run)

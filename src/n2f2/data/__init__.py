@@ -15,15 +15,25 @@ Views are ordered by image path relative to the scene folder (for the usual flat
 ``images/`` folder that is sorted file-name order), so view index ``i`` is the same whatever
 the format; this matches LangSplat's labels (``frame_00001`` is view 0).
 
+Lens distortion (COLMAP ``SIMPLE_RADIAL``, ``RADIAL``, ``OPENCV``, ``FULL_OPENCV`` and the
+fisheye models; nerfstudio/instant-ngp ``k1 k2 k3 p1 p2`` and ``OPENCV_FISHEYE``) is removed
+on load: each distorted view gets a pinhole camera and an undistorted PNG written once to a
+cache outside the scene folder (``cache_dir``, else ``$N2F2_CACHE_DIR``, else
+``~/.cache/n2f2``); see :mod:`n2f2.data.undistort`. Every later stage sees pinhole cameras
+only; ``Scene.undistorted_from`` records the lens model and ``Scene.original_image_paths``
+the user's files. Sparse points are 3D and stay as they are.
+
 ``downscale`` works like 3DGS ``-r``: cameras become :meth:`Camera.downscaled(factor)
 <n2f2.cameras.Camera.downscaled>` (``round(W / factor)`` pixels, intrinsics scaled with the
-pixel-centre convention) and images are resized when loaded. For an integer factor, a
-pre-downscaled sibling folder such as ``images_2/`` (written by 3DGS ``convert.py --resize``
-and ``ns-process-data``) is used instead when it holds every image.
+pixel-centre convention) and images are resized when loaded. It applies after
+undistortion. For an integer factor, a pre-downscaled sibling folder such as ``images_2/``
+(written by 3DGS ``convert.py --resize`` and ``ns-process-data``) is used instead when it
+holds every image and no view is distorted (those copies are distorted too).
 
 Everything that can be checked without decoding pixels is checked at load time: every
-listed image must exist and have the camera's aspect ratio, so a bad scene fails at once with
-an :class:`~n2f2.errors.InputError` naming the file rather than in the middle of training.
+listed image must exist (else one error naming the missing ones; ``skip_missing=True`` drops
+those views with a warning) and have the camera's aspect ratio, so a bad scene fails at once
+with an :class:`~n2f2.errors.InputError` naming the file rather than in the middle of training.
 """
 
 from __future__ import annotations
@@ -34,7 +44,7 @@ from typing import Optional
 import numpy as np
 
 from ..errors import InputError
-from .scene import GroundTruth, Scene, load_image
+from .scene import GroundTruth, Scene, keep_present_images, load_image
 
 __all__ = ["FORMATS", "GroundTruth", "Scene", "detect_format", "load_image", "load_scene"]
 
@@ -83,13 +93,19 @@ def _colmap_root(model: Path) -> Path:
     return model.parent.parent if model.parent.name == "sparse" else model.parent
 
 
-def load_scene(path: str | Path, downscale: float = 1, format: str = "auto") -> Scene:
+def load_scene(path: str | Path, downscale: float = 1, format: str = "auto", *,
+               cache_dir: Optional[str | Path] = None, skip_missing: bool = False) -> Scene:
     """Load a scene folder (COLMAP or nerfstudio, see the module docstring) into a Scene.
 
     ``downscale`` (>= 1 usually, like 3DGS ``-r``) divides the image size; ``format`` is
-    ``"auto"``, ``"colmap"`` or ``"nerfstudio"``. Sets ``scene.ground_truth`` when the folder
-    has ``regions.json`` (the built-in demo scene). Bad input raises :class:`InputError`.
+    ``"auto"``, ``"colmap"`` or ``"nerfstudio"``. Distorted views are undistorted into
+    ``cache_dir`` (default ``$N2F2_CACHE_DIR`` or ``~/.cache/n2f2``). Views whose image is
+    missing are an error, or dropped with a warning when ``skip_missing``. Sets
+    ``scene.ground_truth`` when the folder has ``regions.json`` (the built-in demo scene).
+    Bad input raises :class:`InputError`.
     """
+    from .undistort import undistort_views
+
     downscale = float(downscale)
     if not np.isfinite(downscale) or downscale <= 0:
         raise InputError(None, f"downscale factor must be a positive number, got {downscale}")
@@ -98,36 +114,45 @@ def load_scene(path: str | Path, downscale: float = 1, format: str = "auto") -> 
     if kind == "nerfstudio":
         from .nerfstudio import read_transforms
 
-        data = read_transforms(source)
+        data = read_transforms(source, missing="skip" if skip_missing else "error")
         root = source.parent
-        cameras, image_paths, points, colors = data.cameras, data.image_paths, data.points, data.colors
+        cameras, lenses, image_paths = data.cameras, data.lenses, data.image_paths
+        points, colors = data.points, data.colors
         source_format, listing = "nerfstudio", source
     else:
         from .colmap import read_colmap_scene
 
         model = read_colmap_scene(source)
         root = _colmap_root(source)
-        cameras, points, colors = model.cameras, model.points, model.colors
+        cameras, lenses, points, colors = model.cameras, model.lenses, model.points, model.colors
         image_paths = [root / "images" / name for name in model.image_names]
         source_format, listing = f"colmap-{model.kind}", model.files["images"]
+        keep = keep_present_images(image_paths, listing, root, skip_missing)
+        cameras, lenses, image_paths = ([seq[i] for i in keep] for seq in (cameras, lenses, image_paths))
 
     order = sorted(range(len(image_paths)), key=lambda i: _relative(image_paths[i], root))
-    cameras = [cameras[i] for i in order]
-    image_paths = [image_paths[i] for i in order]
+    cameras, lenses, image_paths = ([seq[i] for i in order] for seq in (cameras, lenses, image_paths))
     for a, b in zip(image_paths, image_paths[1:]):
         if a == b:
             raise InputError(listing, f"image {_relative(a, root)} is listed twice")
 
-    for image_path in image_paths:
-        if not image_path.is_file():
-            raise InputError(image_path, f"image listed in {listing.name} does not exist")
+    distorted = [lens for lens in lenses if lens is not None and not lens.is_pinhole]
+    original_paths, undistorted_from = None, None
+    if distorted:
+        # Check the user's files (so errors name them) before spending time undistorting.
+        _check_aspect_ratios(cameras, image_paths, listing)
+        original_paths = image_paths
+        cameras, image_paths = undistort_views(cameras, lenses, image_paths, cache_dir, listing)
+        undistorted_from = ", ".join(sorted({lens.name for lens in distorted}))
     if downscale != 1:
         cameras = [c.downscaled(downscale) for c in cameras]
-        image_paths = _predownscaled(image_paths, downscale)
+        if not distorted:
+            image_paths = _predownscaled(image_paths, downscale)
     _check_aspect_ratios(cameras, image_paths, listing)
 
     scene = Scene(root=root, cameras=cameras, image_paths=image_paths, points=points,
-                  point_colors=colors, downscale=downscale, source_format=source_format)
+                  point_colors=colors, downscale=downscale, source_format=source_format,
+                  undistorted_from=undistorted_from, original_image_paths=original_paths)
     if (root / "regions.json").is_file():
         scene.ground_truth = GroundTruth(root, scene.image_names)
     return scene

@@ -1,9 +1,14 @@
 """COLMAP sparse models (``sparse/0``): read and write, binary and text.
 
-Only the undistorted camera models are loaded (``PINHOLE``, ``SIMPLE_PINHOLE``, or a
-perspective distortion model whose distortion parameters are all zero): Gaussian splatting
-renders an ideal pinhole camera, so a distorted model would silently misalign every pixel.
-The error tells the user to run ``colmap image_undistorter`` instead.
+Camera models: ``SIMPLE_PINHOLE`` and ``PINHOLE`` load as they are. The distortion models
+OpenCV can undistort (``SIMPLE_RADIAL``, ``RADIAL``, ``OPENCV``, ``FULL_OPENCV``,
+``OPENCV_FISHEYE``, ``SIMPLE_RADIAL_FISHEYE``, ``RADIAL_FISHEYE``) are read as their pinhole
+part plus a :class:`~n2f2.data.undistort.Lens`, which :func:`~n2f2.data.load_scene` uses to
+undistort the images (see :mod:`n2f2.data.undistort`). ``FOV`` with ``omega = 0`` is a
+pinhole; the other models (``FOV``, ``THIN_PRISM_FISHEYE``, ``RAD_TAN_THIN_PRISM_FISHEYE``)
+are refused with an error telling the user to run ``colmap image_undistorter``. Parameter
+orders are COLMAP's (``src/colmap/sensor/models.h``), and so is the pixel convention, which
+is n2f2's (top-left pixel centre at 0.5, 0.5).
 
 COLMAP stores, per image, the world-to-camera rotation as a quaternion ``qvec`` (w, x, y, z)
 and the translation ``tvec`` with OpenCV camera axes, which is exactly n2f2's
@@ -33,6 +38,7 @@ import numpy as np
 from ..cameras import Camera, qvec_to_rotmat, rotmat_to_qvec
 from ..errors import InputError
 from ..io import write_bytes, write_text
+from .undistort import Lens
 
 # COLMAP camera models: id -> (name, number of params). From colmap/src/colmap/sensor/models.h.
 CAMERA_MODELS: dict[int, tuple[str, int]] = {
@@ -51,18 +57,22 @@ CAMERA_MODELS: dict[int, tuple[str, int]] = {
 }
 CAMERA_MODEL_IDS = {name: (model_id, n) for model_id, (name, n) in CAMERA_MODELS.items()}
 
-# Perspective models that equal a pinhole camera when every parameter after the intrinsics is
-# zero: (index of fx, index of fy or None for a single focal, first distortion index).
-# Fisheye models are left out on purpose: with zero distortion they are still equidistant,
-# not pinhole, projections.
-_PERSPECTIVE_MODELS = {
-    "SIMPLE_PINHOLE": (0, None, 3),
-    "PINHOLE": (0, 1, 4),
-    "SIMPLE_RADIAL": (0, None, 3),
-    "RADIAL": (0, None, 3),
-    "OPENCV": (0, 1, 4),
-    "FULL_OPENCV": (0, 1, 4),
-    "FOV": (0, 1, 4),  # omega = 0 means no distortion
+# Models n2f2 reads: (index of fx, index of fy or None for a single focal, a function from
+# the distortion parameters, those after fx [fy] cx cy, to a Lens, or None for a pinhole).
+# Fisheye models map to a fisheye Lens even with zero parameters: they are still
+# equidistant, not pinhole, projections.
+_MODELS = {
+    "SIMPLE_PINHOLE": (0, None, None),
+    "PINHOLE": (0, 1, None),
+    "SIMPLE_RADIAL": (0, None, lambda k: Lens.perspective("COLMAP SIMPLE_RADIAL", k1=k[0])),
+    "RADIAL": (0, None, lambda k: Lens.perspective("COLMAP RADIAL", k1=k[0], k2=k[1])),
+    "OPENCV": (0, 1, lambda k: Lens.perspective("COLMAP OPENCV", k1=k[0], k2=k[1], p1=k[2], p2=k[3])),
+    "FULL_OPENCV": (0, 1, lambda k: Lens.perspective("COLMAP FULL_OPENCV", k1=k[0], k2=k[1], p1=k[2], p2=k[3],
+                                                     k3=k[4], k4=k[5], k5=k[6], k6=k[7])),
+    "OPENCV_FISHEYE": (0, 1, lambda k: Lens.fisheye("COLMAP OPENCV_FISHEYE", *k)),
+    "SIMPLE_RADIAL_FISHEYE": (0, None, lambda k: Lens.fisheye("COLMAP SIMPLE_RADIAL_FISHEYE", k1=k[0])),
+    "RADIAL_FISHEYE": (0, None, lambda k: Lens.fisheye("COLMAP RADIAL_FISHEYE", k1=k[0], k2=k[1])),
+    "FOV": (0, 1, "omega"),  # a pinhole when omega = 0, refused otherwise
 }
 
 UNDISTORT_HINT = ("undistort the images first, e.g. `colmap image_undistorter --image_path images "
@@ -146,47 +156,56 @@ class ColmapScene(NamedTuple):
     colors: Optional[np.ndarray]  # [P, 3] uint8, or None
     kind: str  # "binary" or "text"
     files: dict[str, Path]  # "cameras", "images", "points3D"
+    lenses: list[Optional[Lens]]  # per image: its camera's distortion, None for a pinhole
 
 
 def read_colmap_scene(sparse_dir: str | Path) -> ColmapScene:
-    """Read a model folder and convert it to n2f2 cameras. Errors name the file at fault:
-    a distorted camera model names ``cameras.*``, a bad pose names ``images.*``."""
+    """Read a model folder and convert it to n2f2 cameras (the pinhole part of each camera
+    model) and lenses (its distortion). Errors name the file at fault: an unsupported camera
+    model names ``cameras.*``, a bad pose names ``images.*``."""
     sparse_dir = Path(sparse_dir)
     raw_cameras, images, points, colors = read_colmap_model(sparse_dir)
     kind, files = find_model_files(sparse_dir)
     if not images:
         raise InputError(files["images"], "lists no images")
-    intrinsics = {cam_id: colmap_intrinsics(cam, files["cameras"]) for cam_id, cam in raw_cameras.items()
-                  if any(im.camera_id == cam_id for im in images)}
-    cameras = [colmap_to_camera(raw_cameras[im.camera_id], im, files["images"], intrinsics[im.camera_id])
+    lenses = {cam_id: colmap_lens(cam, files["cameras"]) for cam_id, cam in raw_cameras.items()
+              if any(im.camera_id == cam_id for im in images)}
+    cameras = [colmap_to_camera(raw_cameras[im.camera_id], im, files["images"], lenses[im.camera_id][0])
                for im in images]
-    return ColmapScene(cameras, [im.name for im in images], points, colors, kind, files)
+    return ColmapScene(cameras, [im.name for im in images], points, colors, kind, files,
+                       [lenses[im.camera_id][1] for im in images])
 
 
-def colmap_intrinsics(camera: ColmapCamera, source: Path) -> tuple[float, float, float, float]:
-    """``(fx, fy, cx, cy)`` of an undistorted COLMAP camera; a distorted model raises an
-    :class:`InputError` naming ``source`` and telling the user to undistort."""
+def colmap_lens(camera: ColmapCamera, source: Path) -> tuple[tuple[float, float, float, float], Optional[Lens]]:
+    """``((fx, fy, cx, cy), lens)`` of a COLMAP camera: its pinhole part and its distortion
+    (``None`` for a pinhole model). A model n2f2 cannot undistort raises an
+    :class:`InputError` naming ``source`` and telling the user to undistort first."""
     model, p = camera.model, camera.params
-    if model not in _PERSPECTIVE_MODELS:
+    if model not in _MODELS:
         raise InputError(source, f"camera {camera.id} uses the {model} model, which n2f2 cannot "
-                                 f"render (only pinhole cameras); {UNDISTORT_HINT}")
-    ifx, ify, idist = _PERSPECTIVE_MODELS[model]
+                                 f"undistort; {UNDISTORT_HINT}")
     if not all(math.isfinite(v) for v in p):
         raise InputError(source, f"camera {camera.id} has NaN or infinite parameters {list(p)}")
-    if any(v != 0.0 for v in p[idist:]):
-        raise InputError(source, f"camera {camera.id} uses the distorted {model} model with "
-                                 f"non-zero distortion {list(p[idist:])}; {UNDISTORT_HINT}")
+    ifx, ify, make_lens = _MODELS[model]
     fx = p[ifx]
     fy = p[ify] if ify is not None else fx
     cx, cy = (p[1], p[2]) if ify is None else (p[2], p[3])
-    return fx, fy, cx, cy
+    extra = p[3:] if ify is None else p[4:]
+    if make_lens == "omega":
+        if any(extra):
+            raise InputError(source, f"camera {camera.id} uses the {model} model with omega = {extra[0]}, "
+                                     f"which n2f2 cannot undistort; {UNDISTORT_HINT}")
+        make_lens = None
+    lens = make_lens(extra) if make_lens is not None else None
+    return (fx, fy, cx, cy), lens
 
 
 def colmap_to_camera(camera: ColmapCamera, image: ColmapImage, source: Path,
                      intrinsics: Optional[tuple[float, float, float, float]] = None) -> Camera:
     """Build an n2f2 :class:`Camera` from a COLMAP camera and image (``source`` names the file
-    in error messages; ``intrinsics`` defaults to :func:`colmap_intrinsics` of ``camera``)."""
-    fx, fy, cx, cy = intrinsics if intrinsics is not None else colmap_intrinsics(camera, source)
+    in error messages; ``intrinsics`` defaults to the pinhole part from :func:`colmap_lens`,
+    without the distortion, which the caller must handle)."""
+    fx, fy, cx, cy = intrinsics if intrinsics is not None else colmap_lens(camera, source)[0]
     q = np.asarray(image.qvec, dtype=np.float64)
     t = np.asarray(image.tvec, dtype=np.float64)
     if not (np.isfinite(q).all() and np.isfinite(t).all()):

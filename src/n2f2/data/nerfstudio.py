@@ -6,9 +6,23 @@ Reading accepts:
 * Blender-style ``camera_angle_x`` (and ``camera_angle_y``) instead of focal lengths, with the
   image size then read from the image header, and extension-less ``file_path`` values
   (``./train/r_0`` -> ``./train/r_0.png``);
-* ``camera_model`` ``OPENCV``/``PINHOLE``/``SIMPLE_PINHOLE`` with zero distortion
-  (``k1..k4, p1, p2``); a non-zero distortion or a fisheye/equirectangular model is an
-  :class:`InputError` telling the user to undistort;
+* lens distortion, returned per frame as a :class:`~n2f2.data.undistort.Lens` (global keys,
+  overridden per frame) for :func:`~n2f2.data.load_scene` to undistort:
+
+  - ``camera_model`` ``OPENCV`` (the default), ``PINHOLE``, ``SIMPLE_PINHOLE``,
+    ``SIMPLE_RADIAL``, ``RADIAL``: nerfstudio's perspective model, radial ``k1, k2, k3``
+    (r^2, r^4, r^6) and tangential ``p1, p2``, which is OpenCV's ``(k1, k2, p1, p2, k3)``.
+    nerfstudio's ``k4`` here is an r^8 term OpenCV has no slot for (OpenCV's ``k4`` is a
+    denominator term), so a non-zero one is refused; so are ``k5, k6``. instant-ngp files
+    (no ``camera_model``) use ``k1, k2, p1, p2`` and read the same way.
+  - ``camera_model`` ``OPENCV_FISHEYE``, or instant-ngp's ``"is_fisheye": true``:
+    equidistant fisheye ``k1..k4``, OpenCV's ``cv2.fisheye`` model.
+  - anything else (``EQUIRECTANGULAR``, ``FISHEYE624``, instant-ngp ``latlong``,
+    ``equirectangular``, ``ftheta_p0``) is an :class:`InputError` telling the user to undistort;
+* frames whose image file is absent: kept as listed by default; with ``missing="error"`` an
+  :class:`InputError` naming how many and which, with ``missing="skip"`` dropped with a
+  one-line warning (:func:`~n2f2.data.scene.keep_present_images`; :func:`~n2f2.data.load_scene`
+  uses one of these two);
 * ``ply_file_path``: sparse points with colours, read with a small PLY reader
   (:func:`read_ply_points`, ascii and binary, ``vertex`` element with ``x y z`` and optional
   ``red green blue``).
@@ -36,11 +50,15 @@ import numpy as np
 from ..cameras import Camera, from_opengl_c2w
 from ..errors import InputError
 from ..io import atomic_path, write_json
+from .scene import keep_present_images
+from .undistort import Lens
 
 TRANSFORMS_NAME = "transforms.json"
 _INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
-_DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
-_PINHOLE_MODELS = {"OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "PERSPECTIVE"}
+_DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "k5", "k6", "p1", "p2")
+_PERSPECTIVE_MODELS = {"OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "PERSPECTIVE", "SIMPLE_RADIAL", "RADIAL"}
+_FISHEYE_MODELS = {"OPENCV_FISHEYE"}
+_UNSUPPORTED_LENS_KEYS = ("latlong", "equirectangular", "ftheta_p0")  # instant-ngp lens modes
 UNDISTORT_HINT = ("undistort the images first (e.g. process the data with COLMAP's "
                   "`colmap image_undistorter`) and write pinhole intrinsics")
 
@@ -48,11 +66,12 @@ UNDISTORT_HINT = ("undistort the images first (e.g. process the data with COLMAP
 class TransformsData(NamedTuple):
     """What a ``transforms.json`` describes, at full resolution and in file order."""
 
-    cameras: list[Camera]
+    cameras: list[Camera]  # the pinhole part of each frame's camera
     image_paths: list[Path]  # absolute, resolved against the json's folder
     points: Optional[np.ndarray]  # [P, 3] float64 from ply_file_path, or None
     colors: Optional[np.ndarray]  # [P, 3] uint8, or None
     applied_transform: Optional[np.ndarray]  # [3|4, 4] as recorded (not applied)
+    lenses: list[Optional[Lens]]  # per frame: its distortion, None for none
 
 
 def transforms_path(path: str | Path) -> Path:
@@ -62,8 +81,13 @@ def transforms_path(path: str | Path) -> Path:
 
 
 # ================================================================================== reading
-def read_transforms(path: str | Path) -> TransformsData:
-    """Read a ``transforms.json`` (or the one inside folder ``path``); errors name the file."""
+def read_transforms(path: str | Path, missing: str = "keep") -> TransformsData:
+    """Read a ``transforms.json`` (or the one inside folder ``path``); errors name the file.
+
+    Frames whose image is absent are kept (``missing="keep"``), raise one :class:`InputError`
+    naming them (``"error"``), or are dropped with a warning line (``"skip"``)."""
+    if missing not in ("keep", "error", "skip"):
+        raise ValueError(f"missing must be 'keep', 'error' or 'skip', got {missing!r}")
     path = transforms_path(path)
     if not path.is_file():
         raise InputError(path, "file does not exist (a nerfstudio scene needs transforms.json)")
@@ -79,13 +103,20 @@ def read_transforms(path: str | Path) -> TransformsData:
         raise InputError(path, "'frames' is empty: the scene has no images")
     root = path.parent
 
-    cameras, image_paths = [], []
-    for index, frame in enumerate(meta["frames"]):
+    frames = list(enumerate(meta["frames"]))
+    for index, frame in frames:
         if not isinstance(frame, dict):
             raise InputError(path, f"frame {index} is not a JSON object")
-        image_path = _frame_image_path(path, root, frame, index)
-        cameras.append(_frame_camera(path, meta, frame, index, image_path))
-        image_paths.append(image_path)
+    all_paths = [_frame_image_path(path, root, frame, index) for index, frame in frames]
+    keep = (range(len(frames)) if missing == "keep"
+            else keep_present_images(all_paths, path, root, skip_missing=missing == "skip"))
+    cameras, lenses, image_paths = [], [], []
+    for k in keep:
+        index, frame = frames[k]
+        camera, lens = _frame_camera(path, meta, frame, index, all_paths[k])
+        cameras.append(camera)
+        lenses.append(lens)
+        image_paths.append(all_paths[k])
 
     points = colors = None
     if meta.get("ply_file_path"):
@@ -97,7 +128,7 @@ def read_transforms(path: str | Path) -> TransformsData:
     applied = None
     if "applied_transform" in meta:
         applied = _matrix(path, meta["applied_transform"], "applied_transform")
-    return TransformsData(cameras, image_paths, points, colors, applied)
+    return TransformsData(cameras, image_paths, points, colors, applied, lenses)
 
 
 def _frame_image_path(path: Path, root: Path, frame: dict, index: int) -> Path:
@@ -130,20 +161,41 @@ def _number(path: Path, value: Any, what: str) -> float:
     return float(value)
 
 
-def _frame_camera(path: Path, meta: dict, frame: dict, index: int, image_path: Path) -> Camera:
+def _frame_lens(path: Path, meta: dict, frame: dict, where: str, get) -> Optional[Lens]:
+    """The frame's distortion (see the module docstring), or None when it has none."""
+    for key in _UNSUPPORTED_LENS_KEYS:
+        if key in frame or key in meta:
+            raise InputError(path, f"{where}: the instant-ngp {key!r} lens is not supported; {UNDISTORT_HINT}")
+    model = frame.get("camera_model", meta.get("camera_model"))
+    if model is None:  # instant-ngp marks a fisheye lens with a flag instead
+        model = "OPENCV_FISHEYE" if frame.get("is_fisheye", meta.get("is_fisheye", False)) else "OPENCV"
+    model = str(model).upper()
+    k = {key: get(key) or 0.0 for key in _DISTORTION_KEYS}
+    if model in _FISHEYE_MODELS:
+        bad = {key: k[key] for key in ("p1", "p2", "k5", "k6") if k[key]}
+        if bad:
+            raise InputError(path, f"{where}: the {model} model has no {', '.join(bad)} terms, got {bad}")
+        return Lens.fisheye(f"transforms.json {model}", k["k1"], k["k2"], k["k3"], k["k4"])
+    if model not in _PERSPECTIVE_MODELS:
+        raise InputError(path, f"{where}: camera_model {model} is not supported; {UNDISTORT_HINT}")
+    bad = {key: k[key] for key in ("k4", "k5", "k6") if k[key]}
+    if bad:
+        raise InputError(path, f"{where}: distortion terms {bad} of the {model} model have no OpenCV "
+                               f"equivalent (nerfstudio's k4 is an r^8 term); {UNDISTORT_HINT}")
+    lens = Lens.perspective(f"transforms.json {model}", k1=k["k1"], k2=k["k2"], p1=k["p1"], p2=k["p2"],
+                            k3=k["k3"])
+    return None if lens.is_pinhole else lens
+
+
+def _frame_camera(path: Path, meta: dict, frame: dict, index: int,
+                  image_path: Path) -> tuple[Camera, Optional[Lens]]:
     where = f"frame {index} ({frame.get('file_path')})"
 
     def get(key: str) -> Optional[float]:
         value = frame.get(key, meta.get(key))
         return None if value is None else _number(path, value, f"{where}: {key}")
 
-    model = str(frame.get("camera_model", meta.get("camera_model", "OPENCV"))).upper()
-    if model not in _PINHOLE_MODELS:
-        raise InputError(path, f"{where}: camera_model {model} is not a pinhole camera; {UNDISTORT_HINT}")
-    distortion = {k: get(k) for k in _DISTORTION_KEYS}
-    bad = {k: v for k, v in distortion.items() if v}
-    if bad:
-        raise InputError(path, f"{where}: non-zero lens distortion {bad}; {UNDISTORT_HINT}")
+    lens = _frame_lens(path, meta, frame, where, get)
 
     matrix = frame.get("transform_matrix")
     if matrix is None:
@@ -168,7 +220,7 @@ def _frame_camera(path: Path, meta: dict, frame: dict, index: int, image_path: P
     if w != int(w) or h != int(h):
         raise InputError(path, f"{where}: image size must be whole pixels, got w={w}, h={h}")
     try:
-        return from_opengl_c2w(c2w, fx, fy, cx, cy, int(w), int(h))
+        return from_opengl_c2w(c2w, fx, fy, cx, cy, int(w), int(h)), lens
     except ValueError as e:
         raise InputError(path, f"{where}: {e}") from None
 

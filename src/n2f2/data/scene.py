@@ -6,15 +6,19 @@ matches LangSplat's label convention (``frame_00001`` is index 0).
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
-from typing import Optional
+from typing import Optional, Sequence
 
 import numpy as np
 
 from ..cameras import Camera
 from ..errors import InputError
+
+# Missing images named in an error or warning before "and N more".
+MISSING_NAMES_SHOWN = 5
 
 
 @dataclass
@@ -22,7 +26,10 @@ class Scene:
     """Cameras, lazily loaded images, optional sparse points and optional ground truth.
 
     ``cameras[i]`` already accounts for ``downscale``; :meth:`image` returns the image resized
-    to that camera's size.
+    to that camera's size. Cameras are always pinhole: views with lens distortion were
+    undistorted on load, and then ``image_paths[i]`` is the undistorted copy in the cache,
+    ``original_image_paths[i]`` the user's file and ``undistorted_from`` names the lens
+    model(s) (see :mod:`n2f2.data.undistort`).
     """
 
     root: Path
@@ -33,11 +40,22 @@ class Scene:
     downscale: float = 1.0
     source_format: str = ""  # "colmap-binary", "colmap-text", "nerfstudio"
     ground_truth: Optional["GroundTruth"] = None
+    undistorted_from: Optional[str] = None  # e.g. "COLMAP OPENCV"; None when no view was distorted
+    original_image_paths: Optional[list[Path]] = None  # the user's images, when some were undistorted
     _cache: dict = field(default_factory=dict, repr=False)
 
     def __post_init__(self) -> None:
         if len(self.cameras) != len(self.image_paths):
             raise ValueError("scene needs one camera per image")
+        if self.original_image_paths is not None and len(self.original_image_paths) != len(self.image_paths):
+            raise ValueError("scene needs one original image path per image")
+
+    @property
+    def num_undistorted(self) -> int:
+        """How many views were undistorted on load."""
+        if self.original_image_paths is None:
+            return 0
+        return sum(a != b for a, b in zip(self.image_paths, self.original_image_paths))
 
     def __len__(self) -> int:
         return len(self.cameras)
@@ -72,6 +90,38 @@ class Scene:
         """Scene extent as 3DGS defines it: 1.1 x the largest camera distance from their mean."""
         centers = np.stack([c.center for c in self.cameras])
         return float(1.1 * np.linalg.norm(centers - centers.mean(axis=0), axis=1).max())
+
+
+def keep_present_images(image_paths: Sequence[Path], listing: Path, root: Path,
+                        skip_missing: bool = False) -> list[int]:
+    """Indices of the views whose image file exists. When some are missing: one
+    :class:`InputError` on ``listing`` naming how many and which, or, with ``skip_missing``,
+    one warning line on stderr and the rest are kept (all missing is still an error)."""
+    present = [i for i, p in enumerate(image_paths) if p.is_file()]
+    missing = [image_paths[i] for i in sorted(set(range(len(image_paths))) - set(present))]
+    if not missing:
+        return present
+    shown = sorted(_relative_name(p, root) for p in missing)
+    names = ", ".join(shown[:MISSING_NAMES_SHOWN])
+    if len(shown) > MISSING_NAMES_SHOWN:
+        names += f" and {len(shown) - MISSING_NAMES_SHOWN} more"
+    n, total = len(missing), len(image_paths)
+    if not present:
+        raise InputError(listing, f"none of the {total} images it lists exists: {names}")
+    if not skip_missing:
+        verb = "does" if n == 1 else "do"
+        raise InputError(listing, f"{n} of the {total} images it lists {verb} not exist: {names} "
+                                  f"(--skip-missing loads the other views)")
+    print(f"warning: skipping {n} of {total} views listed in {listing.name} whose images do not exist: {names}",
+          file=sys.stderr)
+    return present
+
+
+def _relative_name(path: Path, root: Path) -> str:
+    try:
+        return path.relative_to(root).as_posix()
+    except ValueError:
+        return path.as_posix()
 
 
 @dataclass

@@ -12,24 +12,30 @@ def register(subparsers) -> None:
         description="Fit a 3D Gaussian Splatting model to a COLMAP or nerfstudio scene. Writes "
                     "DIR/gaussians.ply (INRIA 3DGS layout), DIR/fit_report.json and DIR/checkpoint.pt.",
     )
-    p.add_argument("data", metavar="DATA", help="scene folder (COLMAP sparse/0 or nerfstudio transforms.json)")
+    p.add_argument("data", metavar="DATA", help="scene folder (COLMAP sparse/0 or nerfstudio transforms.json), "
+                   "or a folder of photos, posed first by `n2f2 sfm` into DIR/sfm")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--preset", choices=["cpu", "paper"], default="cpu",
                    help="cpu: a few minutes for small scenes (default); paper: 3DGS's 30k steps")
     p.add_argument("--steps", type=int, default=None, help="number of optimisation steps (overrides the preset)")
     p.add_argument("--resume", action="store_true", help="continue from DIR/checkpoint.pt")
     p.add_argument("--downscale", type=float, default=1.0, help="image downscale factor, as 3DGS -r (default 1)")
-    p.add_argument("--init", choices=["points", "random"], default=None,
-                   help="initialisation (default: sparse points when the scene has them, else random)")
+    p.add_argument("--init", default=None, metavar="points|random|PLY",
+                   help="initialisation: the scene's sparse points, random Gaussians in the camera frusta, or "
+                        "an INRIA 3DGS PLY trained elsewhere in the same world frame, fitted further "
+                        "(default: sparse points when the scene has them, else random)")
     p.add_argument("--checkpoint-every", type=int, default=None, metavar="N",
                    help="write a checkpoint every N steps (default: the preset's; 0: only at the end)")
     p.add_argument("--max-gaussians", type=int, default=None, metavar="N", help="cap on the Gaussian count")
     p.add_argument("--depth-spread", type=float, default=None, metavar="W", dest="depth_spread_weight",
                    help="weight of the depth-spread regulariser (cpu preset 1.5, paper 0 = off as 3DGS)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--skip-missing", action="store_true",
+                   help="drop views whose image file is missing (default: a missing image is an error)")
     p.add_argument("--device", default="cpu", help="torch device (default cpu)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
+    _register_render(subparsers)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -48,17 +54,89 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(None, f"--downscale must be > 0, got {args.downscale}")
     # A resumed run keeps the checkpoint's schedule; only explicit flags change it.
     base = saved_config(args.out) if args.resume else None
-    config = base or replace(FitConfig.preset(args.preset), seed=args.seed)
-    config = replace(config, device=args.device)
+    from pathlib import Path
+
+    from ..data.sfm import posed_scene_path
+
+    data = posed_scene_path(Path(args.data), Path(args.out) / "sfm", progress=not args.quiet)  # photos: pose them
+    scene = load_scene(data, downscale=args.downscale, skip_missing=args.skip_missing)
+    if base is None:
+        base = replace(FitConfig.preset(args.preset), seed=args.seed)
+        if args.preset == "cpu":
+            base = base.sized_for(scene, steps=args.steps)  # a --steps keeps the schedule's fractions
+    config = replace(base, device=args.device)
     overrides = {k: getattr(args, k) for k in ("steps", "checkpoint_every", "max_gaussians", "depth_spread_weight")
                  if getattr(args, k) is not None}
     config = replace(config, **overrides)
-    scene = load_scene(args.data, downscale=args.downscale)
-    report = fit_gaussians(scene, config, args.out, resume=args.resume, init=args.init, progress=not args.quiet)
+    init = args.init
+    if init is not None and init not in ("points", "random"):
+        from pathlib import Path
+
+        from .ply import read_ply
+
+        if Path(init).suffix.lower() != ".ply":
+            raise InputError(None, f"--init must be points, random or a .ply file, got {init!r}")
+        init = read_ply(init)
+    report = fit_gaussians(scene, config, args.out, resume=args.resume, init=init, progress=not args.quiet)
     test = "n/a" if report.test_psnr is None else f"{report.test_psnr:.2f} dB"
     depth = "" if report.depth_median_rel_extent is None else \
         f", median depth error {100 * report.depth_median_rel_extent:.2f}% of extent"
     print(f"fit-gaussians: {report.steps} steps, {report.num_gaussians} Gaussians, "
           f"train PSNR {report.train_psnr:.2f} dB, test PSNR {test}{depth}, "
           f"{report.wall_time_s:.0f} s -> {args.out}")
+    return 0
+
+
+def _register_render(subparsers) -> None:
+    p = subparsers.add_parser(
+        "render",
+        help="render a Gaussian PLY (n2f2's or one trained elsewhere) from a ring of orbit cameras",
+        description="Render an INRIA 3DGS PLY (written by n2f2, 3DGS, gsplat or nerfstudio) from NUM cameras "
+                    "evenly spaced around the Gaussians' robust centre, without the capture's poses. Writes "
+                    "DIR/orbit_XX.png and the float32 renders DIR/orbit_XX.npy, plus DIR/cameras.json.",
+    )
+    p.add_argument("ply", metavar="PLY", help="Gaussians in the INRIA 3DGS PLY layout")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    p.add_argument("--views", type=int, default=8, help="number of orbit views (default 8)")
+    p.add_argument("--elevation", type=float, default=20.0, help="degrees above the horizon (default 20)")
+    p.add_argument("--up", type=float, nargs=3, default=(0.0, -1.0, 0.0), metavar=("X", "Y", "Z"),
+                   help="world up vector (default 0 -1 0: COLMAP worlds, whose cameras look down +z with y down)")
+    p.add_argument("--size", type=int, nargs=2, default=(512, 384), metavar=("W", "H"), help="image size")
+    p.add_argument("--fov", type=float, default=50.0, help="horizontal field of view in degrees (default 50)")
+    p.add_argument("--background", type=float, nargs=3, default=(1.0, 1.0, 1.0), metavar=("R", "G", "B"),
+                   help="background colour in [0, 1] (default white)")
+    p.set_defaults(func=run_render)
+
+
+def run_render(args: argparse.Namespace) -> int:
+    import math
+    from pathlib import Path
+
+    from ..errors import InputError
+    from ..io import write_json, write_npy, write_png
+    from .orbit import orbit_cameras, render_views
+    from .ply import read_ply
+
+    if not 1 <= args.views <= 360:
+        raise InputError(None, f"--views must be in [1, 360], got {args.views}")
+    w, h = args.size
+    if not (8 <= w <= 4096 and 8 <= h <= 4096):
+        raise InputError(None, f"--size must be between 8 and 4096 pixels per side, got {w} {h}")
+    if not 1.0 <= args.fov <= 170.0:
+        raise InputError(None, f"--fov must be in [1, 170] degrees, got {args.fov}")
+    if not all(math.isfinite(v) for v in (*args.up, args.elevation)) or not any(args.up):
+        raise InputError(None, "--up must be a finite non-zero vector and --elevation finite")
+    if not all(0.0 <= v <= 1.0 for v in args.background):
+        raise InputError(None, f"--background must be in [0, 1], got {args.background}")
+    g = read_ply(args.ply)
+    g.sh_degree = g.max_sh_degree
+    cameras = orbit_cameras(g, args.views, elevation=args.elevation, up=tuple(args.up), width=w, height=h,
+                            fov=args.fov)
+    out = Path(args.out)
+    for k, (cam, image) in enumerate(zip(cameras, render_views(g, cameras, tuple(args.background)))):
+        write_npy(out / f"orbit_{k:02d}.npy", image)
+        write_png(out / f"orbit_{k:02d}.png", image)
+    write_json(out / "cameras.json", [{"K": c.K.tolist(), "world_to_camera": c.world_to_camera.tolist(),
+                                       "width": c.width, "height": c.height} for c in cameras])
+    print(f"render: {len(cameras)} orbit views of {g.num} Gaussians -> {out}")
     return 0

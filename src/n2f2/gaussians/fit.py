@@ -32,13 +32,14 @@ from ..config import ConfigDict
 from ..data.scene import Scene
 from ..errors import InputError
 from ..io import save_torch, write_json
-from .init import init_from_points, init_random_in_frusta
+from .init import init_from_points, init_random_in_frusta, random_points_in_frusta, uncovered_cells
 from .model import Gaussians, inverse_sigmoid, quat_to_rotmat
 from .ply import write_ply
 
 CHECKPOINT_NAME = "checkpoint.pt"
 PLY_NAME = "gaussians.ply"
 REPORT_NAME = "fit_report.json"
+TEST_RENDERS_DIR = "test_views"  # held-out renders beside their photos (PNG + float32 .npy)
 _CHECKPOINT_FORMAT = "n2f2-gaussians-checkpoint-v1"
 
 
@@ -94,6 +95,27 @@ class FitConfig(ConfigDict):
     # Initialisation when the scene has no sparse points (random inside the frusta).
     random_init_count: int = 100_000
     random_init_depth: tuple[float, float] = (0.2, 1.6)  # z-depth range, x extent
+    # Largest initial scale, x extent. k-NN distances of sparse or random points can be huge
+    # (far walls with few points), and one such Gaussian near a camera covers the whole screen
+    # and makes a step many times slower. None: no clamp, as 3DGS.
+    init_max_scale: Optional[float] = None
+    # With sparse points, also start random Gaussians where they miss: plain walls and backdrops
+    # get no SfM points, and densification only grows Gaussians near existing ones. This many
+    # per point, times the fraction of the training views' grid cells (16 along the longer side)
+    # that no point projects into, drawn through random pixels of those cells (coloured by
+    # them) between the median and twice the 95th percentile of the points' depths. Generated
+    # scenes, whose points cover every surface, get almost none. 0: points only, as 3DGS.
+    init_extra_random: float = 0.0
+
+    # Coarse to fine: up to step ``coarse_until[i] * steps`` the views are rendered and compared
+    # at a further ``coarse_downscale[i]`` (images area-averaged). A step's cost scales with its
+    # pixels, and the early model is blurry anyway. Empty: full resolution throughout, as 3DGS.
+    coarse_until: tuple[float, ...] = ()
+    coarse_downscale: tuple[float, ...] = ()
+    # Prune Gaussians whose screen radius exceeded this fraction of the image size since the
+    # last densification (gsplat's prune_scale2d), bounding the screen area any one can cover.
+    # None: off, as in 3DGS before its first opacity reset.
+    prune_screen_size: Optional[float] = None
 
     # Evaluation and bookkeeping.
     test_every: int = 8  # hold out every n-th view when scene.json lists no test views; 0: none
@@ -106,6 +128,36 @@ class FitConfig(ConfigDict):
     def paper() -> "FitConfig":
         """The 30k-step schedule of the 3DGS paper (for GPU users)."""
         return FitConfig()
+
+    def sized_for(self, scene: Scene, steps: Optional[int] = None) -> "FitConfig":
+        """This schedule with its scene-dependent constants derived from ``scene`` (the cpu
+        preset's rule; the constants above give the demo scene's 1500 steps and 12k cap):
+
+        * Gaussian cap: ``GAUSSIANS_PER_PIXEL`` per pixel of a (median) view, the detail an
+          image can show;
+        * steps: ``EPOCHS`` passes over the training views, within [MIN_STEPS, MAX_STEPS];
+          the densification window, SH schedule and position-rate decay keep their fractions
+          of the run (also when ``steps`` is given);
+        * views larger than ``COARSE_PIXELS`` are fitted at about that many pixels for the
+          first ``COARSE_FRACTION`` of the steps (a step's cost scales with its pixels)."""
+        train, _ = split_views(scene, self.test_every)
+        pixels = float(np.median([c.width * c.height for c in scene.cameras]))
+        if steps is None:
+            steps = int(np.clip(round(EPOCHS * len(train), -2), MIN_STEPS, MAX_STEPS))
+        ref = FitConfig.cpu()  # the fractions of the 1500-step schedule
+        frac = steps / ref.steps
+        coarse = math.sqrt(pixels / COARSE_PIXELS)
+        return replace(
+            self,
+            steps=steps,
+            max_gaussians=max(2000, int(round(GAUSSIANS_PER_PIXEL * pixels))),
+            means_lr_max_steps=steps,
+            sh_degree_interval=max(1, round(ref.sh_degree_interval * frac)),
+            densify_from=round(ref.densify_from * frac),
+            densify_until=round(ref.densify_until * frac),
+            coarse_until=(COARSE_FRACTION,) if coarse > 1.25 else (),
+            coarse_downscale=(coarse,) if coarse > 1.25 else (),
+        )
 
     @staticmethod
     def cpu() -> "FitConfig":
@@ -145,6 +197,14 @@ class FitConfig(ConfigDict):
         )
 
 
+# How the cpu preset sizes itself to a scene (FitConfig.sized_for).
+GAUSSIANS_PER_PIXEL = 0.625  # Gaussian cap per pixel of one view (160x120 -> 12k)
+EPOCHS = 43.0  # passes over the training views (35 views -> 1500 steps; rounded to 100s)
+MIN_STEPS, MAX_STEPS = 1000, 3000
+COARSE_PIXELS = 25_000  # views larger than this start coarse, at about this many pixels
+COARSE_FRACTION = 0.5  # ... for this fraction of the steps
+
+
 @dataclass
 class FitReport:
     """What :func:`fit_gaussians` writes to ``fit_report.json``."""
@@ -162,6 +222,9 @@ class FitReport:
     depth_median_abs: Optional[float] = None  # median |expected depth - GT| over alpha > 0.5
     depth_median_rel_extent: Optional[float] = None  # the same divided by ``extent``
     loss_curve: list[tuple[int, float]] = field(default_factory=list)  # (step, loss), subsampled
+    step_time_median_s: Optional[float] = None  # wall time per step of this invocation
+    step_time_p95_s: Optional[float] = None
+    test_psnr_per_view: dict = field(default_factory=dict)  # image name -> dB (held-out views)
     threads: int = 1
     config: dict = field(default_factory=dict)
 
@@ -384,6 +447,9 @@ def densify_and_prune(
 
     prune = torch.cat([split, torch.zeros(n_added, dtype=torch.bool, device=split.device)])
     prune |= torch.sigmoid(merged["opacity_logits"]) < config.prune_opacity
+    if config.prune_screen_size:
+        screen = torch.cat([stats.max_radii, stats.max_radii[clone], stats.max_radii[split].repeat(2) / 1.6])
+        prune |= screen > config.prune_screen_size
     if prune_big:
         prune |= torch.exp(merged["log_scales"]).max(dim=1).values > config.prune_world_size * extent
     keep = ~prune
@@ -427,18 +493,57 @@ def split_views(scene: Scene, test_every: int) -> tuple[list[int], list[int]]:
 def initial_gaussians(scene: Scene, config: FitConfig, init: Union[None, str, Gaussians]) -> Gaussians:
     if isinstance(init, Gaussians):
         return init.clone().to(config.device)
+    g = _initial_gaussians(scene, config, init)
+    if config.init_max_scale is not None:
+        with torch.no_grad():
+            limit = math.log(config.init_max_scale * scene.extent())
+            g.set_params(log_scales=g.log_scales.clamp(max=limit))
+    return g
+
+
+def _initial_gaussians(scene: Scene, config: FitConfig, init: Union[None, str]) -> Gaussians:
     kind = init or ("points" if scene.points is not None and len(scene.points) else "random")
+    train, _ = split_views(scene, config.test_every)
+    cameras = [scene.cameras[i] for i in train]
+
+    def image(k: int) -> np.ndarray:  # k indexes ``cameras``
+        return scene.image(train[k])
+
     if kind == "points":
         if scene.points is None or not len(scene.points):
             raise InputError(scene.root, "--init points: the scene has no sparse points (use --init random)")
-        colors = scene.point_colors if scene.point_colors is not None else np.full_like(scene.points, 128, np.uint8)
-        return init_from_points(scene.points, colors, sh_degree=config.sh_degree, device=config.device)
+        points = np.asarray(scene.points, dtype=np.float64)
+        colors = scene.point_colors if scene.point_colors is not None else np.full_like(points, 128, np.uint8)
+        if config.init_extra_random > 0:
+            cells = [uncovered_cells(points, cam) for cam in cameras]
+            n_extra = int(round(config.init_extra_random * len(points) * np.mean([c.mean() for c in cells])))
+            depths = _point_depths(points, cameras)
+            if n_extra > 0 and len(depths):
+                near, far = float(np.median(depths)), 2.0 * float(np.percentile(depths, 95))
+                extra, extra_colors = random_points_in_frusta(cameras, n_extra, near, far, seed=config.seed,
+                                                              images=image, cells=cells)
+                points, colors = np.concatenate([points, extra]), np.concatenate([colors, extra_colors])
+        return init_from_points(points, colors, sh_degree=config.sh_degree, device=config.device)
     if kind == "random":
         ext = scene.extent()
         near, far = (d * ext for d in config.random_init_depth)
-        return init_random_in_frusta(scene.cameras, config.random_init_count, near, far, seed=config.seed,
-                                     sh_degree=config.sh_degree, device=config.device)
+        return init_random_in_frusta(cameras, config.random_init_count, near, far, seed=config.seed,
+                                     sh_degree=config.sh_degree, device=config.device, images=image)
     raise ValueError(f"unknown init {kind!r}: use 'points', 'random' or a Gaussians model")
+
+
+def _point_depths(points: np.ndarray, cameras: list) -> np.ndarray:  # [P, 3] -> [M]
+    """z-depths of the points in front of each camera that project inside its image."""
+    out = []
+    for cam in cameras:
+        pc = points @ cam.R.T + cam.t
+        z = pc[:, 2]
+        front = z > 1e-9
+        u = cam.fx * pc[front, 0] / z[front] + cam.cx
+        v = cam.fy * pc[front, 1] / z[front] + cam.cy
+        inside = (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+        out.append(z[front][inside])
+    return np.concatenate(out) if out else np.zeros(0)
 
 
 class _ViewSampler:
@@ -454,6 +559,21 @@ class _ViewSampler:
 
 
 # ------------------------------------------------------------------------------------ fitting
+def resolution_factor(config: FitConfig, step: int) -> float:
+    """The further downscale of step ``step`` (1-based) under the coarse-to-fine schedule."""
+    for until, factor in zip(config.coarse_until, config.coarse_downscale):
+        if step <= until * config.steps:
+            return float(factor)
+    return 1.0
+
+
+def downsample_image(image: Tensor, height: int, width: int) -> Tensor:  # [H, W, C] -> [height, width, C]
+    """Area average (each output pixel the mean of the input pixels it covers)."""
+    if image.shape[:2] == (height, width):
+        return image
+    return F.interpolate(image.permute(2, 0, 1)[None], size=(height, width), mode="area")[0].permute(1, 2, 0)
+
+
 def _render(g: Gaussians, camera, config: FitConfig):
     from ..render import render_rgb
 
@@ -574,11 +694,23 @@ def fit_gaussians(
     t_train = time.perf_counter()
     ema = None
     step = start
+    coarse_targets: dict[tuple[int, float], Tensor] = {}
+    step_times: list[float] = []
     for step in range(start + 1, end + 1):
+        t_step = time.perf_counter()
         if step % config.sh_degree_interval == 0 and g.sh_degree < g.max_sh_degree:
             g.sh_degree += 1
         view = sampler.next()
         camera = scene.cameras[view]
+        target = targets[view]
+        factor = resolution_factor(config, step)
+        if factor != 1.0:
+            camera = camera.downscaled(factor)
+            if (view, factor) not in coarse_targets:
+                coarse_targets[(view, factor)] = downsample_image(target, camera.height, camera.width)
+            target = coarse_targets[(view, factor)]
+        elif coarse_targets:
+            coarse_targets.clear()  # the schedule has ended
         if config.depth_spread_weight > 0:
             out, spread = _render_with_depth_spread(g, camera, config, extent)
             image = out.features[..., :3]
@@ -586,7 +718,7 @@ def fit_gaussians(
             out, spread = _render(g, camera, config), None
             image = out.features  # not clamped: 3DGS trains on the raw composite
         out.means2d.retain_grad()
-        loss = photometric_loss(image, targets[view], config.lambda_dssim)
+        loss = photometric_loss(image, target, config.lambda_dssim)
         if spread is not None:
             loss = loss + config.depth_spread_weight * depth_spread_penalty(spread)
         g.zero_grad(set_to_none=True)
@@ -606,7 +738,7 @@ def fit_gaussians(
             if step % config.log_every == 0 or step == 1:
                 loss_curve.append((step, lv))
             if step % config.log_every == 0 and progress:
-                bar.set_postfix(loss=f"{ema:.4f}", psnr=f"{psnr(image.detach().clamp(0, 1), targets[view]):.2f}",
+                bar.set_postfix(loss=f"{ema:.4f}", psnr=f"{psnr(image.detach().clamp(0, 1), target):.2f}",
                                 G=g.num, refresh=False)
         if step < config.densify_until:
             if step > config.densify_from and step % config.densify_every == 0:
@@ -615,6 +747,7 @@ def fit_gaussians(
                 stats = DensifyStats.zeros(g.num, device)
             if config.opacity_reset_every and step % config.opacity_reset_every == 0:
                 reset_opacity(g, adam)
+        step_times.append(time.perf_counter() - t_step)
         bar.update(1)
         if config.checkpoint_every and step % config.checkpoint_every == 0:
             train_time += time.perf_counter() - t_train
@@ -625,11 +758,14 @@ def fit_gaussians(
     final = max(step, start)
     save_checkpoint(final)
 
-    report = evaluate(g, scene, train_views, test_views, config, extent)
+    report = evaluate(g, scene, train_views, test_views, config, extent, renders_dir=out_dir / TEST_RENDERS_DIR)
     report.update(steps=final, train_time_s=train_time, skipped_steps=skipped,
                   resumed_from=None if ck is None else int(ck["step"]),
                   loss_curve=_subsample(loss_curve, 200), config=config.to_dict(),
                   threads=torch.get_num_threads())
+    if step_times:
+        report.update(step_time_median_s=float(np.median(step_times)),
+                      step_time_p95_s=float(np.percentile(step_times, 95)))
     write_ply(out_dir / PLY_NAME, g)  # refuses non-finite values (cannot happen: steps are guarded)
     report["wall_time_s"] = time.perf_counter() - t_start
     result = FitReport(**report)
@@ -646,9 +782,13 @@ def _subsample(curve: list, n: int) -> list:
 
 @torch.no_grad()
 def evaluate(g: Gaussians, scene: Scene, train_views: list[int], test_views: list[int],
-             config: FitConfig, extent: float) -> dict:
+             config: FitConfig, extent: float, renders_dir: Optional[Path] = None) -> dict:
     """Mean PSNR over train and test views; with ground truth, the median absolute error of the
-    rendered expected depth over pixels with alpha > 0.5 of the test views (train views if none)."""
+    rendered expected depth over pixels with alpha > 0.5 of the test views (train views if none).
+    With ``renders_dir``, each held-out view is written there as ``<stem>.png`` (render on the
+    left, photo on the right) and ``<stem>.npy`` (the render, float32 [H, W, 3])."""
+    from ..io import write_npy, write_png
+
     device = torch.device(config.device)
 
     def view_psnr(i: int):
@@ -659,11 +799,19 @@ def evaluate(g: Gaussians, scene: Scene, train_views: list[int], test_views: lis
     test_psnr, errors = None, []
     depth_views = test_views or train_views
     outs = {}
+    per_view = {}
     if test_views:
         vals = []
         for i in test_views:
             v, outs[i] = view_psnr(i)
             vals.append(v)
+            per_view[scene.image_names[i]] = v
+            if renders_dir is not None:
+                render = outs[i].features.clamp(0, 1).cpu().numpy().astype(np.float32)
+                stem = Path(scene.image_names[i]).stem
+                write_npy(renders_dir / f"{stem}.npy", render)
+                pair = np.concatenate([render, scene.image(i)], axis=1)
+                write_png(renders_dir / f"{stem}.png", (pair * 255.0 + 0.5).astype(np.uint8))
         test_psnr = float(np.mean(vals))
     gt = scene.ground_truth
     depth_abs = depth_rel = None
@@ -677,6 +825,7 @@ def evaluate(g: Gaussians, scene: Scene, train_views: list[int], test_views: lis
             depth_abs = float(np.median(errors))
             depth_rel = depth_abs / extent
     return {"num_gaussians": g.num, "train_psnr": train_psnr, "test_psnr": test_psnr, "test_views": list(test_views),
+            "test_psnr_per_view": per_view,
             "extent": extent, "depth_median_abs": depth_abs, "depth_median_rel_extent": depth_rel}
 
 

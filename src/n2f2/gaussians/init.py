@@ -3,7 +3,9 @@ inside the camera frusta (for scenes without points)."""
 
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Callable, Optional, Sequence
+
+import math
 
 import numpy as np
 import torch
@@ -52,6 +54,71 @@ def init_from_points(
                       torch.as_tensor(knn_scale(points), dtype=torch.float32), sh_degree, device)
 
 
+def uncovered_cells(
+    points: np.ndarray,  # [P, 3] world
+    camera: Camera,
+    cells: int = 16,  # cells along the longer image side
+) -> np.ndarray:  # [gh, gw] bool
+    """The cells of a ``cells``-wide grid over the image that no point projects into: the parts
+    of a view that sparse points miss (plain walls, backdrops, sky)."""
+    size = max(camera.width, camera.height) / cells
+    gw, gh = math.ceil(camera.width / size), math.ceil(camera.height / size)
+    uv, z = camera.project(np.asarray(points, dtype=np.float64))
+    ok = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
+    covered = np.zeros((gh, gw), dtype=bool)
+    covered[np.minimum((uv[ok, 1] / size).astype(int), gh - 1), np.minimum((uv[ok, 0] / size).astype(int), gw - 1)] = True
+    return ~covered
+
+
+def random_points_in_frusta(
+    cameras: Sequence[Camera],
+    n: int,  # number of points
+    near: float,  # z-depth range the points are drawn from, in world units
+    far: float,
+    seed: int = 0,
+    images: Optional[Callable[[int], np.ndarray]] = None,  # view index -> float [H, W, 3] in [0, 1]
+    cells: Optional[Sequence[np.ndarray]] = None,  # per camera [gh, gw] bool: where to draw (a grid)
+) -> tuple[np.ndarray, np.ndarray]:  # [n, 3] float64, [n, 3] uint8
+    """``n`` points at random pixels of random cameras, at a z-depth uniform in [near, far].
+    Each point takes the colour of the pixel it was drawn through when ``images`` is given
+    (every view that sees it along that ray starts right), else a random colour. With
+    ``cells``, pixels are drawn uniformly from the True cells of each camera's grid only, and
+    cameras in proportion to their True cells."""
+    if n <= 0 or not cameras:
+        raise ValueError("random_points_in_frusta needs n > 0 and at least one camera")
+    if not 0 < near < far:
+        raise ValueError(f"need 0 < near < far, got near={near}, far={far}")
+    rng = np.random.default_rng(seed)
+    if cells is None:
+        cam_ids = rng.integers(0, len(cameras), size=n)
+    else:
+        counts = np.array([c.sum() for c in cells], dtype=np.float64)
+        if counts.sum() == 0:
+            raise ValueError("random_points_in_frusta: no cell to draw from")
+        cam_ids = rng.choice(len(cameras), size=n, p=counts / counts.sum())
+    points = np.empty((n, 3))
+    colors = (rng.random((n, 3)) * 255.0).astype(np.uint8)
+    for ci in np.unique(cam_ids):  # vectorised per camera
+        sel = np.nonzero(cam_ids == ci)[0]
+        cam = cameras[ci]
+        if cells is None:
+            uv = rng.random((len(sel), 2)) * np.array([cam.width, cam.height])
+        else:
+            gh, gw = cells[ci].shape
+            rows, cols = np.nonzero(cells[ci])
+            pick = rng.integers(0, len(rows), size=len(sel))
+            cell_wh = np.array([cam.width / gw, cam.height / gh])
+            uv = (np.stack([cols[pick], rows[pick]], axis=1) + rng.random((len(sel), 2))) * cell_wh
+        depth = near + (far - near) * rng.random(len(sel))
+        points[sel] = cam.unproject(uv, depth)
+        if images is not None:
+            image = images(int(ci))
+            rows = np.minimum((uv[:, 1] * image.shape[0] / cam.height).astype(int), image.shape[0] - 1)
+            cols = np.minimum((uv[:, 0] * image.shape[1] / cam.width).astype(int), image.shape[1] - 1)
+            colors[sel] = np.clip(image[rows, cols] * 255.0 + 0.5, 0, 255).astype(np.uint8)
+    return points, colors
+
+
 def init_random_in_frusta(
     cameras: Sequence[Camera],
     n: int,  # number of Gaussians
@@ -60,23 +127,11 @@ def init_random_in_frusta(
     seed: int = 0,
     sh_degree: int = 3,
     device: torch.device | str | None = None,
+    images: Optional[Callable[[int], np.ndarray]] = None,  # view index -> float [H, W, 3] in [0, 1]
 ) -> Gaussians:
-    """``n`` Gaussians at random pixels of random cameras, at a z-depth uniform in [near, far],
-    with random colours; scales and opacities as :func:`init_from_points`."""
-    if n <= 0 or not cameras:
-        raise ValueError("init_random_in_frusta needs n > 0 and at least one camera")
-    if not 0 < near < far:
-        raise ValueError(f"need 0 < near < far, got near={near}, far={far}")
-    rng = np.random.default_rng(seed)
-    cam_ids = rng.integers(0, len(cameras), size=n)
-    points = np.empty((n, 3))
-    for ci in np.unique(cam_ids):  # vectorised per camera
-        sel = np.nonzero(cam_ids == ci)[0]
-        cam = cameras[ci]
-        uv = rng.random((len(sel), 2)) * np.array([cam.width, cam.height])
-        depth = near + (far - near) * rng.random(len(sel))
-        points[sel] = cam.unproject(uv, depth)
-    colors = (rng.random((n, 3)) * 255.0).astype(np.uint8)
+    """``n`` Gaussians at :func:`random_points_in_frusta` (pixel colours when ``images`` is
+    given, else random ones); scales and opacities as :func:`init_from_points`."""
+    points, colors = random_points_in_frusta(cameras, n, near, far, seed=seed, images=images)
     return init_from_points(points, colors, sh_degree=sh_degree, device=device)
 
 

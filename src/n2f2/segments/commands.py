@@ -47,10 +47,12 @@ def register(subparsers) -> None:
     p.add_argument("--encoder", choices=["clip", "captions"], default="clip",
                    help="clip: CLIP image encoder on masked segments (paper, default); captions: ground-truth "
                         "captions embedded by all-MiniLM-L6-v2 (offline stand-in, needs --segmenter ground-truth)")
-    p.add_argument("--model", metavar="ID", default=None,
-                   help="CLIP model id or folder (default laion/CLIP-ViT-B-16-laion2B-s34B-b88K)")
+    p.add_argument("--model", "--clip-model", dest="model", metavar="ID", default=None,
+                   help="CLIP model: Hugging Face id or a local folder saved with save_pretrained "
+                        "(default laion/CLIP-ViT-B-16-laion2B-s34B-b88K)")
     p.add_argument("--sam-model", metavar="ID", default=None,
-                   help="SAM model id or folder (default facebook/sam-vit-huge)")
+                   help="SAM model: Hugging Face id or a local folder saved with save_pretrained "
+                        "(default facebook/sam-vit-huge)")
     p.set_defaults(func=run_segments)
 
     q = subparsers.add_parser(

@@ -18,6 +18,7 @@ all outputs are L2-normalised float32 tensors on CPU.
 from __future__ import annotations
 
 import os
+import time
 from typing import Optional, Protocol, Sequence, Union
 
 import numpy as np
@@ -103,6 +104,11 @@ def segment_crops(image: Tensor,  # [3, H, W] float
     return out
 
 
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
 def _features(output) -> Tensor:
     """``get_*_features`` returns a tensor in transformers 4, a model output in 5."""
     return output if isinstance(output, Tensor) else output.pooler_output
@@ -110,7 +116,9 @@ def _features(output) -> Tensor:
 
 class ClipEncoder:
     """CLIP image/text embeddings through ``transformers.CLIPModel`` (any CLIP config, so the
-    tests can inject tiny random models)."""
+    tests can inject tiny random models). Segments are embedded ``batch_size`` crops per model
+    call; on CUDA the model runs under float16 autocast. ``timing`` accumulates the seconds
+    spent making crops and in the image model, and the number of segments embedded."""
 
     name = "clip"
     requires_captions = False
@@ -125,6 +133,7 @@ class ClipEncoder:
         self.dim = int(model.config.projection_dim)
         self.image_size = int(model.config.vision_config.image_size)
         self.max_length = int(model.config.text_config.max_position_embeddings)
+        self.timing = {"crops": 0.0, "model": 0.0, "segments": 0}
 
     @staticmethod
     def from_pretrained(model_id: str = DEFAULT_CLIP_MODEL, device: str | torch.device = "cpu") -> "ClipEncoder":
@@ -145,6 +154,14 @@ class ClipEncoder:
         return {"name": self.name, "model_id": self.model_id, "embed_dim": self.dim,
                 "description": self.description}
 
+    def _autocast(self):
+        """float16 autocast for the model on CUDA; nothing elsewhere (CPU float16 is slow)."""
+        import contextlib
+
+        if self.device.type == "cuda":
+            return torch.autocast("cuda", dtype=torch.float16)
+        return contextlib.nullcontext()
+
     @torch.no_grad()
     def encode_text(self, texts: Sequence[str]) -> Tensor:
         texts = list(texts)
@@ -154,13 +171,21 @@ class ClipEncoder:
         for start in range(0, len(texts), self.batch_size):
             tok = self.tokenizer(texts[start:start + self.batch_size], padding=True, truncation=True,
                                  max_length=self.max_length, return_tensors="pt").to(self.device)
-            out.append(_features(self.model.get_text_features(input_ids=tok["input_ids"],
-                                                              attention_mask=tok["attention_mask"])))
-        return F.normalize(torch.cat(out).float(), dim=-1).cpu()
+            with self._autocast():
+                out.append(_features(self.model.get_text_features(input_ids=tok["input_ids"],
+                                                                  attention_mask=tok["attention_mask"])).float())
+        return F.normalize(torch.cat(out), dim=-1).cpu()
 
-    @torch.no_grad()
-    def encode_segments(self, image: np.ndarray, masks: np.ndarray,
-                        captions: Optional[Sequence[str]] = None) -> Tensor:
+    def encode_segments(self, image: np.ndarray,  # [H, W, 3] float in [0, 1]
+                        masks: np.ndarray,  # [S, H, W] bool
+                        captions: Optional[Sequence[str]] = None) -> Tensor:  # [S, E]
+        with torch.inference_mode():
+            emb = self._encode_segments(image, masks)
+        return emb.clone()  # an ordinary tensor, usable with autograd
+
+    def _encode_segments(self, image: np.ndarray,  # [H, W, 3] float in [0, 1]
+                         masks: np.ndarray,  # [S, H, W] bool
+                         ) -> Tensor:  # [S, E]
         image = np.asarray(image)
         masks = np.asarray(masks, dtype=bool)
         if masks.ndim != 3 or masks.shape[1:] != image.shape[:2]:
@@ -172,10 +197,18 @@ class ClipEncoder:
         std = torch.tensor(CLIP_STD, device=self.device).view(1, 3, 1, 1)
         out = []
         for start in range(0, len(masks), self.batch_size):
+            t0 = time.perf_counter()
             m = torch.as_tensor(masks[start:start + self.batch_size], device=self.device)
             crops = (segment_crops(img, m, self.image_size) - mean) / std
-            out.append(_features(self.model.get_image_features(pixel_values=crops)))
-        return F.normalize(torch.cat(out).float(), dim=-1).cpu()
+            _sync(self.device)
+            t1 = time.perf_counter()
+            with self._autocast():
+                out.append(_features(self.model.get_image_features(pixel_values=crops)).float())
+            _sync(self.device)
+            self.timing["crops"] += t1 - t0
+            self.timing["model"] += time.perf_counter() - t1
+        self.timing["segments"] += len(masks)
+        return F.normalize(torch.cat(out), dim=-1).cpu()
 
 
 # ----------------------------------------------------------------------------- captions (MiniLM)

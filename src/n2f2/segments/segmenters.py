@@ -18,6 +18,7 @@ two go to different layers.
 
 from __future__ import annotations
 
+import time
 from dataclasses import asdict, dataclass
 from typing import Optional, Sequence
 
@@ -200,16 +201,32 @@ def relabel_label_maps(label_maps: np.ndarray,  # [L, H, W] int, -1 = none, any 
 
 
 # ----------------------------------------------------------------------------- mask NMS
+# Float32 values of flattened masks held at once while intersecting them (64 MB).
+INTERSECT_BUDGET = 1 << 24
+
+
+def mask_intersections(a: Tensor,  # [Sa, H, W] bool
+                       b: Tensor,  # [Sb, H, W] bool
+                       ) -> Tensor:  # [Sa, Sb] float64
+    """Pixel counts of every pairwise intersection, as a matrix product of the flattened
+    masks, accumulated over pixel chunks so that at most :data:`INTERSECT_BUDGET` float
+    values exist at a time."""
+    fa = a.reshape(a.shape[0], -1)
+    fb = b.reshape(b.shape[0], -1)
+    rows = fa.shape[0] + (0 if b is a else fb.shape[0])
+    chunk = int(min(1 << 23, max(4096, INTERSECT_BUDGET // max(rows, 1))))
+    inter = torch.zeros(fa.shape[0], fb.shape[0], dtype=torch.float64, device=a.device)
+    for start in range(0, fa.shape[1], chunk):
+        x = fa[:, start:start + chunk].float()
+        y = x if b is a else fb[:, start:start + chunk].float()
+        inter += (x @ y.T).double()  # counts per chunk <= chunk < 2^24: exact in float32
+    return inter
+
+
 def mask_overlaps(masks: Tensor,  # [S, H, W] bool
-                  chunk_pixels: int = 1 << 20) -> tuple[Tensor, Tensor]:
-    """Pairwise intersections [S, S] and areas [S] (float64) of boolean masks, as a matrix
-    product of the flattened masks, accumulated over pixel chunks to bound memory."""
-    S = masks.shape[0]
-    flat = masks.reshape(S, -1)
-    inter = torch.zeros(S, S, dtype=torch.float64, device=masks.device)
-    for start in range(0, flat.shape[1], chunk_pixels):
-        f = flat[:, start:start + chunk_pixels].float()
-        inter += (f @ f.T).double()  # counts per chunk <= chunk_pixels < 2^24: exact in float32
+                  ) -> tuple[Tensor, Tensor]:
+    """Pairwise intersections [S, S] and areas [S] (float64) of boolean masks."""
+    inter = mask_intersections(masks, masks)
     return inter, torch.diagonal(inter).clone()
 
 
@@ -262,15 +279,31 @@ def mask_nms(masks: Tensor,  # [S, H, W] bool
 
 def greedy_mask_nms(masks: Tensor,  # [S, H, W] bool
                     scores: Tensor,  # [S]
-                    iou_thr: float = 0.7) -> Tensor:
+                    iou_thr: float = 0.7,
+                    settled: int = 0) -> Tensor:
     """Classic greedy NMS on mask IoU (SAM's ``box_nms_thresh`` step, on masks instead of
     boxes): returns kept indices [K] in descending score order. The loop runs over kept masks,
-    each step one vectorised row of the IoU matrix."""
+    each step one vectorised row of the IoU matrix.
+
+    ``settled``: the first ``settled`` masks survived an earlier NMS together, so no two of them
+    overlap by more than ``iou_thr`` and their pairs need no intersection; only pairs with a
+    newer mask are measured (same result, a fraction of the work when few masks are new)."""
     S = int(scores.shape[0])
     if S == 0:
         return torch.zeros(0, dtype=torch.long, device=scores.device)
     order = torch.argsort(scores, descending=True, stable=True)
-    inter, area = mask_overlaps(masks[order])
+    settled = min(max(int(settled), 0), S)
+    if settled == 0:
+        inter, area = mask_overlaps(masks)
+    else:
+        area = masks.reshape(S, -1).sum(1, dtype=torch.int32).double()
+        inter = torch.zeros(S, S, dtype=torch.float64, device=masks.device)
+        if settled < S:
+            new = mask_intersections(masks[settled:], masks)  # [S - settled, S]
+            inter[settled:] = new
+            inter[:, settled:] = new.T
+    inter = inter[order][:, order]
+    area = area[order]
     iou = (inter / (area[:, None] + area[None, :] - inter).clamp_min(1e-12)).cpu().numpy()
     suppressed = np.zeros(S, dtype=bool)
     keep = []
@@ -333,11 +366,17 @@ def resize_nearest(labels: np.ndarray,  # [L, H0, W0] int
 # ----------------------------------------------------------------------------- SAM
 @dataclass
 class SamSettings:
-    """SAM automatic mask generation, with the paper's / LangSplat's settings as defaults."""
+    """SAM automatic mask generation, with the paper's / LangSplat's settings as defaults.
 
-    points_per_side: int = 32  # 32 x 32 grid of point prompts
-    points_per_batch: int = 64  # prompts decoded together (memory vs speed)
-    pred_iou_thresh: float = 0.7  # paper: "IoU threshold of 0.7"
+    The paper's settings are the 32 x 32 point grid, predicted-IoU threshold 0.7 and minimum
+    mask region area 100; stability 0.85 and box-NMS 0.7 are LangSplat's (``preprocess.py``).
+    LangSplat also runs SAM on one layer of crops (``crop_n_layers=1``: four overlapping
+    half-size crops, each with its own 32 x 32 grid, about 5x the work); n2f2 runs the
+    full-image layer only."""
+
+    points_per_side: int = 32  # paper: 32 x 32 grid of point prompts
+    points_per_batch: int = 64  # prompts decoded together (memory vs speed; SAM's default)
+    pred_iou_thresh: float = 0.7  # paper: predicted-IoU threshold 0.7
     stability_score_thresh: float = 0.85  # LangSplat
     stability_score_offset: float = 1.0  # SAM default
     box_nms_thresh: float = 0.7  # SAM/LangSplat; applied to mask IoU here
@@ -351,8 +390,24 @@ class SamSettings:
     max_pending_masks: int = 384
 
 
+# Mask logits upsampled to image resolution at once, in values (float32: 4 bytes each).
+UPSAMPLE_BUDGET = 1 << 24
+
+
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
 class SamSegmenter:
-    """SAM automatic mask generation with a ``transformers.SamModel`` (no crop layers)."""
+    """SAM automatic mask generation with a ``transformers.SamModel`` (no crop layers).
+
+    Per image: one image-encoder pass, the point grid decoded ``points_per_batch`` prompts at
+    a time (3 masks each), and per batch only the masks above the IoU threshold upsampled to
+    image resolution, a bounded number at a time. On CUDA the model runs under float16
+    autocast; post-processing is float32. ``last_timing`` holds the seconds the last image
+    spent in the image encoder, the mask decoder and post-processing; ``last_counts`` how many
+    masks it had after each step."""
 
     name = "sam"
 
@@ -362,6 +417,8 @@ class SamSegmenter:
         self.settings = settings or SamSettings()
         self.model_id = model_id
         self.device = torch.device(device)
+        self.last_timing: dict[str, float] = {}
+        self.last_counts: dict[str, int] = {}
 
     @staticmethod
     def from_pretrained(model_id: str = DEFAULT_SAM_MODEL, device: str | torch.device = "cpu",
@@ -382,7 +439,8 @@ class SamSegmenter:
     def _input_size(self) -> int:
         return int(self.model.config.vision_config.image_size)
 
-    def preprocess(self, image: np.ndarray) -> tuple[Tensor, tuple[int, int]]:
+    def preprocess(self, image: np.ndarray,  # [H, W, 3] float in [0, 1]
+                   ) -> tuple[Tensor, tuple[int, int]]:
         """float [H, W, 3] in [0, 1] -> normalised, padded [1, 3, T, T] and the resized (h, w):
         SAM's ResizeLongestSide to T = model input size, ImageNet normalisation, zero pad
         bottom/right."""
@@ -400,9 +458,19 @@ class SamSegmenter:
     def postprocess_masks(self, low_res: Tensor,  # [N, h0, w0] mask logits in SAM's frame
                           resized: tuple[int, int], original: tuple[int, int]) -> Tensor:
         """SAM's ``postprocess_masks``: upsample low-res logits to the padded input size, crop
-        the padding, upsample to the original image size. Returns logits [N, H, W]."""
+        the padding, upsample to the original image size. Returns logits [N, H, W].
+
+        Only the low-res rows and columns that the unpadded region samples are upsampled
+        (bilinear interpolation with the same scale factor reads nothing else), so padding
+        costs no time or memory; the result equals SAM's."""
         T = self._input_size()
-        x = F.interpolate(low_res[:, None], size=(T, T), mode="bilinear", align_corners=False)
+        h0, w0 = low_res.shape[-2:]
+        fy, fx = T / h0, T / w0
+        # Output row y < h samples input rows <= floor((y + 0.5) / fy - 0.5) + 1 <= h // fy + 1.
+        rows = min(h0, int(resized[0] / fy) + 2)
+        cols = min(w0, int(resized[1] / fx) + 2)
+        x = F.interpolate(low_res[:, None, :rows, :cols].float(), scale_factor=(fy, fx), mode="bilinear",
+                          align_corners=False, recompute_scale_factor=False)
         x = x[..., : resized[0], : resized[1]]
         return F.interpolate(x, size=original, mode="bilinear", align_corners=False)[:, 0]
 
@@ -414,60 +482,125 @@ class SamSegmenter:
         xs, ys = np.meshgrid(side, side)
         return np.stack([xs.ravel() * width, ys.ravel() * height], axis=-1)
 
-    def _nms(self, masks: list[Tensor], iou: list[Tensor], stability: list[Tensor]) -> tuple[Tensor, Tensor, Tensor]:
+    def filter_masks(self, low_res: Tensor,  # [N, h0, w0] logits of masks that passed the IoU filter
+                     resized: tuple[int, int], original: tuple[int, int]) -> tuple[Tensor, Tensor, Tensor]:
+        """Upsample logits to image resolution (at most :data:`UPSAMPLE_BUDGET` values at a
+        time), keep the stable, non-empty masks. Returns ``(masks [K, H, W] bool on CPU,
+        stability [K], kept [K] indices into low_res)``.
+
+        Stability is SAM's: IoU of the masks thresholded at +- ``stability_score_offset``
+        around ``mask_threshold``, on the image-resolution logits as SAM computes it."""
+        st = self.settings
+        T = self._input_size()
+        H, W = original
+        h0, w0 = low_res.shape[-2:]
+        # Per mask: the input-frame logits (cropped to the image, plus a margin), the image-
+        # resolution logits, and three boolean maps of them.
+        per_mask = int((resized[0] + 2 * T / h0) * (resized[1] + 2 * T / w0)) + 2 * H * W
+        chunk = max(1, UPSAMPLE_BUDGET // per_mask)
+        masks, stability, kept = [], [], []
+        for start in range(0, low_res.shape[0], chunk):
+            logits = self.postprocess_masks(low_res[start:start + chunk], resized, original)  # [c, H, W]
+            # (int32 sums of booleans are several times faster than the default int64 ones)
+            hi = (logits > st.mask_threshold + st.stability_score_offset).flatten(1).sum(1, dtype=torch.int32)
+            lo = (logits > st.mask_threshold - st.stability_score_offset).flatten(1).sum(1, dtype=torch.int32)
+            stab = hi.float() / lo.float().clamp_min(1)
+            binary = logits > st.mask_threshold
+            ok = (stab >= st.stability_score_thresh) & binary.flatten(1).any(1)
+            masks.append(binary[ok].cpu())
+            stability.append(stab[ok].cpu())
+            kept.append(torch.nonzero(ok).flatten().cpu() + start)
+            del logits, binary
+        if not masks:
+            return (torch.zeros(0, H, W, dtype=torch.bool), torch.zeros(0), torch.zeros(0, dtype=torch.long))
+        return torch.cat(masks), torch.cat(stability), torch.cat(kept)
+
+    def _nms(self, masks: list[Tensor], iou: list[Tensor], stability: list[Tensor],
+             settled: int) -> tuple[Tensor, Tensor, Tensor]:
         masks, iou, stability = torch.cat(masks), torch.cat(iou), torch.cat(stability)
-        kept = greedy_mask_nms(masks, iou, self.settings.box_nms_thresh)
+        kept = greedy_mask_nms(masks, iou, self.settings.box_nms_thresh, settled=settled)
         return masks[kept], iou[kept], stability[kept]
 
-    @torch.no_grad()
-    def __call__(self, image: np.ndarray, view: Optional[int] = None) -> SegmentSet:
-        image = check_image(image)
+    def _autocast(self):
+        """float16 autocast for the model on CUDA; nothing elsewhere (CPU float16 is slow)."""
+        import contextlib
+
+        if self.device.type == "cuda":
+            return torch.autocast("cuda", dtype=torch.float16)
+        return contextlib.nullcontext()
+
+    def __call__(self, image: np.ndarray,  # [H, W, 3] float in [0, 1] or uint8
+                 view: Optional[int] = None) -> SegmentSet:
+        with torch.inference_mode():
+            return self._generate(check_image(image))
+
+    def _generate(self, image: np.ndarray) -> SegmentSet:  # [H, W, 3] float32
         H, W = image.shape[:2]
         st = self.settings
+        timing = {"image_encoder": 0.0, "mask_decoder": 0.0, "postprocess": 0.0}
+        counts = {"candidates": 0, "iou_kept": 0, "stable": 0, "after_nms": 0, "final": 0}
+        self.last_timing, self.last_counts = timing, counts
+        clock = time.perf_counter()
+
+        def lap(part: str) -> None:
+            nonlocal clock
+            _sync(self.device)
+            now = time.perf_counter()
+            timing[part] += now - clock
+            clock = now
+
         pixel_values, (h, w) = self.preprocess(image)
-        embeddings = self.model.get_image_embeddings(pixel_values)
+        with self._autocast():
+            embeddings = self.model.get_image_embeddings(pixel_values)
         points = torch.as_tensor(self.point_grid(H, W), dtype=torch.float32, device=self.device)
         points = points * torch.tensor([w / W, h / H], device=self.device)  # into SAM's frame
+        lap("image_encoder")
 
         all_masks, all_iou, all_stab = [], [], []
+        settled = 0  # leading masks of all_masks that already passed NMS together
         for start in range(0, points.shape[0], st.points_per_batch):
             pts = points[start:start + st.points_per_batch]
-            out = self.model(image_embeddings=embeddings, input_points=pts[None, :, None, :],
-                             input_labels=torch.ones(1, pts.shape[0], 1, dtype=torch.long, device=self.device),
-                             multimask_output=True)
-            iou = out.iou_scores[0].reshape(-1)  # [B * 3]
+            with self._autocast():
+                out = self.model(image_embeddings=embeddings, input_points=pts[None, :, None, :],
+                                 input_labels=torch.ones(1, pts.shape[0], 1, dtype=torch.long, device=self.device),
+                                 multimask_output=True)
+            iou = out.iou_scores[0].reshape(-1).float()  # [B * 3]
             low = out.pred_masks[0].reshape(-1, *out.pred_masks.shape[-2:])  # [B * 3, h0, w0]
-            keep = iou > st.pred_iou_thresh
-            if not keep.any():
+            keep = torch.nonzero(iou > st.pred_iou_thresh).flatten()
+            lap("mask_decoder")
+            counts["candidates"] += int(iou.numel())
+            counts["iou_kept"] += int(keep.numel())
+            if keep.numel() == 0:
                 continue
-            logits = self.postprocess_masks(low[keep], (h, w), (H, W))
-            # Stability: IoU of the masks thresholded at +- offset around the mask threshold.
-            hi = (logits > st.mask_threshold + st.stability_score_offset).flatten(1).sum(1)
-            lo = (logits > st.mask_threshold - st.stability_score_offset).flatten(1).sum(1)
-            stability = hi.float() / lo.float().clamp_min(1)
-            stable = stability >= st.stability_score_thresh
-            masks = logits[stable] > st.mask_threshold
-            nonempty = masks.flatten(1).any(1)
-            all_masks.append(masks[nonempty].cpu())
-            all_iou.append(iou[keep][stable][nonempty].cpu())
-            all_stab.append(stability[stable][nonempty].cpu())
+            masks, stability, kept = self.filter_masks(low[keep], (h, w), (H, W))
+            counts["stable"] += int(kept.numel())
+            all_masks.append(masks)
+            all_iou.append(iou[keep][kept.to(iou.device)].cpu())
+            all_stab.append(stability)
             if sum(len(m) for m in all_masks) > st.max_pending_masks:
                 # Bound memory on large images: NMS what has accumulated so far (SAM itself
                 # runs NMS per crop, then across crops, in the same spirit).
-                kept_masks, kept_iou, kept_stab = self._nms(all_masks, all_iou, all_stab)
+                kept_masks, kept_iou, kept_stab = self._nms(all_masks, all_iou, all_stab, settled)
                 all_masks, all_iou, all_stab = [kept_masks], [kept_iou], [kept_stab]
+                settled = len(kept_masks)
+            lap("postprocess")
         if not all_masks or sum(len(m) for m in all_masks) == 0:
             return SegmentSet.empty(H, W)
-        masks, iou, stability = self._nms(all_masks, all_iou, all_stab)
+        masks, iou, stability = self._nms(all_masks, all_iou, all_stab, settled)
+        counts["after_nms"] = len(masks)
         if st.min_mask_region_area > 0:
             cleaned = np.stack([remove_small_regions(m, st.min_mask_region_area) for m in masks.numpy()])
             big = cleaned.reshape(len(cleaned), -1).sum(1) >= st.min_mask_region_area
             masks, iou, stability = torch.from_numpy(cleaned[big]), iou[big], stability[big]
         if len(masks) == 0:
+            lap("postprocess")
             return SegmentSet.empty(H, W)
         score = iou * stability
         kept = mask_nms(masks, score, st.nms_iou_thr, st.nms_score_thr, st.nms_inner_thr)
-        return SegmentSet.from_masks(masks[kept].numpy(), score[kept].numpy())
+        out = SegmentSet.from_masks(masks[kept].numpy(), score[kept].numpy())
+        counts["final"] = out.num_segments
+        lap("postprocess")
+        return out
 
 
 # ----------------------------------------------------------------------------- classical

@@ -1,0 +1,243 @@
+"""Full-size SAM ViT-H + CLIP ViT-B/16 through ``n2f2 segments``: time per image by part, memory.
+
+Runs ``n2f2 segments --segmenter sam --sam-model DIR --encoder clip --clip-model DIR`` on real
+photos, with the model folders that ``benchmarks/make_fullsize_models.py`` writes (random
+weights, real sizes; see there)::
+
+    python benchmarks/make_fullsize_models.py /tmp/fullsize_models
+    python benchmarks/bench_fullsize_models.py --models /tmp/fullsize_models [--device cuda] \\
+        [--json fullsize_models.json]
+
+The scene is made in a temporary folder: copies of the photos (default: two of the plush-dog
+capture in ``shared/data``), a nerfstudio ``transforms.json`` with one plausible pinhole camera
+(focal length 0.8 x the image width, principal point at the centre) and near-identity poses
+(the second camera 10 cm to the right), and a wall of 3D Gaussians 2 m in front of the cameras,
+because ``n2f2 segments`` lifts every segment to 3D with the Gaussians' rendered depth.
+
+The command runs in a child process (``n2f2.cli.main``, as the ``n2f2`` script does), so its
+peak resident memory (``getrusage``, whole process: both models' weights included) and CPU
+time are its own. Inside it, the time of each image is split into the SAM image encoder, the
+mask decoder (all point batches), SAM's post-processing (upsampling, stability, NMS, small
+regions, packing), making CLIP's masked crops, the CLIP image model, and rendering the depth
+that lifting uses; "other" is the rest of the image's share of ``n2f2 segments`` (lifting,
+writing the record, reading the next image; for the last image, fitting the quantiles). Times on CUDA are taken after synchronising the device;
+``torch.cuda.max_memory_allocated`` is reported there. Prints a Markdown table, writes JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+PLUSH_DOG = REPO.parent / "shared" / "data" / "plush-dog" / "images"
+DEFAULT_IMAGES = [PLUSH_DOG / "IMG_3496.jpg", PLUSH_DOG / "IMG_3497.jpg"]
+
+
+# ----------------------------------------------------------------------------- scene
+def make_scene(root: Path, images: list[Path]) -> Path:
+    """Copies of ``images``, a nerfstudio transforms.json, and a Gaussian wall (gaussians.ply)."""
+    import torch
+    from PIL import Image
+
+    from n2f2.cameras import Camera
+    from n2f2.data.nerfstudio import write_transforms
+    from n2f2.gaussians import Gaussians, rgb_to_sh, write_ply
+
+    (root / "images").mkdir(parents=True)
+    cameras, names = [], []
+    for i, src in enumerate(images):
+        with Image.open(src) as im:
+            W, H = im.size
+        shutil.copy(src, root / "images" / src.name)
+        f = 0.8 * W
+        cameras.append(Camera(f, f, W / 2, H / 2, W, H, R=np.eye(3), t=np.array([-0.1 * i, 0.0, 0.0])))
+        names.append(f"images/{src.name}")
+    write_transforms(root, cameras, names)
+    # A wall at z = 2 (OpenCV: in front of the cameras), wider than every view, gently curved so
+    # depth varies across the image.
+    W, H = cameras[0].width, cameras[0].height
+    half_w, half_h = 2.0 * (W / 2) / cameras[0].fx + 0.3, 2.0 * (H / 2) / cameras[0].fy + 0.2
+    xs, ys = np.meshgrid(np.arange(-half_w, half_w, 0.04), np.arange(-half_h, half_h, 0.04))
+    means = np.stack([xs.ravel(), ys.ravel(), 2.0 + 0.2 * np.sin(2.0 * xs.ravel())], axis=1)
+    n = len(means)
+    rgb = torch.full((n, 1, 3), 0.5)
+    g = Gaussians(torch.as_tensor(means, dtype=torch.float32), torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1),
+                  torch.full((n, 3), float(np.log(0.03))), torch.full((n,), 4.0), rgb_to_sh(rgb))
+    write_ply(root / "gaussians.ply", g)
+    return root
+
+
+# ----------------------------------------------------------------------------- child
+def child(args: argparse.Namespace) -> int:
+    """Run ``n2f2 segments`` in this process, timing each image's parts; write JSON."""
+    import torch
+
+    from n2f2.cli import main
+    from n2f2.segments import commands
+    from n2f2.segments.bank import SegmentAndEncode
+
+    wall0 = time.perf_counter()
+    records: list[dict] = []
+    depth_s: dict[int, float] = {}
+    marks: list[tuple[float, float]] = []  # (start, end) of each image's extraction
+    original = SegmentAndEncode.extract
+    original_depth = commands._depth_provider
+    state = {"models_loaded_at": None}
+
+    def depth_provider(*a, **k):
+        provide = original_depth(*a, **k)
+
+        def timed(i):
+            t = time.perf_counter()
+            out = provide(i)
+            depth_s[i] = time.perf_counter() - t
+            return out
+
+        return timed
+
+    def extract(self, index, stem, image):
+        if state["models_loaded_at"] is None:
+            state["models_loaded_at"] = time.perf_counter() - wall0
+        clip_before = dict(self.encoder.timing)
+        t0 = time.perf_counter()
+        segs, emb = original(self, index, stem, image)
+        total = time.perf_counter() - t0
+        marks.append((t0, t0 + total))
+        sam = dict(self.segmenter.last_timing)
+        clip = {k: self.encoder.timing[k] - clip_before[k] for k in clip_before}
+        records.append({"image": stem, "height": int(image.shape[0]), "width": int(image.shape[1]),
+                        "segments": int(segs.num_segments), "layers": int(segs.layers.shape[0]),
+                        "sam_counts": dict(self.segmenter.last_counts),
+                        "sam_image_encoder_s": sam["image_encoder"], "sam_mask_decoder_s": sam["mask_decoder"],
+                        "sam_postprocess_s": sam["postprocess"], "clip_crops_s": clip["crops"],
+                        "clip_model_s": clip["model"], "clip_segments": int(clip["segments"]),
+                        "index": int(index), "extract_s": total})
+        return segs, emb
+
+    SegmentAndEncode.extract = extract
+    commands._depth_provider = depth_provider
+    if args.device.startswith("cuda"):
+        torch.cuda.reset_peak_memory_stats()
+    argv = ["segments", str(args.scene), "--gaussians", str(args.scene / "gaussians.ply"), "--segmenter", "sam",
+            "--sam-model", str(args.models / "sam-vit-huge"), "--encoder", "clip",
+            "--clip-model", str(args.models / "clip-vit-b-16"), "--out", str(args.bank), "--device", args.device,
+            "--quiet"]
+    rc = main(argv)
+    end = time.perf_counter()
+    wall = end - wall0
+    # The rest of an image's share: from the end of its extraction to the start of the next
+    # image's (the last: to the end of the command, which includes fitting the quantiles).
+    for k, r in enumerate(records):
+        until = marks[k + 1][0] if k + 1 < len(marks) else end
+        r["depth_render_s"] = depth_s.get(r["index"], 0.0)
+        r["other_s"] = until - marks[k][1] - r["depth_render_s"]
+        r["total_s"] = r["extract_s"] + r["depth_render_s"] + r["other_s"]
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    bank = json.loads((args.bank / "bank.json").read_text())
+    out = {"argv": ["n2f2"] + argv, "rc": rc, "wall_s": wall, "user_s": usage.ru_utime, "system_s": usage.ru_stime,
+           "max_rss_mib": usage.ru_maxrss / 1024.0, "models_loaded_s": state["models_loaded_at"],
+           "torch_threads": torch.get_num_threads(), "bank_timing": bank.get("timing"),
+           "bank_counts": bank.get("counts"), "images": records}
+    if args.device.startswith("cuda"):
+        out["cuda_max_allocated_mib"] = torch.cuda.max_memory_allocated() / 2**20
+        out["cuda_device"] = torch.cuda.get_device_name()
+    Path(args.child_json).write_text(json.dumps(out, indent=2))
+    return rc
+
+
+# ----------------------------------------------------------------------------- report
+PARTS = [("SAM image encoder", "sam_image_encoder_s"), ("SAM mask decoder", "sam_mask_decoder_s"),
+         ("SAM post-processing", "sam_postprocess_s"), ("CLIP crops", "clip_crops_s"),
+         ("CLIP image model", "clip_model_s"), ("depth render (lifting)", "depth_render_s"),
+         ("other (lifting, record, next image read)", "other_s"), ("**total per image**", "total_s")]
+
+
+def table(result: dict) -> str:
+    images = result["images"]
+    head = "| part | " + " | ".join(f"{r['image']} ({r['width']}x{r['height']})" for r in images) + " | mean |"
+    rows = [head, "|---|" + "---:|" * (len(images) + 1)]
+    for label, key in PARTS:
+        vals = [r[key] for r in images]
+        rows.append(f"| {label} | " + " | ".join(f"{v:.1f} s" for v in vals) + f" | {np.mean(vals):.1f} s |")
+    rows.append("| segments (CLIP crops) | " + " | ".join(str(r["segments"]) for r in images)
+                + f" | {np.mean([r['segments'] for r in images]):.0f} |")
+    lines = ["\n".join(rows), ""]
+    c = images[0]["sam_counts"]
+    lines.append(f"SAM masks, first image: {c['candidates']} candidates, {c['iou_kept']} above the IoU threshold, "
+                 f"{c['stable']} stable, {c['after_nms']} after NMS, {c['final']} kept")
+    lines.append(f"process: wall {result['wall_s']:.0f} s, user {result['user_s']:.0f} s, system "
+                 f"{result['system_s']:.0f} s ({result['torch_threads']} torch threads); models loaded after "
+                 f"{result['models_loaded_s']:.0f} s; peak RSS {result['max_rss_mib'] / 1024:.2f} GiB")
+    if "cuda_max_allocated_mib" in result:
+        lines.append(f"CUDA ({result['cuda_device']}): max allocated {result['cuda_max_allocated_mib'] / 1024:.2f} GiB")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--models", type=Path, default=Path("/tmp/fullsize_models"),
+                    help="folder with sam-vit-huge/ and clip-vit-b-16/ (make_fullsize_models.py)")
+    ap.add_argument("--images", type=Path, nargs="+", default=DEFAULT_IMAGES, help="photos (same size)")
+    ap.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
+    ap.add_argument("--json", type=Path, default=Path("fullsize_models.json"), help="where to write the numbers")
+    ap.add_argument("--keep", type=Path, default=None, help="keep the scene and bank in this folder")
+    ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--scene", type=Path, help=argparse.SUPPRESS)
+    ap.add_argument("--bank", type=Path, help=argparse.SUPPRESS)
+    ap.add_argument("--child-json", type=Path, help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.child:
+        return child(args)
+
+    for d in ("sam-vit-huge", "clip-vit-b-16"):
+        if not (args.models / d / "config.json").is_file():
+            sys.exit(f"{args.models / d}: no model; run benchmarks/make_fullsize_models.py {args.models} first")
+    missing = [str(p) for p in args.images if not p.is_file()]
+    if missing:
+        sys.exit(f"missing images: {', '.join(missing)}")
+    work = Path(tempfile.mkdtemp(prefix="n2f2-fullsize-")) if args.keep is None else args.keep
+    try:
+        scene = make_scene(work / "scene", list(args.images))
+        child_json = work / "child.json"
+        cmd = [sys.executable, str(Path(__file__).resolve()), "--child", "--scene", str(scene), "--bank",
+               str(work / "bank"), "--child-json", str(child_json), "--models", str(args.models),
+               "--device", args.device]
+        t = time.perf_counter()
+        proc = subprocess.run(cmd)
+        if proc.returncode != 0:
+            sys.exit(f"n2f2 segments failed (exit {proc.returncode})")
+        result = json.loads(child_json.read_text())
+        result["parent_wall_s"] = time.perf_counter() - t
+    finally:
+        if args.keep is None:
+            shutil.rmtree(work, ignore_errors=True)
+    import torch
+
+    result.update({"device": args.device, "cpu_count": os.cpu_count(), "platform": platform.platform(),
+                   "torch": torch.__version__, "load_average_after": os.getloadavg()})
+    try:
+        import transformers
+
+        result["transformers"] = transformers.__version__
+    except ImportError:
+        pass
+    print(table(result))
+    args.json.write_text(json.dumps(result, indent=2))
+    print(f"-> {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

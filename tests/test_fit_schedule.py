@@ -1,0 +1,217 @@
+"""The fit's scene-sized cpu preset, coarse-to-fine schedule, initial-scale clamp, pixel-coloured
+random initialisation, screen-size pruning and held-out renders."""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from n2f2.cameras import Camera, look_at
+from n2f2.cli import main as cli_main
+from n2f2.data.scene import Scene
+from n2f2.gaussians import Gaussians, write_ply
+from n2f2.gaussians.fit import (
+    DensifyStats, FitConfig, GaussianAdam, densify_and_prune, downsample_image, fit_gaussians,
+    initial_gaussians, resolution_factor,
+)
+from n2f2.gaussians.init import random_points_in_frusta
+from n2f2.gaussians.model import sh_to_rgb
+from n2f2.gaussians.orbit import orbit_cameras, render_views
+from n2f2.io import write_png
+
+
+def _ring(n: int, w: int, h: int, radius: float = 4.0) -> list[Camera]:
+    cams = []
+    for i in range(n):
+        a = 2 * np.pi * i / n
+        R, t = look_at(np.array([radius * np.cos(a), radius * np.sin(a), 1.0]), np.zeros(3))
+        cams.append(Camera(1.1 * w, 1.1 * w, w / 2, h / 2, w, h, R=R, t=t))
+    return cams
+
+
+def _scene(tmp_path: Path, n: int, w: int, h: int, colors=None, points=None) -> Scene:
+    """Views of constant colour (view i: ``colors[i]``), written as PNGs."""
+    cams = _ring(n, w, h)
+    paths = []
+    for i in range(n):
+        c = np.full((h, w, 3), 0.5 if colors is None else colors[i], np.float32)
+        paths.append(tmp_path / "images" / f"frame_{i + 1:05d}.png")
+        write_png(paths[-1], c)
+    pts = None if points is None else np.asarray(points, np.float64)
+    cols = None if pts is None else np.full(pts.shape, 128, np.uint8)
+    return Scene(root=tmp_path, cameras=cams, image_paths=paths, points=pts, point_colors=cols)
+
+
+# ------------------------------------------------------------------------------------ sizing
+def test_sized_for_derives_steps_cap_and_windows_from_the_scene(tmp_path):
+    # 40 views, every 8th held out -> 35 training views; 160 x 120 pixels.
+    demo_like = FitConfig.cpu().sized_for(_scene(tmp_path / "a", 40, 160, 120))
+    assert demo_like.steps == 1500  # 43 x 35 = 1505, to the nearest 100
+    assert demo_like.max_gaussians == 12_000  # 0.625 x 19,200
+    assert (demo_like.densify_from, demo_like.densify_until, demo_like.sh_degree_interval) == (200, 1100, 400)
+    assert demo_like.coarse_until == () and demo_like.means_lr_max_steps == 1500
+
+    # 80 views (70 training), 320 x 240: 43 x 70 = 3010 -> 3000 steps (the upper bound), cap 48,000,
+    # windows scaled by 2, and a coarse first half at sqrt(76,800 / 25,000) = 1.753.
+    big = FitConfig.cpu().sized_for(_scene(tmp_path / "b", 80, 320, 240))
+    assert big.steps == 3000 and big.max_gaussians == 48_000
+    assert (big.densify_from, big.densify_until, big.sh_degree_interval) == (400, 2200, 800)
+    assert big.coarse_until == (0.5,)
+    assert big.coarse_downscale[0] == pytest.approx(math.sqrt(76_800 / 25_000))
+
+    # Few views: the lower bound; an explicit step count keeps the fractions.
+    few = FitConfig.cpu().sized_for(_scene(tmp_path / "c", 9, 32, 24))
+    assert few.steps == 1000 and few.max_gaussians == 2000  # 0.625 x 768 = 480, raised to the floor
+    given = FitConfig.cpu().sized_for(_scene(tmp_path / "c", 9, 32, 24), steps=300)
+    assert (given.steps, given.densify_from, given.densify_until) == (300, 40, 220)
+
+
+def test_resolution_factor_follows_the_schedule():
+    cfg = replace(FitConfig(), steps=1000, coarse_until=(0.2, 0.5), coarse_downscale=(4.0, 2.0))
+    assert [resolution_factor(cfg, s) for s in (1, 200, 201, 500, 501, 1000)] == [4, 4, 2, 2, 1, 1]
+    assert resolution_factor(FitConfig(), 1) == 1.0
+
+
+def test_downsample_image_is_the_block_mean():
+    img = torch.arange(4 * 6 * 3, dtype=torch.float32).reshape(4, 6, 3)
+    small = downsample_image(img, 2, 3)
+    expected = img.numpy().reshape(2, 2, 3, 2, 3).mean(axis=(1, 3))
+    np.testing.assert_allclose(small.numpy(), expected)
+    assert downsample_image(img, 4, 6) is img
+
+
+# ------------------------------------------------------------------------------------ init
+def test_random_points_take_the_colour_of_their_pixel(tmp_path):
+    colors = [(1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)]
+    scene = _scene(tmp_path, 3, 16, 12, colors=colors)
+    pts, cols = random_points_in_frusta(scene.cameras, 300, 1.0, 2.0, seed=0, images=scene.image)
+    # each point lies in front of one camera at z-depth in [1, 2] and has that view's colour
+    for p, c in zip(pts, cols):
+        owners = []
+        for i, cam in enumerate(scene.cameras):
+            pc = cam.R @ p + cam.t
+            u, v = cam.fx * pc[0] / pc[2] + cam.cx, cam.fy * pc[1] / pc[2] + cam.cy
+            if 1.0 - 1e-9 <= pc[2] <= 2.0 + 1e-9 and 0 <= u <= cam.width and 0 <= v <= cam.height:
+                owners.append(i)
+        assert any(tuple(c) == tuple(int(255 * x) for x in colors[i]) for i in owners)
+
+
+def test_random_init_is_coloured_by_the_training_views(tmp_path):
+    scene = _scene(tmp_path, 8, 16, 12, colors=[(0.2, 0.4, 0.6)] * 8)
+    cfg = replace(FitConfig(), random_init_count=200, sh_degree=0)
+    g = initial_gaussians(scene, cfg, "random")
+    rgb = sh_to_rgb(g.sh[:, 0].detach())
+    torch.testing.assert_close(rgb, torch.tensor([[0.2, 0.4, 0.6]]).expand(200, 3), atol=3e-3, rtol=0)
+
+
+def test_extra_random_points_and_scale_clamp(tmp_path):
+    # 3 points at the origin region, seen at z-depth ~4 by every camera of the ring
+    points = [[0.0, 0.0, 0.0], [0.3, 0.0, 0.0], [0.0, 0.3, 0.0]]
+    scene = _scene(tmp_path, 8, 16, 12, points=points)
+    plain = initial_gaussians(scene, replace(FitConfig(), sh_degree=0), None)
+    assert plain.num == 3
+    cfg = replace(FitConfig(), sh_degree=0, init_extra_random=10.0, init_max_scale=0.01)
+    g = initial_gaussians(scene, cfg, None)
+    assert g.num == 3 + 30
+    torch.testing.assert_close(g.means[:3].detach(), torch.tensor(points))
+    assert float(g.scales.detach().max()) <= 0.01 * scene.extent() * (1 + 1e-5)
+    # Each extra point lies, for some training camera (views 1..7; view 0 is held out), inside
+    # its image at a z-depth between the 5th percentile and twice the 95th percentile of the
+    # points' depths in those cameras.
+    train = scene.cameras[1:]
+    z = np.array([(cam.R @ np.array(p) + cam.t)[2] for cam in train for p in points])
+    near, far = np.percentile(z, 5), 2 * np.percentile(z, 95)
+    for m in g.means[3:].detach().double().numpy():
+        ok = False
+        for cam in train:
+            pc = cam.R @ m + cam.t
+            u, v = cam.fx * pc[0] / pc[2] + cam.cx, cam.fy * pc[1] / pc[2] + cam.cy
+            ok |= near - 1e-4 <= pc[2] <= far + 1e-4 and 0 <= u <= cam.width and 0 <= v <= cam.height
+        assert ok
+
+
+# ------------------------------------------------------------------------------------ pruning
+def test_prune_screen_size_removes_gaussians_that_covered_too_much_of_the_screen():
+    n = 4
+    g = Gaussians(torch.zeros(n, 3), torch.tensor([[1.0, 0, 0, 0]] * n), torch.full((n, 3), -3.0),
+                  torch.full((n,), 2.0), torch.zeros(n, 1, 3))
+    adam = GaussianAdam()
+    stats = DensifyStats.zeros(n, "cpu")
+    stats.max_radii = torch.tensor([0.05, 0.30, 0.0, 0.21])
+    cfg = replace(FitConfig(), densify_grad_threshold=1.0, prune_screen_size=0.2)
+    counts = densify_and_prune(g, adam, stats, cfg, 10.0, prune_big=False, generator=torch.Generator())
+    assert counts["pruned"] == 2 and g.num == 2
+
+
+# ------------------------------------------------------------------------------------ outputs
+def test_fit_reports_step_times_and_writes_held_out_renders(tmp_path):
+    scene = _scene(tmp_path / "scene", 9, 16, 12, colors=[(0.3, 0.5, 0.7)] * 9)
+    cfg = replace(FitConfig.cpu(), steps=6, random_init_count=50, checkpoint_every=0, sh_degree=0,
+                  test_every=8, densify_from=100)
+    report = fit_gaussians(scene, cfg, tmp_path / "fit", progress=False)
+    assert report.step_time_median_s is not None and report.step_time_p95_s >= report.step_time_median_s
+    assert set(report.test_psnr_per_view) == {"frame_00001", "frame_00009"}
+    assert np.mean(list(report.test_psnr_per_view.values())) == pytest.approx(report.test_psnr)
+    render = np.load(tmp_path / "fit" / "test_views" / "frame_00001.npy")
+    assert render.dtype == np.float32 and render.shape == (12, 16, 3)
+    mse = float(((render - scene.image(0)) ** 2).mean())  # the photo as loaded (8-bit)
+    assert -10 * math.log10(mse) == pytest.approx(report.test_psnr_per_view["frame_00001"], abs=0.05)
+    assert (tmp_path / "fit" / "test_views" / "frame_00001.png").is_file()
+    saved = json.loads((tmp_path / "fit" / "fit_report.json").read_text())
+    assert saved["test_psnr_per_view"] == report.test_psnr_per_view
+
+
+# ------------------------------------------------------------------------------------ orbit
+def test_orbit_cameras_look_at_the_robust_centre_from_one_distance():
+    rng = np.random.default_rng(0)
+    n = 200
+    means = torch.tensor(rng.normal(size=(n, 3)) * 0.1 + [1.0, 2.0, 3.0], dtype=torch.float32)
+    means[0] = torch.tensor([50.0, 50.0, 50.0])  # a floater moves neither centre nor radius
+    g = Gaussians(means, torch.tensor([[1.0, 0, 0, 0]] * n), torch.full((n, 3), -4.0),
+                  torch.full((n,), 3.0), torch.zeros(n, 1, 3))
+    cams = orbit_cameras(g, 6, elevation=30.0, up=(0.0, 0.0, 1.0), width=64, height=48)
+    # The point closest to every optical axis (least squares) is the look-at point.
+    A, b = np.zeros((3, 3)), np.zeros(3)
+    for c in cams:
+        P = np.eye(3) - np.outer(c.R[2], c.R[2])
+        A, b = A + P, b + P @ c.center
+    target = np.linalg.solve(A, b)
+    assert np.linalg.norm(target - [1.0, 2.0, 3.0]) < 0.05  # the floater did not move it
+    dists = [np.linalg.norm(c.center - target) for c in cams]
+    assert max(dists) - min(dists) < 1e-9 and max(dists) < 5.0  # the floater did not push the ring out
+    for c in cams:
+        u, v = c.project(target[None])[0][0]
+        assert abs(u - 32) < 1e-6 and abs(v - 24) < 1e-6
+        rel = c.center - target
+        assert math.degrees(math.asin(rel[2] / np.linalg.norm(rel))) == pytest.approx(30.0)
+
+
+def test_render_command_draws_a_ply_in_its_colour(tmp_path):
+    n = 50
+    rng = np.random.default_rng(1)
+    red = torch.zeros(n, 1, 3)
+    red[:, 0] = (torch.tensor([1.0, 0.0, 0.0]) - 0.5) / 0.28209479177387814  # DC of pure red
+    g = Gaussians(torch.tensor(rng.normal(size=(n, 3)) * 0.05, dtype=torch.float32),
+                  torch.tensor([[1.0, 0, 0, 0]] * n), torch.full((n, 3), math.log(0.05)), torch.full((n,), 5.0),
+                  red)
+    write_ply(tmp_path / "g.ply", g)
+    assert cli_main(["render", str(tmp_path / "g.ply"), "--out", str(tmp_path / "out"), "--views", "3",
+                     "--size", "40", "30"]) == 0
+    for k in range(3):
+        img = np.load(tmp_path / "out" / f"orbit_{k:02d}.npy")
+        assert img.shape == (30, 40, 3)
+        np.testing.assert_allclose(img[15, 20], [1.0, 0.0, 0.0], atol=0.02)  # the centre is the red blob
+        assert img[0, 0].min() > 0.5  # the white background at a corner (tinted by the blob's tail)
+    assert render_views(g, orbit_cameras(g, 1, width=8, height=8))[0].dtype == np.float32
+
+
+def test_render_command_rejects_bad_options(tmp_path, capsys):
+    assert cli_main(["render", str(tmp_path / "missing.ply"), "--out", str(tmp_path / "o")]) == 2
+    assert "missing.ply" in capsys.readouterr().err
+    assert cli_main(["render", str(tmp_path / "x.ply"), "--out", str(tmp_path / "o"), "--views", "0"]) == 2
