@@ -121,19 +121,43 @@ def test_extra_random_points_and_scale_clamp(tmp_path):
     assert g.num == 3 + 30
     torch.testing.assert_close(g.means[:3].detach(), torch.tensor(points))
     assert float(g.scales.detach().max()) <= 0.01 * scene.extent() * (1 + 1e-5)
-    # Each extra point lies, for some training camera (views 1..7; view 0 is held out), inside
-    # its image at a z-depth between the 5th percentile and twice the 95th percentile of the
-    # points' depths in those cameras.
-    train = scene.cameras[1:]
-    z = np.array([(cam.R @ np.array(p) + cam.t)[2] for cam in train for p in points])
-    near, far = np.percentile(z, 5), 2 * np.percentile(z, 95)
-    for m in g.means[3:].detach().double().numpy():
-        ok = False
-        for cam in train:
-            pc = cam.R @ m + cam.t
-            u, v = cam.fx * pc[0] / pc[2] + cam.cx, cam.fy * pc[1] / pc[2] + cam.cy
-            ok |= near - 1e-4 <= pc[2] <= far + 1e-4 and 0 <= u <= cam.width and 0 <= v <= cam.height
-        assert ok
+    # The extra points lie on a sphere around the cameras' centroid, twice as far as the
+    # farthest camera (the points are nearer than that), so behind the scene from every camera.
+    centers = np.stack([c.center for c in scene.cameras[1:]])  # view 0 is held out
+    centroid = centers.mean(0)
+    radius = 2 * np.linalg.norm(centers - centroid, axis=1).max()
+    extra = g.means[3:].detach().double().numpy()
+    np.testing.assert_allclose(np.linalg.norm(extra - centroid, axis=1), radius, rtol=1e-4)
+
+
+def test_clear_of_cameras_by_hand():
+    R, t = look_at(np.array([0.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0]), up=(0.0, -1.0, 0.0))
+    cam = Camera(10.0, 10.0, 5.0, 5.0, 10, 10, R=R, t=t)  # at the origin, looking down +z
+    pts = np.array([[0.0, 0.0, 0.5],  # seen at depth 0.5 < 1: not clear
+                    [0.0, 0.0, 2.0],  # seen at depth 2: clear
+                    [5.0, 0.0, 0.5],  # outside the image: clear
+                    [0.0, 0.0, -0.5]])  # behind the camera: clear
+    from n2f2.gaussians.init import clear_of_cameras
+
+    assert clear_of_cameras(pts, [cam], near=1.0).tolist() == [False, True, True, True]
+
+
+def test_random_init_keeps_clear_of_every_camera_and_fills_the_shell(tmp_path):
+    scene = _scene(tmp_path, 8, 16, 12)
+    cfg = replace(FitConfig(), random_init_count=400, sh_degree=0, random_init_shell=0.25)
+    g = initial_gaussians(scene, cfg, "random")
+    assert g.num == 400
+    near = cfg.random_init_depth[0] * scene.extent()
+    means = g.means.detach().double().numpy()
+    for cam in scene.cameras[1:]:  # the training views
+        pc = means @ cam.R.T + cam.t
+        u, v = cam.fx * pc[:, 0] / pc[:, 2] + cam.cx, cam.fy * pc[:, 1] / pc[:, 2] + cam.cy
+        seen = (pc[:, 2] > 0) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+        assert (pc[seen, 2] >= near - 1e-9).all()
+    centers = np.stack([c.center for c in scene.cameras[1:]])
+    dist = np.linalg.norm(means - centers.mean(0), axis=1)
+    on_shell = np.isclose(dist, 2 * np.linalg.norm(centers - centers.mean(0), axis=1).max(), rtol=1e-4)
+    assert on_shell.sum() == 100
 
 
 # ------------------------------------------------------------------------------------ pruning

@@ -112,6 +112,7 @@ class RunOptions:
     # "eigenvalue" -- the paper's -- for paper).
     scale_measure: str | None = None
     downscale: float = 1.0
+    skip_missing: bool = False  # drop views whose image is missing (every stage drops the same ones)
     modes: tuple[str, ...] = ("composite", "explicit", "oracle")
     device: str = "cpu"
     quiet: bool = False
@@ -170,7 +171,7 @@ def run_pipeline(opt: RunOptions, log=print) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     cache = StageCache.open(out)
     quiet = ["--quiet"] if opt.quiet else []
-    common = ["--downscale", opt.downscale, "--device", opt.device]
+    common = ["--downscale", opt.downscale, "--device", opt.device] + (["--skip-missing"] if opt.skip_missing else [])
     from .data.sfm import posed_scene_path
 
     data = posed_scene_path(data, out / "sfm", progress=not opt.quiet, log=log)  # photos: pose them first
@@ -229,7 +230,7 @@ def run_pipeline(opt: RunOptions, log=print) -> dict:
         for stale in ("checkpoint.pt", "field.pt"):  # inputs changed: start from scratch
             (out / stale).unlink(missing_ok=True)
         _cli(["train", data, "--gaussians", ply, "--segments", bank, "--out", out, *train_args,
-              "--downscale", opt.downscale, "--device", opt.device, *quiet])
+              *common, *quiet])
 
     cache.run("train", stage_key(scene=sdig, gaussians=gdig, bank=file_digest(bank / "bank.json"), args=train_args),
               [out / "field.pt"], train, log)
@@ -279,6 +280,8 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                         "extent, paper eigenvalue)")
     p.add_argument("--modes", nargs="+", default=["composite", "explicit", "oracle"], help="evaluation modes")
     p.add_argument("--downscale", type=float, default=1.0, help="image downscale factor, as 3DGS -r")
+    p.add_argument("--skip-missing", action="store_true",
+                   help="drop views whose image file is missing (default: a missing image is an error)")
     p.add_argument("--device", default="cpu", help="torch device (default cpu)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 
@@ -294,7 +297,8 @@ def _run_options(args: argparse.Namespace, data: Path, out: Path) -> RunOptions:
         langsplat_features=Path(args.langsplat_features) if args.langsplat_features else None,
         labels=Path(args.labels) if args.labels else None, preset=args.preset, fit_steps=args.fit_steps,
         train_steps=args.train_steps, dim=args.dim, variant=args.variant, depth_source=args.depth_source,
-        scale_measure=args.scale_measure, downscale=args.downscale, modes=tuple(args.modes), device=args.device,
+        scale_measure=args.scale_measure, downscale=args.downscale, skip_missing=args.skip_missing,
+        modes=tuple(args.modes), device=args.device,
         quiet=args.quiet)
 
 

@@ -32,7 +32,8 @@ from ..config import ConfigDict
 from ..data.scene import Scene
 from ..errors import InputError
 from ..io import save_torch, write_json
-from .init import init_from_points, init_random_in_frusta, random_points_in_frusta, uncovered_cells
+from .init import (background_shell, init_from_points, init_random_in_frusta, random_points_in_frusta,
+                   uncovered_cells)
 from .model import Gaussians, inverse_sigmoid, quat_to_rotmat
 from .ply import write_ply
 
@@ -103,9 +104,11 @@ class FitConfig(ConfigDict):
     # get no SfM points, and densification only grows Gaussians near existing ones. This many
     # per point, times the fraction of the training views' grid cells (16 along the longer side)
     # that no point projects into, drawn through random pixels of those cells (coloured by
-    # them) between the median and twice the 95th percentile of the points' depths. Generated
-    # scenes, whose points cover every surface, get almost none. 0: points only, as 3DGS.
+    # them) onto a sphere behind every camera (init.background_shell). Generated scenes, whose
+    # points cover every surface, get almost none. 0: points only, as 3DGS.
     init_extra_random: float = 0.0
+    # Without sparse points: the fraction of the random Gaussians put on that sphere.
+    random_init_shell: float = 0.0
 
     # Coarse to fine: up to step ``coarse_until[i] * steps`` the views are rendered and compared
     # at a further ``coarse_downscale[i]`` (images area-averaged). A step's cost scales with its
@@ -233,11 +236,10 @@ class FitReport:
 
 
 # ------------------------------------------------------------------------------------ losses
-def _gaussian_window(size: int, sigma: float, channels: int, device, dtype) -> Tensor:  # [C, 1, s, s]
+def _gaussian_1d(size: int, sigma: float, device, dtype) -> Tensor:  # [size], sums to 1
     x = torch.arange(size, dtype=dtype, device=device) - (size - 1) / 2
     g = torch.exp(-x ** 2 / (2 * sigma ** 2))
-    g = g / g.sum()
-    return (g[:, None] * g[None, :]).expand(channels, 1, size, size).contiguous()
+    return g / g.sum()
 
 
 def ssim(
@@ -246,18 +248,23 @@ def ssim(
     window_size: int = 11,
     sigma: float = 1.5,
 ) -> Tensor:  # [] mean SSIM
-    """Mean SSIM with an 11x11 Gaussian window (sigma 1.5), zero padding, as 3DGS's ``ssim``."""
+    """Mean SSIM with an 11x11 Gaussian window (sigma 1.5), zero padding, as 3DGS's ``ssim``.
+
+    The window is separable, so it is applied as a 1x11 then an 11x1 pass (with zero padding
+    this is the same sum as the 2D window), to the five maps at once: on a CPU the 2D grouped
+    convolution cost ~10x more and was a quarter of a fitting step at 370x250 pixels."""
     c = img1.shape[-1]
-    a = img1.permute(2, 0, 1)[None]
-    b = img2.permute(2, 0, 1)[None]
-    w = _gaussian_window(window_size, sigma, c, a.device, a.dtype)
+    a = img1.permute(2, 0, 1)
+    b = img2.permute(2, 0, 1)
+    maps = torch.cat([a, b, a * a, b * b, a * b])[None]  # [1, 5C, H, W]
+    g = _gaussian_1d(window_size, sigma, a.device, a.dtype)
     pad = window_size // 2
-    conv = lambda x: F.conv2d(x, w, padding=pad, groups=c)  # noqa: E731
-    mu1, mu2 = conv(a), conv(b)
+    k = 5 * c
+    maps = F.conv2d(maps, g.view(1, 1, 1, -1).expand(k, 1, 1, window_size), padding=(0, pad), groups=k)
+    maps = F.conv2d(maps, g.view(1, 1, -1, 1).expand(k, 1, window_size, 1), padding=(pad, 0), groups=k)
+    mu1, mu2, e11, e22, e12 = maps[0].split(c)
     mu1_sq, mu2_sq, mu12 = mu1 * mu1, mu2 * mu2, mu1 * mu2
-    s1 = conv(a * a) - mu1_sq
-    s2 = conv(b * b) - mu2_sq
-    s12 = conv(a * b) - mu12
+    s1, s2, s12 = e11 - mu1_sq, e22 - mu2_sq, e12 - mu12
     c1, c2 = 0.01 ** 2, 0.03 ** 2
     m = ((2 * mu12 + c1) * (2 * s12 + c2)) / ((mu1_sq + mu2_sq + c1) * (s1 + s2 + c2))
     return m.mean()
@@ -517,33 +524,19 @@ def _initial_gaussians(scene: Scene, config: FitConfig, init: Union[None, str]) 
         if config.init_extra_random > 0:
             cells = [uncovered_cells(points, cam) for cam in cameras]
             n_extra = int(round(config.init_extra_random * len(points) * np.mean([c.mean() for c in cells])))
-            depths = _point_depths(points, cameras)
-            if n_extra > 0 and len(depths):
-                near, far = float(np.median(depths)), 2.0 * float(np.percentile(depths, 95))
-                extra, extra_colors = random_points_in_frusta(cameras, n_extra, near, far, seed=config.seed,
-                                                              images=image, cells=cells)
+            if n_extra > 0:
+                extra, extra_colors = random_points_in_frusta(cameras, n_extra, 1.0, 2.0, seed=config.seed,
+                                                              images=image, cells=cells,
+                                                              shell=background_shell(cameras, points))
                 points, colors = np.concatenate([points, extra]), np.concatenate([colors, extra_colors])
         return init_from_points(points, colors, sh_degree=config.sh_degree, device=config.device)
     if kind == "random":
         ext = scene.extent()
         near, far = (d * ext for d in config.random_init_depth)
         return init_random_in_frusta(cameras, config.random_init_count, near, far, seed=config.seed,
-                                     sh_degree=config.sh_degree, device=config.device, images=image)
+                                     sh_degree=config.sh_degree, device=config.device, images=image,
+                                     shell_fraction=config.random_init_shell)
     raise ValueError(f"unknown init {kind!r}: use 'points', 'random' or a Gaussians model")
-
-
-def _point_depths(points: np.ndarray, cameras: list) -> np.ndarray:  # [P, 3] -> [M]
-    """z-depths of the points in front of each camera that project inside its image."""
-    out = []
-    for cam in cameras:
-        pc = points @ cam.R.T + cam.t
-        z = pc[:, 2]
-        front = z > 1e-9
-        u = cam.fx * pc[front, 0] / z[front] + cam.cx
-        v = cam.fy * pc[front, 1] / z[front] + cam.cy
-        inside = (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
-        out.append(z[front][inside])
-    return np.concatenate(out) if out else np.zeros(0)
 
 
 class _ViewSampler:

@@ -78,12 +78,14 @@ def random_points_in_frusta(
     seed: int = 0,
     images: Optional[Callable[[int], np.ndarray]] = None,  # view index -> float [H, W, 3] in [0, 1]
     cells: Optional[Sequence[np.ndarray]] = None,  # per camera [gh, gw] bool: where to draw (a grid)
+    shell: Optional[tuple[np.ndarray, float]] = None,  # (centre [3], radius): place points on this sphere
 ) -> tuple[np.ndarray, np.ndarray]:  # [n, 3] float64, [n, 3] uint8
     """``n`` points at random pixels of random cameras, at a z-depth uniform in [near, far].
     Each point takes the colour of the pixel it was drawn through when ``images`` is given
     (every view that sees it along that ray starts right), else a random colour. With
     ``cells``, pixels are drawn uniformly from the True cells of each camera's grid only, and
-    cameras in proportion to their True cells."""
+    cameras in proportion to their True cells. With ``shell``, each point is where its ray
+    leaves that sphere instead (a background beyond every camera inside it)."""
     if n <= 0 or not cameras:
         raise ValueError("random_points_in_frusta needs n > 0 and at least one camera")
     if not 0 < near < far:
@@ -109,7 +111,10 @@ def random_points_in_frusta(
             pick = rng.integers(0, len(rows), size=len(sel))
             cell_wh = np.array([cam.width / gw, cam.height / gh])
             uv = (np.stack([cols[pick], rows[pick]], axis=1) + rng.random((len(sel), 2))) * cell_wh
-        depth = near + (far - near) * rng.random(len(sel))
+        if shell is None:
+            depth = near + (far - near) * rng.random(len(sel))
+        else:
+            depth = _sphere_exit_depth(cam, uv, *shell)
         points[sel] = cam.unproject(uv, depth)
         if images is not None:
             image = images(int(ci))
@@ -117,6 +122,47 @@ def random_points_in_frusta(
             cols = np.minimum((uv[:, 0] * image.shape[1] / cam.width).astype(int), image.shape[1] - 1)
             colors[sel] = np.clip(image[rows, cols] * 255.0 + 0.5, 0, 255).astype(np.uint8)
     return points, colors
+
+
+def _sphere_exit_depth(camera: Camera, uv: np.ndarray,  # [M, 2] pixels
+                       center: np.ndarray, radius: float) -> np.ndarray:  # [M] z-depth
+    """z-depth at which each pixel's ray leaves the sphere (the far root; the camera must be
+    inside it, which ``background_shell`` guarantees)."""
+    o = camera.center
+    d = camera.unproject(uv, np.ones(len(uv))) - o  # [M, 3], z-depth 1 per unit of t
+    oc = o - np.asarray(center, dtype=np.float64)
+    a = (d * d).sum(1)
+    b = 2.0 * d @ oc
+    c = oc @ oc - radius * radius
+    return (-b + np.sqrt(np.maximum(b * b - 4 * a * c, 0.0))) / (2 * a)
+
+
+def background_shell(cameras: Sequence[Camera],
+                     points: Optional[np.ndarray] = None,  # [P, 3] sparse points, if any
+                     ) -> tuple[np.ndarray, float]:  # (centre [3], radius)
+    """A sphere around the capture, twice as far from the cameras' centroid as the farthest
+    camera (and the 95th percentile of the points): Gaussians on it sit behind everything from
+    every camera, so they can stand for a backdrop without floating in front of another view
+    (random depths along one view's rays land in front of the opposite views of an orbit)."""
+    centers = np.stack([c.center for c in cameras])
+    center = centers.mean(axis=0)
+    radius = float(np.linalg.norm(centers - center, axis=1).max())
+    if points is not None and len(points):
+        radius = max(radius, float(np.percentile(np.linalg.norm(points - center, axis=1), 95)))
+    return center, 2.0 * max(radius, 1e-6)
+
+
+def clear_of_cameras(points: np.ndarray,  # [P, 3]
+                     cameras: Sequence[Camera],
+                     near: float,
+                     ) -> np.ndarray:  # [P] bool
+    """False for points that some camera sees (inside its image) closer than z-depth ``near``."""
+    ok = np.ones(len(points), dtype=bool)
+    for cam in cameras:
+        uv, z = cam.project(points)
+        inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+        ok &= ~(inside & (z < near))
+    return ok
 
 
 def init_random_in_frusta(
@@ -128,11 +174,28 @@ def init_random_in_frusta(
     sh_degree: int = 3,
     device: torch.device | str | None = None,
     images: Optional[Callable[[int], np.ndarray]] = None,  # view index -> float [H, W, 3] in [0, 1]
+    shell_fraction: float = 0.0,  # this fraction goes on the background_shell
 ) -> Gaussians:
     """``n`` Gaussians at :func:`random_points_in_frusta` (pixel colours when ``images`` is
-    given, else random ones); scales and opacities as :func:`init_from_points`."""
-    points, colors = random_points_in_frusta(cameras, n, near, far, seed=seed, images=images)
-    return init_from_points(points, colors, sh_degree=sh_degree, device=device)
+    given, else random ones), none closer than ``near`` to any camera that sees it, and
+    ``shell_fraction`` of them on the :func:`background_shell`; scales and opacities as
+    :func:`init_from_points`."""
+    n_shell = int(round(shell_fraction * n))
+    parts, colors, drawn = [], [], 0
+    for attempt in range(8):  # draw, drop points right in front of another camera, repeat
+        pts, cols = random_points_in_frusta(cameras, 2 * (n - n_shell), near, far, seed=seed + attempt, images=images)
+        keep = clear_of_cameras(pts, cameras, near)
+        parts.append(pts[keep])
+        colors.append(cols[keep])
+        drawn += int(keep.sum())
+        if drawn >= n - n_shell:
+            break
+    points, cols = np.concatenate(parts)[: n - n_shell], np.concatenate(colors)[: n - n_shell]
+    if n_shell:
+        shell_pts, shell_cols = random_points_in_frusta(cameras, n_shell, near, far, seed=seed, images=images,
+                                                        shell=background_shell(cameras))
+        points, cols = np.concatenate([points, shell_pts]), np.concatenate([cols, shell_cols])
+    return init_from_points(points, cols, sh_degree=sh_degree, device=device)
 
 
 def _isotropic(

@@ -28,6 +28,8 @@ def _common(p: argparse.ArgumentParser) -> None:
                         "covariance (paper, default); extent = squared diagonal of their robust oriented "
                         "box (2nd-98th percentile along each principal axis; not in the paper)")
     p.add_argument("--downscale", type=float, default=1.0, help="image downscale factor, as 3DGS -r (default 1)")
+    p.add_argument("--skip-missing", action="store_true",
+                   help="drop views whose image file is missing (default: a missing image is an error)")
     p.add_argument("--device", default="cpu", help="torch device for models and rendering (default cpu)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
@@ -114,7 +116,7 @@ def _load(args):
 
     if args.downscale <= 0:
         raise InputError(None, f"--downscale must be > 0, got {args.downscale}")
-    scene = load_scene(args.data, downscale=args.downscale)
+    scene = load_scene(args.data, downscale=args.downscale, skip_missing=args.skip_missing)
     if len(scene) == 0:
         raise InputError(args.data, "scene has no images")
     return scene

@@ -57,6 +57,8 @@ def register(subparsers) -> None:
                    help="also train on the views scene.json lists as test_views (held out by default)")
     p.add_argument("--resume", action="store_true", help="continue from DIR/checkpoint.pt")
     p.add_argument("--downscale", type=float, default=1.0, help="image downscale factor, as 3DGS -r (default 1)")
+    p.add_argument("--skip-missing", action="store_true",
+                   help="drop views whose image file is missing (default: a missing image is an error)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--device", default=None, help="torch device (default: cuda when available, else cpu)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -129,7 +131,7 @@ def run_train(args: argparse.Namespace) -> int:
         raise InputError(None, str(e)) from None
 
     gpath = _gaussians_path(args.gaussians)
-    scene = load_scene(args.data, downscale=args.downscale)
+    scene = load_scene(args.data, downscale=args.downscale, skip_missing=args.skip_missing)
     bank = SegmentBank.open(args.segments)
     gaussians = read_ply(gpath)
     report = train_field(scene, gaussians, bank, args.out, field_config=field_config, config=config,
