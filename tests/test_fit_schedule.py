@@ -160,6 +160,26 @@ def test_random_init_keeps_clear_of_every_camera_and_fills_the_shell(tmp_path):
     assert on_shell.sum() == 100
 
 
+def test_background_from_images_is_the_border_median_and_is_recorded(tmp_path):
+    # Views with a (0.2, 0.4, 0.6) frame around a white centre: the border ring is all frame.
+    scene = _scene(tmp_path / "scene", 9, 16, 12)
+    for path in scene.image_paths:
+        img = np.ones((12, 16, 3), np.float32)
+        img[:2], img[-2:], img[:, :2], img[:, -2:] = 0.2, 0.2, 0.2, 0.2
+        img[..., 1][img[..., 0] == 0.2] = 0.4
+        img[..., 2][img[..., 0] == 0.2] = 0.6
+        write_png(path, img)
+    from n2f2.gaussians.fit import border_color
+
+    np.testing.assert_allclose(border_color(scene, list(range(9))), [51 / 255, 102 / 255, 153 / 255], atol=1e-6)
+    cfg = replace(FitConfig.cpu(), steps=2, random_init_count=20, checkpoint_every=0, sh_degree=0)
+    assert cfg.background_from_images
+    fit_gaussians(scene, cfg, tmp_path / "fit", progress=False)
+    saved = json.loads((tmp_path / "fit" / "fit_report.json").read_text())["config"]
+    np.testing.assert_allclose(saved["background"], [51 / 255, 102 / 255, 153 / 255], atol=1e-6)
+    assert saved["background_from_images"] is False  # resolved once; a resume keeps the colour
+
+
 # ------------------------------------------------------------------------------------ pruning
 def test_prune_screen_size_removes_gaussians_that_covered_too_much_of_the_screen():
     n = 4

@@ -28,7 +28,7 @@ def register(subparsers) -> None:
                    help="write a checkpoint every N steps (default: the preset's; 0: only at the end)")
     p.add_argument("--max-gaussians", type=int, default=None, metavar="N", help="cap on the Gaussian count")
     p.add_argument("--depth-spread", type=float, default=None, metavar="W", dest="depth_spread_weight",
-                   help="weight of the depth-spread regulariser (cpu preset 1.5, paper 0 = off as 3DGS)")
+                   help="weight of the depth-spread regulariser (cpu preset 1.0, paper 0 = off as 3DGS)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--skip-missing", action="store_true",
                    help="drop views whose image file is missing (default: a missing image is an error)")
