@@ -180,6 +180,41 @@ def test_background_from_images_is_the_border_median_and_is_recorded(tmp_path):
     assert saved["background_from_images"] is False  # resolved once; a resume keeps the colour
 
 
+def test_environment_colour_over_ray_directions():
+    from n2f2.gaussians.fit import Environment
+
+    cam = _ring(1, 8, 6)[0]
+    flat = Environment(0, (0.2, 0.4, 0.6))
+    torch.testing.assert_close(flat(cam), torch.tensor([0.2, 0.4, 0.6]).expand(6, 8, 3))
+    # Degree 1: Y_1,-1 = -0.488603 y for a unit direction (3DGS's basis); put 0.1 / 0.488603
+    # there in red, so red = 0.2 - 0.1 y over the pixels' unit ray directions.
+    env = Environment(1, (0.2, 0.4, 0.6))
+    with torch.no_grad():
+        env.sh[1, 0] = 0.1 / 0.4886025119029199
+    dirs = cam.ray_directions()
+    y = dirs[..., 1] / np.linalg.norm(dirs, axis=-1)
+    np.testing.assert_allclose(env(cam)[..., 0].detach().numpy(), 0.2 - 0.1 * y, atol=1e-6)
+
+
+def test_fit_learns_and_saves_the_environment(tmp_path):
+    # Views of one flat colour and no Gaussians worth keeping: the environment takes the colour.
+    scene = _scene(tmp_path / "scene", 9, 16, 12, colors=[(0.8, 0.3, 0.1)] * 9)
+    cfg = replace(FitConfig.cpu(), steps=200, random_init_count=5, checkpoint_every=0, sh_degree=0,
+                  background_from_images=False, background=(0.5, 0.5, 0.5), background_lr=0.05)
+    assert cfg.background_sh_degree == 2
+    report = fit_gaussians(scene, cfg, tmp_path / "fit", progress=False)
+    saved = json.loads((tmp_path / "fit" / "background.json").read_text())
+    assert saved["degree"] == 2 and len(saved["sh"]) == 9
+    from n2f2.gaussians.fit import Environment
+
+    env = Environment(2, (0.5, 0.5, 0.5))
+    with torch.no_grad():
+        env.sh.copy_(torch.tensor(saved["sh"]))
+    seen = env(scene.cameras[0]).detach().numpy().reshape(-1, 3).mean(0)  # a held-out view
+    np.testing.assert_allclose(seen, [0.8, 0.3, 0.1], atol=0.05)
+    assert report.test_psnr > 20
+
+
 # ------------------------------------------------------------------------------------ pruning
 def test_prune_screen_size_removes_gaussians_that_covered_too_much_of_the_screen():
     n = 4

@@ -71,6 +71,12 @@ class FitConfig(ConfigDict):
     # Gaussians: painting it with them on a black background filled the held-out views of a
     # real object capture with backdrop-coloured floaters (17.5 vs 21.6 dB after 1000 steps).
     background_from_images: bool = False
+    # Learn the background as a colour over ray directions (spherical harmonics of this degree,
+    # started at ``background``), an environment behind every Gaussian: a real backdrop shades
+    # smoothly (light falloff, shadows) where a constant leaves most of a capture's error.
+    # Saved as background.json beside the PLY. -1: the constant ``background``, as 3DGS.
+    background_sh_degree: int = -1
+    background_lr: float = 0.005
 
     # Adam learning rates. Positions are scaled by the scene extent and decay exponentially
     # from means_lr_init to means_lr_final over means_lr_max_steps.
@@ -201,6 +207,7 @@ class FitConfig(ConfigDict):
             steps=1500,
             depth_spread_weight=1.0,
             background_from_images=True,
+            background_sh_degree=2,
             init_max_scale=0.1,
             init_extra_random=1.0,
             random_init_shell=0.25,
@@ -594,11 +601,46 @@ def downsample_image(image: Tensor, height: int, width: int) -> Tensor:  # [H, W
     return F.interpolate(image.permute(2, 0, 1)[None], size=(height, width), mode="area")[0].permute(1, 2, 0)
 
 
-def _render(g: Gaussians, camera, config: FitConfig):
+class Environment(torch.nn.Module):
+    """The learned background: RGB = max(SH(ray direction) + 0.5, 0), like a Gaussian's colour,
+    seen through every pixel where the Gaussians leave transmittance."""
+
+    def __init__(self, degree: int, color: tuple[float, float, float]) -> None:
+        super().__init__()
+        from ..render.sh import num_sh_bases
+
+        sh = torch.zeros(num_sh_bases(degree), 3)
+        sh[0] = (torch.tensor(color, dtype=torch.float32) - 0.5) / _SH_C0
+        self.degree = degree
+        self.sh = torch.nn.Parameter(sh)  # [K, 3]
+
+    def forward(self, camera) -> Tensor:  # [H, W, 3] for one camera's pixel centres
+        from ..render.sh import eval_sh
+
+        dirs = torch.as_tensor(camera.ray_directions(), dtype=self.sh.dtype, device=self.sh.device)
+        h, w = dirs.shape[:2]
+        flat = dirs.reshape(-1, 3)
+        return eval_sh(self.sh[None].expand(flat.shape[0], -1, -1), flat, self.degree).reshape(h, w, 3)
+
+    def to_dict(self) -> dict:
+        return {"kind": "spherical-harmonics", "degree": self.degree,
+                "convention": "rgb = max(sum_k sh[k] * Y_k(unit ray direction, world) + 0.5, 0), 3DGS's SH basis",
+                "sh": self.sh.detach().cpu().tolist()}
+
+
+_SH_C0 = 0.28209479177387814
+BACKGROUND_NAME = "background.json"
+
+
+def _render(g: Gaussians, camera, config: FitConfig, env: Optional[Environment] = None):
     from ..render import render_rgb
 
-    return render_rgb(g, camera, sh_degree=g.sh_degree,
-                      background=torch.tensor(config.background, dtype=torch.float32, device=config.device))
+    if env is None:
+        return render_rgb(g, camera, sh_degree=g.sh_degree,
+                          background=torch.tensor(config.background, dtype=torch.float32, device=config.device))
+    out = render_rgb(g, camera, sh_degree=g.sh_degree, background=None)
+    out.features = out.features + (1.0 - out.alpha) * env(camera)
+    return out
 
 
 def depth_spread_penalty(spread: Tensor) -> Tensor:  # spread [H, W] from _render_with_depth_spread
@@ -606,7 +648,8 @@ def depth_spread_penalty(spread: Tensor) -> Tensor:  # spread [H, W] from _rende
     return (torch.sqrt(spread + 1e-6) - 1e-3).mean()
 
 
-def _render_with_depth_spread(g: Gaussians, camera, config: FitConfig, extent: float):
+def _render_with_depth_spread(g: Gaussians, camera, config: FitConfig, extent: float,
+                              env: Optional[Environment] = None):
     """Render colours plus the per-pixel depth spread ``sum_i w_i z_i^2 - (sum_i w_i z_i)^2 /
     alpha`` (z / extent), from one extra rasterized channel. Returns (output, spread [H, W])."""
     from ..render import rasterize, view_colors
@@ -615,9 +658,12 @@ def _render_with_depth_spread(g: Gaussians, camera, config: FitConfig, extent: f
     cam = camera.to_torch(device=means.device, dtype=means.dtype)
     colors = view_colors(g, camera)  # [N, 3]
     z = (means @ cam["viewmat"][2, :3] + cam["viewmat"][2, 3]) / extent  # [N] camera z / extent
-    background = torch.tensor((*config.background, 0.0), dtype=means.dtype, device=means.device)
+    background = None if env is not None else \
+        torch.tensor((*config.background, 0.0), dtype=means.dtype, device=means.device)
     out = rasterize(means, g.quats, g.scales, g.opacities, torch.cat([colors, (z * z)[:, None]], 1), camera,
                     background=background)
+    if env is not None:
+        out.features = torch.cat([out.features[..., :3] + (1.0 - out.alpha) * env(camera), out.features[..., 3:]], -1)
     second = out.features[..., 3]  # sum w z^2
     mean = out.depth[..., 0] / extent  # sum w z / alpha
     spread = (second - out.alpha[..., 0] * mean * mean).clamp_min(0.0)
@@ -703,13 +749,24 @@ def fit_gaussians(
         sampler.stack = list(ck["view_stack"])
         start, loss_curve, skipped, train_time = ck["step"], list(ck["loss_curve"]), ck["skipped"], ck["train_time"]
 
+    env, env_adam = None, None
+    if config.background_sh_degree >= 0:
+        env = Environment(config.background_sh_degree, config.background).to(device)
+        env_adam = torch.optim.Adam(env.parameters(), lr=config.background_lr, eps=config.adam_eps)
+        if ck is not None and "environment" in ck:
+            with torch.no_grad():
+                env.sh.copy_(ck["environment"]["sh"])
+            env_adam.load_state_dict(ck["environment"]["optimizer"])
+
     targets = {i: torch.from_numpy(scene.image(i)).to(device) for i in train_views}
     k = g.sh.shape[1]
 
     def save_checkpoint(step: int) -> None:
-        if _state_finite(g, adam):  # never persist a broken state
-            save_torch(ck_path, _checkpoint(step, g, adam, stats, config, generator, sampler,
-                                            loss_curve, skipped, train_time))
+        if _state_finite(g, adam) and (env is None or bool(torch.isfinite(env.sh).all())):  # never persist a broken state
+            state = _checkpoint(step, g, adam, stats, config, generator, sampler, loss_curve, skipped, train_time)
+            if env is not None:
+                state["environment"] = {"sh": env.sh.detach().cpu().clone(), "optimizer": env_adam.state_dict()}
+            save_torch(ck_path, state)
 
     end = config.steps if stop_after is None else min(config.steps, stop_after)
     bar = tqdm(total=config.steps, initial=start, disable=not progress, desc="fit-gaussians", dynamic_ncols=True)
@@ -734,21 +791,26 @@ def fit_gaussians(
         elif coarse_targets:
             coarse_targets.clear()  # the schedule has ended
         if config.depth_spread_weight > 0:
-            out, spread = _render_with_depth_spread(g, camera, config, extent)
+            out, spread = _render_with_depth_spread(g, camera, config, extent, env)
             image = out.features[..., :3]
         else:
-            out, spread = _render(g, camera, config), None
+            out, spread = _render(g, camera, config, env), None
             image = out.features  # not clamped: 3DGS trains on the raw composite
         out.means2d.retain_grad()
         loss = photometric_loss(image, target, config.lambda_dssim)
         if spread is not None:
             loss = loss + config.depth_spread_weight * depth_spread_penalty(spread)
         g.zero_grad(set_to_none=True)
+        if env is not None:
+            env_adam.zero_grad(set_to_none=True)
         loss.backward()
         # Parameter gradients are checked by the optimiser; it refuses non-finite steps.
         grads_ok = bool(torch.isfinite(loss)) and (
             out.means2d.grad is None or bool(torch.isfinite(out.means2d.grad).all()))
-        ok = grads_ok and adam.step(g.params(), learning_rates(config, step, extent, k, device))
+        env_ok = env is None or (env.sh.grad is not None and bool(torch.isfinite(env.sh.grad).all()))
+        ok = grads_ok and env_ok and adam.step(g.params(), learning_rates(config, step, extent, k, device))
+        if ok and env is not None:
+            env_adam.step()
         g.zero_grad(set_to_none=True)
         if not ok:
             skipped += 1
@@ -780,7 +842,8 @@ def fit_gaussians(
     final = max(step, start)
     save_checkpoint(final)
 
-    report = evaluate(g, scene, train_views, test_views, config, extent, renders_dir=out_dir / TEST_RENDERS_DIR)
+    report = evaluate(g, scene, train_views, test_views, config, extent, renders_dir=out_dir / TEST_RENDERS_DIR,
+                      env=env)
     report.update(steps=final, train_time_s=train_time, skipped_steps=skipped,
                   resumed_from=None if ck is None else int(ck["step"]),
                   loss_curve=_subsample(loss_curve, 200), config=config.to_dict(),
@@ -789,6 +852,8 @@ def fit_gaussians(
         report.update(step_time_median_s=float(np.median(step_times)),
                       step_time_p95_s=float(np.percentile(step_times, 95)))
     write_ply(out_dir / PLY_NAME, g)  # refuses non-finite values (cannot happen: steps are guarded)
+    if env is not None:
+        write_json(out_dir / BACKGROUND_NAME, env.to_dict())
     report["wall_time_s"] = time.perf_counter() - t_start
     result = FitReport(**report)
     write_json(out_dir / REPORT_NAME, result.to_dict())
@@ -804,7 +869,8 @@ def _subsample(curve: list, n: int) -> list:
 
 @torch.no_grad()
 def evaluate(g: Gaussians, scene: Scene, train_views: list[int], test_views: list[int],
-             config: FitConfig, extent: float, renders_dir: Optional[Path] = None) -> dict:
+             config: FitConfig, extent: float, renders_dir: Optional[Path] = None,
+             env: Optional[Environment] = None) -> dict:
     """Mean PSNR over train and test views; with ground truth, the median absolute error of the
     rendered expected depth over pixels with alpha > 0.5 of the test views (train views if none).
     With ``renders_dir``, each held-out view is written there as ``<stem>.png`` (render on the
@@ -814,7 +880,7 @@ def evaluate(g: Gaussians, scene: Scene, train_views: list[int], test_views: lis
     device = torch.device(config.device)
 
     def view_psnr(i: int):
-        out = _render(g, scene.cameras[i], config)
+        out = _render(g, scene.cameras[i], config, env)
         return psnr(out.features.clamp(0, 1), torch.from_numpy(scene.image(i)).to(device)), out
 
     train_psnr = float(np.mean([view_psnr(i)[0] for i in train_views]))
@@ -839,7 +905,7 @@ def evaluate(g: Gaussians, scene: Scene, train_views: list[int], test_views: lis
     depth_abs = depth_rel = None
     if gt is not None:
         for i in depth_views:
-            out = outs.get(i) or _render(g, scene.cameras[i], config)
+            out = outs.get(i) or _render(g, scene.cameras[i], config, env)
             err = _depth_errors(gt.depth(i), out.depth[..., 0].cpu().numpy(), out.alpha[..., 0].cpu().numpy())
             errors.append(err)
         errors = np.concatenate(errors) if errors else np.zeros(0)
