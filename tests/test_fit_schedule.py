@@ -57,11 +57,11 @@ def test_sized_for_derives_steps_cap_and_windows_from_the_scene(tmp_path):
     assert (demo_like.densify_from, demo_like.densify_until, demo_like.sh_degree_interval) == (200, 1100, 400)
     assert demo_like.coarse_until == () and demo_like.means_lr_max_steps == 1500
 
-    # 80 views (70 training), 320 x 240: 43 x 70 = 3010 -> 3000 steps (the upper bound), cap 48,000,
-    # windows scaled by 2, and a coarse first half at sqrt(76,800 / 25,000) = 1.753.
+    # 80 views (70 training), 320 x 240: 43 x 70 = 3010 -> 2000 steps (the upper bound), cap 48,000,
+    # windows scaled by 4/3, and a coarse first half at sqrt(76,800 / 25,000) = 1.753.
     big = FitConfig.cpu().sized_for(_scene(tmp_path / "b", 80, 320, 240))
-    assert big.steps == 3000 and big.max_gaussians == 48_000
-    assert (big.densify_from, big.densify_until, big.sh_degree_interval) == (400, 2200, 800)
+    assert big.steps == 2000 and big.max_gaussians == 48_000
+    assert (big.densify_from, big.densify_until, big.sh_degree_interval) == (267, 1467, 533)
     assert big.coarse_until == (0.5,)
     assert big.coarse_downscale[0] == pytest.approx(math.sqrt(76_800 / 25_000))
 
