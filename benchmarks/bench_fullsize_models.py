@@ -20,7 +20,10 @@ time are its own. Inside it, the time of each image is split into the SAM image 
 mask decoder (all point batches), SAM's post-processing (upsampling, stability, NMS, small
 regions, packing), making CLIP's masked crops, the CLIP image model, and rendering the depth
 that lifting uses; "other" is the rest of the image's share of ``n2f2 segments`` (lifting,
-writing the record, reading the next image; for the last image, fitting the quantiles). Times on CUDA are taken after synchronising the device;
+writing the record, reading the next image; for the last image, fitting the quantiles).
+Random SAM weights leave only about a dozen segments per image, so CLIP is also timed on
+``--clip-segments`` (default 100) box-shaped segments of the first image, the count a real
+image gives. Times on CUDA are taken after synchronising the device;
 ``torch.cuda.max_memory_allocated`` is reported there. Prints a Markdown table, writes JSON.
 """
 
@@ -69,12 +72,12 @@ def make_scene(root: Path, images: list[Path]) -> Path:
     # depth varies across the image.
     W, H = cameras[0].width, cameras[0].height
     half_w, half_h = 2.0 * (W / 2) / cameras[0].fx + 0.3, 2.0 * (H / 2) / cameras[0].fy + 0.2
-    xs, ys = np.meshgrid(np.arange(-half_w, half_w, 0.04), np.arange(-half_h, half_h, 0.04))
+    xs, ys = np.meshgrid(np.arange(-half_w, half_w, 0.08), np.arange(-half_h, half_h, 0.08))
     means = np.stack([xs.ravel(), ys.ravel(), 2.0 + 0.2 * np.sin(2.0 * xs.ravel())], axis=1)
     n = len(means)
     rgb = torch.full((n, 1, 3), 0.5)
     g = Gaussians(torch.as_tensor(means, dtype=torch.float32), torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1),
-                  torch.full((n, 3), float(np.log(0.03))), torch.full((n,), 4.0), rgb_to_sh(rgb))
+                  torch.full((n, 3), float(np.log(0.06))), torch.full((n,), 4.0), rgb_to_sh(rgb))
     write_ply(root / "gaussians.ply", g)
     return root
 
@@ -110,6 +113,7 @@ def child(args: argparse.Namespace) -> int:
     def extract(self, index, stem, image):
         if state["models_loaded_at"] is None:
             state["models_loaded_at"] = time.perf_counter() - wall0
+            state["encoder"], state["image"] = self.encoder, image
         clip_before = dict(self.encoder.timing)
         t0 = time.perf_counter()
         segs, emb = original(self, index, stem, image)
@@ -137,6 +141,9 @@ def child(args: argparse.Namespace) -> int:
     rc = main(argv)
     end = time.perf_counter()
     wall = end - wall0
+    clip_at_n = None
+    if rc == 0 and args.clip_segments > 0:
+        clip_at_n = time_clip(state["encoder"], state["image"], args.clip_segments)
     # The rest of an image's share: from the end of its extraction to the start of the next
     # image's (the last: to the end of the command, which includes fitting the quantiles).
     for k, r in enumerate(records):
@@ -149,12 +156,38 @@ def child(args: argparse.Namespace) -> int:
     out = {"argv": ["n2f2"] + argv, "rc": rc, "wall_s": wall, "user_s": usage.ru_utime, "system_s": usage.ru_stime,
            "max_rss_mib": usage.ru_maxrss / 1024.0, "models_loaded_s": state["models_loaded_at"],
            "torch_threads": torch.get_num_threads(), "bank_timing": bank.get("timing"),
-           "bank_counts": bank.get("counts"), "images": records}
+           "bank_counts": bank.get("counts"), "images": records, "clip_at_n": clip_at_n}
     if args.device.startswith("cuda"):
         out["cuda_max_allocated_mib"] = torch.cuda.max_memory_allocated() / 2**20
         out["cuda_device"] = torch.cuda.get_device_name()
     Path(args.child_json).write_text(json.dumps(out, indent=2))
     return rc
+
+
+def box_masks(height: int, width: int, n: int, seed: int = 0) -> np.ndarray:  # -> [n, H, W] bool
+    """``n`` rectangles, 10-100 % of the image's height, of varied aspect, anywhere in it."""
+    rng = np.random.default_rng(seed)
+    masks = np.zeros((n, height, width), bool)
+    for k in range(n):
+        h = max(1, int(rng.uniform(0.1, 1.0) * height))
+        w = max(1, min(width, int(h * width / height * rng.uniform(0.5, 1.5))))
+        y, x = rng.integers(0, height - h + 1), rng.integers(0, width - w + 1)
+        masks[k, y:y + h, x:x + w] = True
+    return masks
+
+
+def time_clip(encoder, image: np.ndarray,  # [H, W, 3] float
+              n: int) -> dict:
+    """CLIP on ``n`` box segments of ``image``, in chunks of 64 as ``n2f2 segments`` passes
+    them: the cost at a real image's segment count, which random SAM weights do not give."""
+    masks = box_masks(image.shape[0], image.shape[1], n)
+    before = dict(encoder.timing)
+    t = time.perf_counter()
+    for start in range(0, n, 64):
+        encoder.encode_segments(image, masks[start:start + 64])
+    total = time.perf_counter() - t
+    return {"segments": n, "total_s": total, "crops_s": encoder.timing["crops"] - before["crops"],
+            "model_s": encoder.timing["model"] - before["model"]}
 
 
 # ----------------------------------------------------------------------------- report
@@ -180,6 +213,11 @@ def table(result: dict) -> str:
     lines.append(f"process: wall {result['wall_s']:.0f} s, user {result['user_s']:.0f} s, system "
                  f"{result['system_s']:.0f} s ({result['torch_threads']} torch threads); models loaded after "
                  f"{result['models_loaded_s']:.0f} s; peak RSS {result['max_rss_mib'] / 1024:.2f} GiB")
+    n = result.get("clip_at_n")
+    if n:
+        per = n["total_s"] / n["segments"]
+        lines.append(f"CLIP at {n['segments']} box segments of the first image: {n['total_s']:.1f} s (crops "
+                     f"{n['crops_s']:.1f} s, model {n['model_s']:.1f} s), {per:.3f} s per segment")
     if "cuda_max_allocated_mib" in result:
         lines.append(f"CUDA ({result['cuda_device']}): max allocated {result['cuda_max_allocated_mib'] / 1024:.2f} GiB")
     return "\n".join(lines)
@@ -193,6 +231,8 @@ def main(argv=None) -> int:
     ap.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
     ap.add_argument("--json", type=Path, default=Path("fullsize_models.json"), help="where to write the numbers")
     ap.add_argument("--keep", type=Path, default=None, help="keep the scene and bank in this folder")
+    ap.add_argument("--clip-segments", type=int, default=100,
+                    help="also time CLIP on this many box segments of the first image (0: skip)")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--scene", type=Path, help=argparse.SUPPRESS)
     ap.add_argument("--bank", type=Path, help=argparse.SUPPRESS)
@@ -213,7 +253,7 @@ def main(argv=None) -> int:
         child_json = work / "child.json"
         cmd = [sys.executable, str(Path(__file__).resolve()), "--child", "--scene", str(scene), "--bank",
                str(work / "bank"), "--child-json", str(child_json), "--models", str(args.models),
-               "--device", args.device]
+               "--device", args.device, "--clip-segments", str(args.clip_segments)]
         t = time.perf_counter()
         proc = subprocess.run(cmd)
         if proc.returncode != 0:

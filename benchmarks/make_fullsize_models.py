@@ -22,9 +22,11 @@ Writes ``OUT/sam-vit-huge/`` (``SamModel``: config.json + model.safetensors, 2.6
   logits ~ 0), so nothing would reach post-processing or CLIP. Two output layers are therefore
   rescaled (on by default, ``--no-calibrate`` to skip): the IoU head's output layer, so
   predicted IoUs spread around 0.65, and the mask hypernetworks' output layers, so logits
-  reach many units. About 10 % of the candidate masks then pass both filters, and the number
-  that survives NMS is that of a real image (a few hundred), which is what post-processing
-  and CLIP cost depends on. The masks themselves are speckle, not objects.
+  reach many units. About 10 % of the 3,072 candidate masks then pass both filters (290 on
+  the plush-dog photo IMG_3496), which is what post-processing cost depends on. The masks are
+  speckle, not objects, and overlap so much that NMS keeps ~80 and LangSplat's mask NMS about
+  a dozen, fewer than a real photo gives; ``bench_fullsize_models.py`` therefore also times
+  CLIP on 100 box-shaped segments.
 * CLIP: the OpenCLIP ViT-B/16 the paper uses, as its Hugging Face port configures it (vision
   hidden 768, 12 layers, 12 heads, patch 16, image 224; text hidden 512, 12 layers, 8 heads,
   context 77, vocabulary 49408; projection 512; GELU).
@@ -74,8 +76,8 @@ def sam_vit_h_config():
 def calibrate_sam(model, iou_center: float = 0.65, iou_gain: float = 6.0, logit_gain: float = 3000.0) -> None:
     """Make a random SAM's masks pass the automatic mask generator's filters in realistic
     numbers (see the module docstring). With the default seed and a 750 x 500 photo, about a
-    third of the predicted IoUs exceed 0.7 (centre ``iou_center``, spread ~0.1 from
-    ``iou_gain``) and about a third of the masks are stable (logits ``logit_gain`` times
+    quarter of the predicted IoUs exceed 0.7 (centre ``iou_center``, spread ~0.1 from
+    ``iou_gain``) and about a third of those masks are stable (logits ``logit_gain`` times
     larger), so ~10 % of the 3,072 candidate masks reach NMS."""
     dec = model.mask_decoder
     head = dec.iou_prediction_head
@@ -111,7 +113,7 @@ def clip_vit_b16_config():
 
 def bytes_to_unicode() -> dict[int, str]:
     """CLIP's / GPT-2's reversible byte -> printable character table."""
-    bs = list(range(ord("!"), ord("~") + 1)) + list(range(ord("¡"), ord("¬") + 1)) + list(range(ord("®"), ord("ÿ") + 1))
+    bs = [*range(ord("!"), ord("~") + 1), *range(ord("¡"), ord("¬") + 1), *range(ord("®"), ord("ÿ") + 1)]
     cs = bs[:]
     n = 0
     for b in range(256):

@@ -104,9 +104,19 @@ def segment_crops(image: Tensor,  # [3, H, W] float
     return out
 
 
-def _sync(device: torch.device) -> None:
+def device_sync(device: torch.device) -> None:
+    """Wait for queued CUDA work, so a clock read after it measures that work."""
     if device.type == "cuda":
         torch.cuda.synchronize(device)
+
+
+def device_autocast(device: torch.device):
+    """float16 autocast for model calls on CUDA; nothing elsewhere (float16 on CPU is slow)."""
+    import contextlib
+
+    if device.type == "cuda":
+        return torch.autocast("cuda", dtype=torch.float16)
+    return contextlib.nullcontext()
 
 
 def _features(output) -> Tensor:
@@ -154,14 +164,6 @@ class ClipEncoder:
         return {"name": self.name, "model_id": self.model_id, "embed_dim": self.dim,
                 "description": self.description}
 
-    def _autocast(self):
-        """float16 autocast for the model on CUDA; nothing elsewhere (CPU float16 is slow)."""
-        import contextlib
-
-        if self.device.type == "cuda":
-            return torch.autocast("cuda", dtype=torch.float16)
-        return contextlib.nullcontext()
-
     @torch.no_grad()
     def encode_text(self, texts: Sequence[str]) -> Tensor:
         texts = list(texts)
@@ -171,7 +173,7 @@ class ClipEncoder:
         for start in range(0, len(texts), self.batch_size):
             tok = self.tokenizer(texts[start:start + self.batch_size], padding=True, truncation=True,
                                  max_length=self.max_length, return_tensors="pt").to(self.device)
-            with self._autocast():
+            with device_autocast(self.device):
                 out.append(_features(self.model.get_text_features(input_ids=tok["input_ids"],
                                                                   attention_mask=tok["attention_mask"])).float())
         return F.normalize(torch.cat(out), dim=-1).cpu()
@@ -200,11 +202,11 @@ class ClipEncoder:
             t0 = time.perf_counter()
             m = torch.as_tensor(masks[start:start + self.batch_size], device=self.device)
             crops = (segment_crops(img, m, self.image_size) - mean) / std
-            _sync(self.device)
+            device_sync(self.device)
             t1 = time.perf_counter()
-            with self._autocast():
+            with device_autocast(self.device):
                 out.append(_features(self.model.get_image_features(pixel_values=crops)).float())
-            _sync(self.device)
+            device_sync(self.device)
             self.timing["crops"] += t1 - t0
             self.timing["model"] += time.perf_counter() - t1
         self.timing["segments"] += len(masks)

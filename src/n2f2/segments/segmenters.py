@@ -28,6 +28,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from ..errors import InputError
+from .encoders import device_autocast, device_sync
 
 DEFAULT_SAM_MODEL = "facebook/sam-vit-huge"
 SEGMENTER_NAMES = ("sam", "classical", "ground-truth")
@@ -223,6 +224,18 @@ def mask_intersections(a: Tensor,  # [Sa, H, W] bool
     return inter
 
 
+def mask_areas(masks: Tensor,  # [S, H, W] bool
+               ) -> Tensor:  # [S] float64
+    """Pixel count of each mask, summed over pixel chunks (a sum over booleans converts its
+    input to the sum's integer type: all at once, that is 4-8 bytes per pixel of every mask)."""
+    flat = masks.reshape(masks.shape[0], -1)
+    chunk = int(min(1 << 23, max(4096, INTERSECT_BUDGET // max(flat.shape[0], 1))))
+    area = torch.zeros(flat.shape[0], dtype=torch.float64, device=masks.device)
+    for start in range(0, flat.shape[1], chunk):
+        area += flat[:, start:start + chunk].sum(1, dtype=torch.int32).double()
+    return area
+
+
 def mask_overlaps(masks: Tensor,  # [S, H, W] bool
                   ) -> tuple[Tensor, Tensor]:
     """Pairwise intersections [S, S] and areas [S] (float64) of boolean masks."""
@@ -296,7 +309,7 @@ def greedy_mask_nms(masks: Tensor,  # [S, H, W] bool
     if settled == 0:
         inter, area = mask_overlaps(masks)
     else:
-        area = masks.reshape(S, -1).sum(1, dtype=torch.int32).double()
+        area = mask_areas(masks)
         inter = torch.zeros(S, S, dtype=torch.float64, device=masks.device)
         if settled < S:
             new = mask_intersections(masks[settled:], masks)  # [S - settled, S]
@@ -390,13 +403,10 @@ class SamSettings:
     max_pending_masks: int = 384
 
 
-# Mask logits upsampled to image resolution at once, in values (float32: 4 bytes each).
-UPSAMPLE_BUDGET = 1 << 24
-
-
-def _sync(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
+# Values (float32 logits and the boolean maps made from them) held at once while upsampling
+# mask logits to image resolution: 128 MB at most. Smaller chunks cost more per mask (many
+# small parallel regions); at 750 x 500 this is ~18 masks per chunk.
+UPSAMPLE_BUDGET = 1 << 25
 
 
 class SamSegmenter:
@@ -404,8 +414,9 @@ class SamSegmenter:
 
     Per image: one image-encoder pass, the point grid decoded ``points_per_batch`` prompts at
     a time (3 masks each), and per batch only the masks above the IoU threshold upsampled to
-    image resolution, a bounded number at a time. On CUDA the model runs under float16
-    autocast; post-processing is float32. ``last_timing`` holds the seconds the last image
+    image resolution, a bounded number at a time; NMS runs whenever ``max_pending_masks``
+    accumulate, on the model's device. On CUDA the model runs under float16 autocast;
+    post-processing is float32. ``last_timing`` holds the seconds the last image
     spent in the image encoder, the mask decoder and post-processing; ``last_counts`` how many
     masks it had after each step."""
 
@@ -485,8 +496,8 @@ class SamSegmenter:
     def filter_masks(self, low_res: Tensor,  # [N, h0, w0] logits of masks that passed the IoU filter
                      resized: tuple[int, int], original: tuple[int, int]) -> tuple[Tensor, Tensor, Tensor]:
         """Upsample logits to image resolution (at most :data:`UPSAMPLE_BUDGET` values at a
-        time), keep the stable, non-empty masks. Returns ``(masks [K, H, W] bool on CPU,
-        stability [K], kept [K] indices into low_res)``.
+        time), keep the stable, non-empty masks. Returns ``(masks [K, H, W] bool,
+        stability [K], kept [K] indices into low_res)``, on the segmenter's device.
 
         Stability is SAM's: IoU of the masks thresholded at +- ``stability_score_offset``
         around ``mask_threshold``, on the image-resolution logits as SAM computes it."""
@@ -495,8 +506,8 @@ class SamSegmenter:
         H, W = original
         h0, w0 = low_res.shape[-2:]
         # Per mask: the input-frame logits (cropped to the image, plus a margin), the image-
-        # resolution logits, and three boolean maps of them.
-        per_mask = int((resized[0] + 2 * T / h0) * (resized[1] + 2 * T / w0)) + 2 * H * W
+        # resolution logits, three boolean maps of them and an int32 copy of one being summed.
+        per_mask = int((resized[0] + 2 * T / h0) * (resized[1] + 2 * T / w0)) + 3 * H * W
         chunk = max(1, UPSAMPLE_BUDGET // per_mask)
         masks, stability, kept = [], [], []
         for start in range(0, low_res.shape[0], chunk):
@@ -507,27 +518,22 @@ class SamSegmenter:
             stab = hi.float() / lo.float().clamp_min(1)
             binary = logits > st.mask_threshold
             ok = (stab >= st.stability_score_thresh) & binary.flatten(1).any(1)
-            masks.append(binary[ok].cpu())
-            stability.append(stab[ok].cpu())
-            kept.append(torch.nonzero(ok).flatten().cpu() + start)
+            masks.append(binary[ok])
+            stability.append(stab[ok])
+            kept.append(torch.nonzero(ok).flatten() + start)
             del logits, binary
         if not masks:
-            return (torch.zeros(0, H, W, dtype=torch.bool), torch.zeros(0), torch.zeros(0, dtype=torch.long))
+            return (torch.zeros(0, H, W, dtype=torch.bool, device=low_res.device),
+                    torch.zeros(0, device=low_res.device), torch.zeros(0, dtype=torch.long, device=low_res.device))
         return torch.cat(masks), torch.cat(stability), torch.cat(kept)
 
     def _nms(self, masks: list[Tensor], iou: list[Tensor], stability: list[Tensor],
              settled: int) -> tuple[Tensor, Tensor, Tensor]:
-        masks, iou, stability = torch.cat(masks), torch.cat(iou), torch.cat(stability)
+        parts = masks
+        masks, iou, stability = torch.cat(parts), torch.cat(iou), torch.cat(stability)
+        parts.clear()  # the caller's list: only the concatenated copy stays alive
         kept = greedy_mask_nms(masks, iou, self.settings.box_nms_thresh, settled=settled)
         return masks[kept], iou[kept], stability[kept]
-
-    def _autocast(self):
-        """float16 autocast for the model on CUDA; nothing elsewhere (CPU float16 is slow)."""
-        import contextlib
-
-        if self.device.type == "cuda":
-            return torch.autocast("cuda", dtype=torch.float16)
-        return contextlib.nullcontext()
 
     def __call__(self, image: np.ndarray,  # [H, W, 3] float in [0, 1] or uint8
                  view: Optional[int] = None) -> SegmentSet:
@@ -544,13 +550,13 @@ class SamSegmenter:
 
         def lap(part: str) -> None:
             nonlocal clock
-            _sync(self.device)
+            device_sync(self.device)
             now = time.perf_counter()
             timing[part] += now - clock
             clock = now
 
         pixel_values, (h, w) = self.preprocess(image)
-        with self._autocast():
+        with device_autocast(self.device):
             embeddings = self.model.get_image_embeddings(pixel_values)
         points = torch.as_tensor(self.point_grid(H, W), dtype=torch.float32, device=self.device)
         points = points * torch.tensor([w / W, h / H], device=self.device)  # into SAM's frame
@@ -560,7 +566,7 @@ class SamSegmenter:
         settled = 0  # leading masks of all_masks that already passed NMS together
         for start in range(0, points.shape[0], st.points_per_batch):
             pts = points[start:start + st.points_per_batch]
-            with self._autocast():
+            with device_autocast(self.device):
                 out = self.model(image_embeddings=embeddings, input_points=pts[None, :, None, :],
                                  input_labels=torch.ones(1, pts.shape[0], 1, dtype=torch.long, device=self.device),
                                  multimask_output=True)
@@ -575,7 +581,7 @@ class SamSegmenter:
             masks, stability, kept = self.filter_masks(low[keep], (h, w), (H, W))
             counts["stable"] += int(kept.numel())
             all_masks.append(masks)
-            all_iou.append(iou[keep][kept.to(iou.device)].cpu())
+            all_iou.append(iou[keep][kept])
             all_stab.append(stability)
             if sum(len(m) for m in all_masks) > st.max_pending_masks:
                 # Bound memory on large images: NMS what has accumulated so far (SAM itself
@@ -587,6 +593,7 @@ class SamSegmenter:
         if not all_masks or sum(len(m) for m in all_masks) == 0:
             return SegmentSet.empty(H, W)
         masks, iou, stability = self._nms(all_masks, all_iou, all_stab, settled)
+        masks, iou, stability = masks.cpu(), iou.cpu(), stability.cpu()  # cv2 and packing: CPU
         counts["after_nms"] = len(masks)
         if st.min_mask_region_area > 0:
             cleaned = np.stack([remove_small_regions(m, st.min_mask_region_area) for m in masks.numpy()])
