@@ -199,18 +199,20 @@ class FitConfig(ConfigDict):
         2.21 % at 27.2 dB (weight 4) or 1.71 % at 25.4 dB (weight 7).
 
         For scenes it was not tuned on (real photos, captures without sparse points): initial
-        scales at most 0.1 x extent (the size 3DGS prunes above), backdrop Gaussians where the
-        sparse points leave the views empty (``init_extra_random``; the demo scene's points
-        leave about 3 % of its grid cells empty), and a quarter of a random initialisation on
-        the background sphere. ``sized_for`` then fits steps, cap and schedule to the scene."""
+        scales at most 0.1 x extent (the size 3DGS prunes above), and the background learned
+        over ray directions from the views' border colour (``background_sh_degree=2``). On the
+        real plush-dog capture (70 training views at 370x246, 1500 steps, 1 thread) held-out
+        PSNR was 21.9 dB with the border colour as a constant background, 23.0 dB with the
+        learned one, and 22.4 dB with backdrop Gaussians added (``init_extra_random=1``, so left
+        off); with a black background and backdrop Gaussians the held-out views filled with
+        backdrop-coloured floaters (17.5 dB after 1000 steps). ``sized_for`` then fits steps,
+        cap and schedule to the scene."""
         return FitConfig(
             steps=1500,
             depth_spread_weight=1.0,
             background_from_images=True,
             background_sh_degree=2,
             init_max_scale=0.1,
-            init_extra_random=1.0,
-            random_init_shell=0.25,
             sh_degree_interval=400,
             means_lr_max_steps=1500,
             densify_from=200,
