@@ -211,7 +211,7 @@ def test_fit_learns_and_saves_the_environment(tmp_path):
     with torch.no_grad():
         env.sh.copy_(torch.tensor(saved["sh"]))
     seen = env(scene.cameras[0]).detach().numpy().reshape(-1, 3).mean(0)  # a held-out view
-    np.testing.assert_allclose(seen, [0.8, 0.3, 0.1], atol=0.05)
+    np.testing.assert_allclose(seen, [0.8, 0.3, 0.1], atol=0.08)  # from grey 0.5: 0.2-0.4 away
     assert report.test_psnr > 20
 
 
