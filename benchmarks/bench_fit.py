@@ -40,7 +40,8 @@ def main() -> int:
         jobs.append((layout, demo / "scene", 1.0))
     for spec in args.scene:
         data, _, ds = spec.partition(":")
-        jobs.append((Path(data).name, Path(data), float(ds or 1)))
+        path = Path(data)
+        jobs.append((path.parent.name if path.name == "scene" else path.name, path, float(ds or 1)))
 
     rows = []
     for name, data, ds in jobs:
