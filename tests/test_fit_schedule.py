@@ -65,6 +65,15 @@ def test_sized_for_derives_steps_cap_and_windows_from_the_scene(tmp_path):
     assert big.coarse_until == (0.5,)
     assert big.coarse_downscale[0] == pytest.approx(math.sqrt(76_800 / 25_000))
 
+    # The background is learned only for a backdrop the sparse points miss: none here (no points),
+    # but not for points on a sphere around the whole ring, which cover every cell of every view.
+    assert demo_like.background_sh_degree == 2 and demo_like.background_from_images
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(40_000, 3))
+    shell = 20.0 * d / np.linalg.norm(d, axis=1, keepdims=True)
+    covered = FitConfig.cpu().sized_for(_scene(tmp_path / "d", 40, 160, 120, points=shell))
+    assert covered.background_sh_degree == -1 and not covered.background_from_images
+
     # Few views: the lower bound; an explicit step count keeps the fractions.
     few = FitConfig.cpu().sized_for(_scene(tmp_path / "c", 9, 32, 24))
     assert few.steps == 1000 and few.max_gaussians == 2000  # 0.625 x 768 = 480, raised to the floor
