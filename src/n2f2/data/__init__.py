@@ -44,7 +44,7 @@ from typing import Optional
 import numpy as np
 
 from ..errors import InputError
-from .scene import GroundTruth, Scene, keep_present_images, load_image
+from .scene import GroundTruth, Scene, keep_present_images, load_image, relative_name
 
 __all__ = ["FORMATS", "GroundTruth", "Scene", "detect_format", "load_image", "load_scene"]
 
@@ -130,11 +130,11 @@ def load_scene(path: str | Path, downscale: float = 1, format: str = "auto", *,
         keep = keep_present_images(image_paths, listing, root, skip_missing)
         cameras, lenses, image_paths = ([seq[i] for i in keep] for seq in (cameras, lenses, image_paths))
 
-    order = sorted(range(len(image_paths)), key=lambda i: _relative(image_paths[i], root))
+    order = sorted(range(len(image_paths)), key=lambda i: relative_name(image_paths[i], root))
     cameras, lenses, image_paths = ([seq[i] for i in order] for seq in (cameras, lenses, image_paths))
     for a, b in zip(image_paths, image_paths[1:]):
         if a == b:
-            raise InputError(listing, f"image {_relative(a, root)} is listed twice")
+            raise InputError(listing, f"image {relative_name(a, root)} is listed twice")
 
     distorted = [lens for lens in lenses if lens is not None and not lens.is_pinhole]
     original_paths, undistorted_from = None, None
@@ -156,13 +156,6 @@ def load_scene(path: str | Path, downscale: float = 1, format: str = "auto", *,
     if (root / "regions.json").is_file():
         scene.ground_truth = GroundTruth(root, scene.image_names)
     return scene
-
-
-def _relative(path: Path, root: Path) -> str:
-    try:
-        return path.relative_to(root).as_posix()
-    except ValueError:
-        return path.as_posix()
 
 
 def _predownscaled(image_paths: list[Path], factor: float) -> list[Path]:

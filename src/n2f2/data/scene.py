@@ -101,7 +101,7 @@ def keep_present_images(image_paths: Sequence[Path], listing: Path, root: Path,
     missing = [image_paths[i] for i in sorted(set(range(len(image_paths))) - set(present))]
     if not missing:
         return present
-    shown = sorted(_relative_name(p, root) for p in missing)
+    shown = sorted(relative_name(p, root) for p in missing)
     names = ", ".join(shown[:MISSING_NAMES_SHOWN])
     if len(shown) > MISSING_NAMES_SHOWN:
         names += f" and {len(shown) - MISSING_NAMES_SHOWN} more"
@@ -117,7 +117,8 @@ def keep_present_images(image_paths: Sequence[Path], listing: Path, root: Path,
     return present
 
 
-def _relative_name(path: Path, root: Path) -> str:
+def relative_name(path: Path, root: Path) -> str:
+    """``path`` relative to ``root`` in POSIX form (the view-order key), or ``path`` itself."""
     try:
         return path.relative_to(root).as_posix()
     except ValueError:

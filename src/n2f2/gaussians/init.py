@@ -54,6 +54,11 @@ def init_from_points(
                       torch.as_tensor(knn_scale(points), dtype=torch.float32), sh_degree, device)
 
 
+def _in_image(camera: Camera, uv: np.ndarray, z: np.ndarray) -> np.ndarray:  # [M, 2], [M] -> [M] bool
+    """In front of ``camera`` and inside its image."""
+    return (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
+
+
 def uncovered_cells(
     points: np.ndarray,  # [P, 3] world
     camera: Camera,
@@ -64,7 +69,7 @@ def uncovered_cells(
     size = max(camera.width, camera.height) / cells
     gw, gh = math.ceil(camera.width / size), math.ceil(camera.height / size)
     uv, z = camera.project(np.asarray(points, dtype=np.float64))
-    ok = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
+    ok = _in_image(camera, uv, z)
     covered = np.zeros((gh, gw), dtype=bool)
     covered[np.minimum((uv[ok, 1] / size).astype(int), gh - 1), np.minimum((uv[ok, 0] / size).astype(int), gw - 1)] = True
     return ~covered
@@ -160,8 +165,7 @@ def clear_of_cameras(points: np.ndarray,  # [P, 3]
     ok = np.ones(len(points), dtype=bool)
     for cam in cameras:
         uv, z = cam.project(points)
-        inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
-        ok &= ~(inside & (z < near))
+        ok &= ~(_in_image(cam, uv, z) & (z < near))
     return ok
 
 
