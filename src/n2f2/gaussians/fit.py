@@ -185,7 +185,7 @@ class FitConfig(ConfigDict):
 
     @staticmethod
     def cpu() -> "FitConfig":
-        """A short schedule for small scenes on a CPU (the built-in demo scene in about 3.5
+        """A short schedule for small scenes on a CPU (the built-in demo scene in about 2.5
         minutes on 2 cores): fewer steps, earlier and capped densification, faster SH schedule;
         the decay of the position learning rate is compressed to the shorter run.
 
@@ -565,6 +565,7 @@ def _initial_gaussians(scene: Scene, config: FitConfig, init: Union[None, str]) 
             cells = [uncovered_cells(points, cam) for cam in cameras]
             n_extra = int(round(config.init_extra_random * len(points) * np.mean([c.mean() for c in cells])))
             if n_extra > 0:
+                # near/far are unused: the shell sets each point's depth
                 extra, extra_colors = random_points_in_frusta(cameras, n_extra, 1.0, 2.0, seed=config.seed,
                                                               images=image, cells=cells,
                                                               shell=background_shell(cameras, points))
