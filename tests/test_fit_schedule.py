@@ -149,6 +149,11 @@ def test_clear_of_cameras_by_hand():
     from n2f2.gaussians.init import clear_of_cameras
 
     assert clear_of_cameras(pts, [cam], near=1.0).tolist() == [False, True, True, True]
+    # A second camera 10 to the right, looking the same way: it sees none of the points, so
+    # each is seen by at most half of the two cameras.
+    other = Camera(10.0, 10.0, 5.0, 5.0, 10, 10, R=R, t=t - R @ np.array([10.0, 0.0, 0.0]))
+    assert clear_of_cameras(pts, [cam, other], near=1.0, min_seen=0.5).tolist() == [False, True, False, False]
+    assert clear_of_cameras(pts, [cam, other], near=1.0, min_seen=0.75).tolist() == [False] * 4
 
 
 def test_random_init_keeps_clear_of_every_camera_and_fills_the_shell(tmp_path):

@@ -118,8 +118,10 @@ class FitConfig(ConfigDict):
     # them) onto a sphere behind every camera (init.background_shell). Generated scenes, whose
     # points cover every surface, get almost none. 0: points only, as 3DGS.
     init_extra_random: float = 0.0
-    # Without sparse points: the fraction of the random Gaussians put on that sphere.
+    # Without sparse points: the fraction of the random Gaussians put on that sphere, and the
+    # fraction of the training views each of the others must be seen in (0: anywhere in a frustum).
     random_init_shell: float = 0.0
+    random_init_min_seen: float = 0.0
 
     # Coarse to fine: up to step ``coarse_until[i] * steps`` the views are rendered and compared
     # at a further ``coarse_downscale[i]`` (images area-averaged). A step's cost scales with its
@@ -222,6 +224,7 @@ class FitConfig(ConfigDict):
             depth_spread_weight=1.0,
             background_from_images=True,
             background_sh_degree=2,
+            random_init_min_seen=0.5,
             init_max_scale=0.1,
             sh_degree_interval=400,
             means_lr_max_steps=1500,
@@ -576,7 +579,7 @@ def _initial_gaussians(scene: Scene, config: FitConfig, init: Union[None, str]) 
         near, far = (d * ext for d in config.random_init_depth)
         return init_random_in_frusta(cameras, config.random_init_count, near, far, seed=config.seed,
                                      sh_degree=config.sh_degree, device=config.device, images=image,
-                                     shell_fraction=config.random_init_shell)
+                                     shell_fraction=config.random_init_shell, min_seen=config.random_init_min_seen)
     raise ValueError(f"unknown init {kind!r}: use 'points', 'random' or a Gaussians model")
 
 

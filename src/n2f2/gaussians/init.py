@@ -160,13 +160,18 @@ def background_shell(cameras: Sequence[Camera],
 def clear_of_cameras(points: np.ndarray,  # [P, 3]
                      cameras: Sequence[Camera],
                      near: float,
+                     min_seen: float = 0.0,  # also needs to be inside this fraction of the views
                      ) -> np.ndarray:  # [P] bool
-    """False for points that some camera sees (inside its image) closer than z-depth ``near``."""
+    """False for points that some camera sees (inside its image) closer than z-depth ``near``,
+    or that fewer than ``min_seen`` of the cameras see at all."""
     ok = np.ones(len(points), dtype=bool)
+    seen = np.zeros(len(points))
     for cam in cameras:
         uv, z = cam.project(points)
-        ok &= ~(_in_image(cam, uv, z) & (z < near))
-    return ok
+        inside = _in_image(cam, uv, z)
+        ok &= ~(inside & (z < near))
+        seen += inside
+    return ok & (seen >= min_seen * len(cameras))
 
 
 def init_random_in_frusta(
@@ -179,16 +184,21 @@ def init_random_in_frusta(
     device: torch.device | str | None = None,
     images: Optional[Callable[[int], np.ndarray]] = None,  # view index -> float [H, W, 3] in [0, 1]
     shell_fraction: float = 0.0,  # this fraction goes on the background_shell
+    min_seen: float = 0.0,  # keep points inside at least this fraction of the views
 ) -> Gaussians:
     """``n`` Gaussians at :func:`random_points_in_frusta` (pixel colours when ``images`` is
-    given, else random ones), none closer than ``near`` to any camera that sees it, and
-    ``shell_fraction`` of them on the :func:`background_shell`; scales and opacities as
-    :func:`init_from_points`."""
+    given, else random ones), none closer than ``near`` to any camera that sees it and each
+    seen by at least ``min_seen`` of the cameras, and ``shell_fraction`` of them on the
+    :func:`background_shell`; scales and opacities as :func:`init_from_points`.
+
+    ``min_seen`` keeps the draw where the views overlap (the middle of an orbit): points along
+    one view's rays that few others see became a fog in front of the object on a real orbit
+    capture (15.7 dB held-out after 1000 steps)."""
     n_shell = int(round(shell_fraction * n))
     parts, colors, drawn = [], [], 0
-    for attempt in range(8):  # draw, drop points right in front of another camera, repeat
-        pts, cols = random_points_in_frusta(cameras, 2 * (n - n_shell), near, far, seed=seed + attempt, images=images)
-        keep = clear_of_cameras(pts, cameras, near)
+    for attempt in range(16):  # draw, drop points near a camera or seen by few, repeat
+        pts, cols = random_points_in_frusta(cameras, 4 * (n - n_shell), near, far, seed=seed + attempt, images=images)
+        keep = clear_of_cameras(pts, cameras, near, min_seen)
         parts.append(pts[keep])
         colors.append(cols[keep])
         drawn += int(keep.sum())
