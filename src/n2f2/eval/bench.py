@@ -213,13 +213,12 @@ def prepare_data(out: Path, config: BenchConfig, scene: Optional[Union[str, Path
             from ..data import load_scene
             from ..gaussians.fit import CHECKPOINT_NAME, FitConfig, fit_gaussians
 
-            fit_config = replace(FitConfig.cpu(), seed=config.seed, device=config.device)
-            if config.fit_steps:
-                fit_config = replace(fit_config, steps=config.fit_steps,
-                                     means_lr_max_steps=config.fit_steps,
-                                     densify_until=min(fit_config.densify_until, int(0.75 * config.fit_steps)))
+            scene = load_scene(scene_dir)
+            # the cpu preset sized to the scene, as fit-gaussians does (fit_steps keeps its fractions)
+            fit_config = replace(FitConfig.cpu().sized_for(scene, steps=config.fit_steps or None),
+                                 seed=config.seed, device=config.device)
             log(f"[bench] fitting Gaussians ({fit_config.steps} steps) -> {fit_dir}")
-            fit_gaussians(load_scene(scene_dir), fit_config, fit_dir,
+            fit_gaussians(scene, fit_config, fit_dir,
                           resume=(fit_dir / CHECKPOINT_NAME).is_file(), progress=config.progress)
     seconds["gaussians"] = time.perf_counter() - t0
 
