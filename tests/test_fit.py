@@ -339,7 +339,7 @@ def test_nan_step_is_skipped_and_not_checkpointed(tiny_scene, tmp_path, monkeypa
     monkeypatch.setattr(fit_mod, "photometric_loss", flaky)
     report = fit_gaussians(tiny_scene, _tiny_config(steps=12, checkpoint_every=4), tmp_path, progress=False)
     assert report.skipped_steps == 3
-    ck = torch.load(tmp_path / "checkpoint.pt", weights_only=False)
+    ck = torch.load(tmp_path / "checkpoint.pt", weights_only=True)
     assert ck["step"] == 12 and ck["skipped"] == 3
     assert all(torch.isfinite(t).all() for t in ck["params"].values())
     assert read_ply(tmp_path / "gaussians.ply").finite()
@@ -390,7 +390,7 @@ def test_kill_and_resume_matches_uninterrupted_run(tiny_scene, tmp_path):
         time.sleep(0.02)
     proc.send_signal(signal.SIGKILL)
     proc.wait()
-    ck = torch.load(cut / "checkpoint.pt", weights_only=False)
+    ck = torch.load(cut / "checkpoint.pt", weights_only=True)
     killed_at = ck["step"]
     assert killed_at % 3 == 0 and 3 <= killed_at < steps
     assert not (cut / "gaussians.ply").exists()  # the killed run never got to write its result

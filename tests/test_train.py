@@ -205,7 +205,7 @@ def test_resume_after_kill_matches_uninterrupted_run(setup, tmp_path):
     with pytest.raises(Killed):
         train_field(setup["scene"], setup["gaussians"], bank, tmp_path / "b", field_config=FIELD,
                     config=cfg, progress=False, callback=kill_at_5)
-    ck = torch.load(tmp_path / "b" / CHECKPOINT_NAME, weights_only=False)
+    ck = torch.load(tmp_path / "b" / CHECKPOINT_NAME, weights_only=True)
     assert ck["step"] == 3  # the last checkpoint before the kill
     assert not (tmp_path / "b" / FIELD_NAME).exists()
 
@@ -221,8 +221,8 @@ def test_resume_after_kill_matches_uninterrupted_run(setup, tmp_path):
     for (name, a), (_, b) in zip(field_a.state_dict().items(), field_b.state_dict().items()):
         assert torch.equal(a, b), name
     assert resumed["curve"] == full["curve"]
-    ck_a = torch.load(tmp_path / "a" / CHECKPOINT_NAME, weights_only=False)
-    ck_b = torch.load(tmp_path / "b" / CHECKPOINT_NAME, weights_only=False)
+    ck_a = torch.load(tmp_path / "a" / CHECKPOINT_NAME, weights_only=True)
+    ck_b = torch.load(tmp_path / "b" / CHECKPOINT_NAME, weights_only=True)
     assert torch.equal(ck_a["rng"], ck_b["rng"])
     for sa, sb in zip(ck_a["optimizer"]["state"].values(), ck_b["optimizer"]["state"].values()):
         assert torch.equal(sa["exp_avg"], sb["exp_avg"]) and torch.equal(sa["exp_avg_sq"], sb["exp_avg_sq"])

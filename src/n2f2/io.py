@@ -56,6 +56,14 @@ def save_torch(path: str | Path, obj: Any) -> None:
         torch.save(obj, tmp)
 
 
+def load_torch(path: str | Path) -> Any:
+    """Read a file written by :func:`save_torch`, on the CPU. ``weights_only``: tensors,
+    numbers, strings and containers only, so a crafted file cannot run code when loaded."""
+    import torch
+
+    return torch.load(path, map_location="cpu", weights_only=True)
+
+
 def write_png(path: str | Path, image: np.ndarray) -> None:
     """Write an 8-bit PNG from a uint8 array or a float array in [0, 1]. [H, W] or [H, W, 3|4]."""
     from PIL import Image

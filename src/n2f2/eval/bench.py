@@ -429,11 +429,10 @@ def _rasterized_channels(field_config: Any) -> int:
 
 def _checkpoint_step(run_dir: Path) -> int:
     """The step of ``run_dir``'s checkpoint (what a resumed run continues from)."""
-    import torch
-
+    from ..io import load_torch
     from ..train.trainer import CHECKPOINT_NAME
 
-    return int(torch.load(run_dir / CHECKPOINT_NAME, map_location="cpu", weights_only=False)["step"])
+    return int(load_torch(run_dir / CHECKPOINT_NAME)["step"])
 
 
 def _same_inputs(run_dir: Path, paths: Mapping[str, str]) -> bool:
@@ -442,10 +441,10 @@ def _same_inputs(run_dir: Path, paths: Mapping[str, str]) -> bool:
 
     report = run_dir / REPORT_NAME
     if not report.is_file():  # an interrupted first session: the checkpoint's meta decides
-        import torch
+        from ..io import load_torch
 
         try:
-            ck = torch.load(run_dir / "checkpoint.pt", map_location="cpu", weights_only=False)
+            ck = load_torch(run_dir / "checkpoint.pt")
             meta = ck["field_meta"]
         except Exception:  # noqa: BLE001 - unreadable: retrain
             return False

@@ -37,7 +37,7 @@ from torch import Tensor, nn
 
 from ..config import ConfigDict
 from ..errors import InputError
-from ..io import save_torch
+from ..io import load_torch, save_torch
 from .triplane import PositionalEncoding, TriPlane
 
 BACKBONES = ("triplane", "mlp")
@@ -304,7 +304,7 @@ def load_field(path: str | Path, device: str | torch.device = "cpu") -> tuple[Ne
     if not path.is_file():
         raise InputError(path, "feature field file does not exist")
     try:
-        blob = torch.load(path, map_location="cpu", weights_only=False)
+        blob = load_torch(path)
     except Exception as e:  # pickle / zip errors of a truncated or foreign file
         raise InputError(path, f"cannot read feature field ({type(e).__name__}: {e})") from None
     if not isinstance(blob, dict) or blob.get("format") != FIELD_FORMAT:

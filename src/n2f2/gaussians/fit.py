@@ -31,7 +31,7 @@ from torch import Tensor
 from ..config import ConfigDict
 from ..data.scene import Scene
 from ..errors import InputError
-from ..io import save_torch, write_json
+from ..io import load_torch, save_torch, write_json
 from .init import (background_shell, init_from_points, init_random_in_frusta, random_points_in_frusta,
                    uncovered_cells)
 from .model import Gaussians, inverse_sigmoid, quat_to_rotmat
@@ -709,7 +709,7 @@ def _state_finite(g: Gaussians, adam: GaussianAdam) -> bool:
 
 def load_checkpoint(path: Path) -> dict:
     try:
-        ck = torch.load(path, map_location="cpu", weights_only=False)
+        ck = load_torch(path)
     except Exception as e:  # noqa: BLE001 - any unreadable file is the user's input problem
         raise InputError(path, f"cannot read checkpoint ({e})") from None
     if not isinstance(ck, dict) or ck.get("format") != _CHECKPOINT_FORMAT:

@@ -40,7 +40,7 @@ from torch import Tensor
 from ..config import ConfigDict
 from ..errors import InputError
 from ..field.model import FieldConfig, NestedField, bbox_from_points, save_field
-from ..io import save_torch, write_json
+from ..io import load_torch, save_torch, write_json
 from ..segments.bins import ONE_MINUS_EPS
 from .blend import BlendCache, build_blend_cache
 from .sampling import PixelBatch, SegmentPool, ViewSegments
@@ -224,7 +224,7 @@ def _peak_rss_mb() -> float:
 
 def _load_checkpoint(path: Path) -> dict:
     try:
-        ck = torch.load(path, map_location="cpu", weights_only=False)
+        ck = load_torch(path)
     except Exception as e:  # noqa: BLE001 - any unreadable file is the user's input problem
         raise InputError(path, f"cannot read checkpoint ({type(e).__name__}: {e})") from None
     if not isinstance(ck, dict) or ck.get("format") != _CHECKPOINT_FORMAT:
