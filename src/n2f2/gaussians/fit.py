@@ -34,7 +34,7 @@ from ..errors import InputError
 from ..io import load_torch, save_torch, write_json
 from .init import (background_shell, init_from_points, init_random_in_frusta, random_points_in_frusta,
                    uncovered_cells)
-from .model import Gaussians, inverse_sigmoid, quat_to_rotmat
+from .model import Gaussians, inverse_sigmoid, quat_to_rotmat, rgb_to_sh
 from .ply import write_ply
 
 CHECKPOINT_NAME = "checkpoint.pt"
@@ -631,7 +631,7 @@ class Environment(torch.nn.Module):
         from ..render.sh import num_sh_bases
 
         sh = torch.zeros(num_sh_bases(degree), 3)
-        sh[0] = (torch.tensor(color, dtype=torch.float32) - 0.5) / _SH_C0
+        sh[0] = rgb_to_sh(torch.tensor(color, dtype=torch.float32))
         self.degree = degree
         self.sh = torch.nn.Parameter(sh)  # [K, 3]
 
@@ -649,7 +649,6 @@ class Environment(torch.nn.Module):
                 "sh": self.sh.detach().cpu().tolist()}
 
 
-_SH_C0 = 0.28209479177387814
 BACKGROUND_NAME = "background.json"
 
 
