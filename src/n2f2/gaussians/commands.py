@@ -40,10 +40,13 @@ def register(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from dataclasses import replace
+    from pathlib import Path
 
     from ..data import load_scene
+    from ..data.sfm import posed_scene_path
     from ..errors import InputError
     from .fit import FitConfig, fit_gaussians, saved_config
+    from .ply import read_ply
 
     for name, flag in (("steps", "--steps"), ("checkpoint_every", "--checkpoint-every"),
                        ("max_gaussians", "--max-gaussians"), ("depth_spread_weight", "--depth-spread")):
@@ -54,10 +57,6 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(None, f"--downscale must be > 0, got {args.downscale}")
     # A resumed run keeps the checkpoint's schedule; only explicit flags change it.
     base = saved_config(args.out) if args.resume else None
-    from pathlib import Path
-
-    from ..data.sfm import posed_scene_path
-
     data = posed_scene_path(Path(args.data), Path(args.out) / "sfm", progress=not args.quiet)  # photos: pose them
     scene = load_scene(data, downscale=args.downscale, skip_missing=args.skip_missing)
     if base is None:
@@ -70,10 +69,6 @@ def run(args: argparse.Namespace) -> int:
     config = replace(config, **overrides)
     init = args.init
     if init is not None and init not in ("points", "random"):
-        from pathlib import Path
-
-        from .ply import read_ply
-
         if Path(init).suffix.lower() != ".ply":
             raise InputError(None, f"--init must be points, random or a .ply file, got {init!r}")
         init = read_ply(init)
