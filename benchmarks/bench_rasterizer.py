@@ -1,15 +1,21 @@
-"""Benchmark of the pure-PyTorch rasterizer (forward, backward, ns per pixel-Gaussian pair, memory).
+"""Benchmark of the CPU rasterizer (forward, backward, ns per pixel-Gaussian pair, memory).
 
-    python benchmarks/bench_rasterizer.py            # 3 scene sizes x C = 3, 64, 512, median of 3
-    python benchmarks/bench_rasterizer.py --quick    # 2 smaller scenes x C = 3, 64, one run
+    python benchmarks/bench_rasterizer.py                   # 3 scene sizes x C = 3, 64, 512, median of 3
+    python benchmarks/bench_rasterizer.py --quick           # 2 smaller scenes x C = 3, 64, one run
+    python benchmarks/bench_rasterizer.py --backend torch   # the pure-PyTorch compositing instead
+
+The default backend is ``numba``, the one ``rasterize(backend="auto")`` uses for CPU tensors.
 
 Each case runs in a fresh subprocess so that its peak memory can be read as the growth of the
 process's maximum resident set size (``ru_maxrss``) over the value measured just before the
 first render: "peak extra RSS". (tracemalloc cannot see torch's allocations.)
 
 Times are wall-clock medians; ``ns/pair`` = (forward + backward wall time) / pixel-Gaussian
-pairs the forward pass evaluated (padding included). ``CPU ns/pair`` uses the process CPU time
-instead (summed over threads); on a shared machine it is the steadier of the two.
+pairs walked: for each pixel, the pairs of its tile's list up to where it stops (early
+termination), counted by the numba backend's forward pass whichever backend is timed, so both
+backends are divided by the same number (the torch backend's own count adds its padding).
+``CPU ns/pair`` uses the process CPU time instead (summed over threads); on a shared machine it
+is the steadier of the two. ``bwd/fwd`` is the ratio of the two wall times.
 
 The cases run with the caller's ``OMP_WAIT_POLICY`` (OpenMP's default when unset, as the
 ``n2f2`` batch commands). On an idle machine the default is the fast one; on a machine shared
@@ -36,23 +42,25 @@ CHANNELS = [3, 64, 512]
 GOAL_NS_PER_PAIR = 20.0
 
 
-def run_case(n: int, size: int, channels: int, repeats: int) -> dict:
+def run_case(n: int, size: int, channels: int, repeats: int, backend: str) -> dict:
     import torch
 
     from n2f2.render import rasterize
     from n2f2.render.reference import random_scene
 
     params, camera = random_scene(n, size, channels)
+    with torch.no_grad():
+        pairs = rasterize(*params, camera, backend="numba").n_pairs
     params = [p.requires_grad_() for p in params]
     w = torch.rand(size, size, channels)
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux
-    fwd, bwd, cpu, pairs = [], [], [], 0
+    fwd, bwd, cpu = [], [], []
     for _ in range(repeats + 1):  # the first run is a warm-up
         for p in params:
             p.grad = None
         c0 = time.process_time()
         t0 = time.perf_counter()
-        out = rasterize(*params, camera, backend="torch")
+        out = rasterize(*params, camera, backend=backend)
         t1 = time.perf_counter()
         loss = (out.features * w).sum() + out.alpha.sum() + out.depth.sum()
         loss.backward()
@@ -60,10 +68,9 @@ def run_case(n: int, size: int, channels: int, repeats: int) -> dict:
         cpu.append(time.process_time() - c0)
         fwd.append(t1 - t0)
         bwd.append(t2 - t1)
-        pairs = out.n_pairs
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - rss0
     f, b, c = (statistics.median(x[1:]) for x in (fwd, bwd, cpu))
-    return {"n": n, "size": size, "channels": channels, "fwd_ms": f * 1e3, "bwd_ms": b * 1e3,
+    return {"n": n, "size": size, "channels": channels, "backend": backend, "fwd_ms": f * 1e3, "bwd_ms": b * 1e3,
             "pairs": pairs, "ns_per_pair": (f + b) / max(pairs, 1) * 1e9,
             "cpu_ns_per_pair": c / max(pairs, 1) * 1e9, "peak_mib": peak / 1024,
             "threads": torch.get_num_threads()}
@@ -74,6 +81,7 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="two smaller scenes, C = 3 and 64, one run each")
     ap.add_argument("--repeats", type=int, default=None, help="timed runs per case (median); default 3, quick 1")
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
+    ap.add_argument("--backend", choices=["numba", "torch"], default="numba", help="CPU backend (default: numba)")
     ap.add_argument("--case", type=str, default=None, help=argparse.SUPPRESS)  # "n,size,channels" (subprocess)
     args = ap.parse_args()
     repeats = args.repeats or (1 if args.quick else 3)
@@ -83,28 +91,29 @@ def main() -> None:
         torch.set_num_threads(args.threads)
     if args.case:
         n, size, channels = (int(x) for x in args.case.split(","))
-        print(json.dumps(run_case(n, size, channels, repeats)))
+        print(json.dumps(run_case(n, size, channels, repeats, args.backend)))
         return
     scenes = SCENES[:2] if args.quick else SCENES
     channels = CHANNELS[:2] if args.quick else CHANNELS
     env = dict(os.environ)
     load = os.getloadavg()[0]
-    print(f"torch backend, {os.cpu_count()} CPUs visible, 1-min load average {load:.1f} at start; "
+    print(f"{args.backend} backend, {os.cpu_count()} CPUs visible, 1-min load average {load:.1f} at start; "
           f"OMP_WAIT_POLICY={env.get('OMP_WAIT_POLICY', '(OpenMP default)')}; "
           "peak memory = growth of max RSS in a fresh process")
     print()
-    print("| Gaussians | image | C | fwd ms | bwd ms | pairs evaluated | ns/pair (fwd+bwd) | CPU ns/pair | peak extra RSS MiB |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("| Gaussians | image | C | fwd ms | bwd ms | bwd/fwd | pairs walked | ns/pair (fwd+bwd) | CPU ns/pair | peak extra RSS MiB |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     worst = 0.0
     for n, size in scenes:
         for c in channels:
-            cmd = [sys.executable, __file__, "--case", f"{n},{size},{c}", "--repeats", str(repeats)]
+            cmd = [sys.executable, __file__, "--case", f"{n},{size},{c}", "--repeats", str(repeats),
+                   "--backend", args.backend]
             if args.threads:
                 cmd += ["--threads", str(args.threads)]
             res = subprocess.run(cmd, capture_output=True, text=True, check=True, env=env)
             r = json.loads(res.stdout.strip().splitlines()[-1])
             worst = max(worst, r["ns_per_pair"])
-            print(f"| {n} | {size}x{size} | {c} | {r['fwd_ms']:.0f} | {r['bwd_ms']:.0f} | {r['pairs']:,} "
+            print(f"| {n} | {size}x{size} | {c} | {r['fwd_ms']:.0f} | {r['bwd_ms']:.0f} | {r['bwd_ms'] / r['fwd_ms']:.2f} | {r['pairs']:,} "
                   f"| {r['ns_per_pair']:.1f} | {r['cpu_ns_per_pair']:.1f} | {r['peak_mib']:.0f} |", flush=True)
     print()
     print(f"worst ns/pair: {worst:.1f} (goal <= {GOAL_NS_PER_PAIR:.0f}); torch threads: {r['threads']}")

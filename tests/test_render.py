@@ -18,6 +18,9 @@ from n2f2.render.reference import rasterize_reference
 from n2f2.render.sh import SH_C0, eval_sh, sh_basis
 from n2f2.render.torch_backend import rasterize_torch
 
+# The CPU backends: both are judged against the brute-force reference and by hand-worked rules.
+CPU_BACKENDS = ["torch", "numba"]
+
 
 def _camera(width=32, height=24, focal=30.0) -> Camera:
     R, t = look_at(np.array([0.3, -3.0, 0.6]), np.zeros(3))
@@ -38,9 +41,13 @@ def _outputs(out):
     return out.features, out.alpha, out.depth
 
 
-def _compare(params, camera, rtol, atol, grad_rtol, grad_atol, **kw):
+def _compare(params, camera, rtol, atol, grad_rtol, grad_atol, backend="torch", **kw):
     params = [p.clone().requires_grad_() for p in params]
-    out = rasterize_torch_out(params, camera, **kw)
+    if backend == "torch":
+        out = rasterize_torch_out(params, camera, **kw)
+    else:
+        kw = {k: v for k, v in kw.items() if k not in ("chunk", "batch_elements")}
+        out = rasterize(*params, camera, backend=backend, **kw)
     ref = rasterize_reference(*params, camera, **{k: v for k, v in kw.items() if k not in ("chunk", "batch_elements", "tile_size")})
     for a, b in zip(_outputs(out), _outputs(ref)):
         torch.testing.assert_close(a, b, rtol=rtol, atol=atol)
@@ -71,13 +78,14 @@ def rasterize_torch_out(params, camera, chunk=128, batch_elements=1 << 17, tile_
 
 
 # ----------------------------------------------------------------------------------- gradcheck
-def test_gradcheck_float64():
+@pytest.mark.parametrize("backend", CPU_BACKENDS)
+def test_gradcheck_float64(backend):
     camera = _camera(16, 12, focal=14.0)
     params = _scene(5, channels=2, opacity=(0.2, 0.8), scale=(0.15, 0.4), seed=3)
     params = [p.requires_grad_() for p in params]
 
     def fn(means, quats, scales, opac, feats):
-        out = rasterize(means, quats, scales, opac, feats, camera, backend="torch")
+        out = rasterize(means, quats, scales, opac, feats, camera, backend=backend)
         return out.features, out.alpha, out.depth
 
     assert fn(*params)[1].max() > 0.3  # the scene is actually visible
@@ -87,31 +95,35 @@ def test_gradcheck_float64():
 
 
 # ------------------------------------------------------------------------- vs the reference
+@pytest.mark.parametrize("backend", CPU_BACKENDS)
 @pytest.mark.parametrize("channels", [1, 3, 64])
-def test_matches_reference_float64(channels):
-    out, _ = _compare(_scene(50, channels), _camera(), rtol=1e-10, atol=1e-10, grad_rtol=1e-8, grad_atol=1e-9)
+def test_matches_reference_float64(channels, backend):
+    out, _ = _compare(_scene(50, channels), _camera(), rtol=1e-10, atol=1e-10, grad_rtol=1e-8, grad_atol=1e-9, backend=backend)
     assert out.alpha.max() > 0.9
 
 
-def test_matches_reference_float32():
+@pytest.mark.parametrize("backend", CPU_BACKENDS)
+def test_matches_reference_float32(backend):
     params = [p.float() for p in _scene(50, 3)]
-    _compare(params, _camera(), rtol=1e-4, atol=1e-4, grad_rtol=1e-3, grad_atol=1e-3)
+    _compare(params, _camera(), rtol=1e-4, atol=1e-4, grad_rtol=1e-3, grad_atol=1e-3, backend=backend)
 
 
-def test_matches_reference_many_chunks_batches_and_termination():
+@pytest.mark.parametrize("backend", CPU_BACKENDS)
+def test_matches_reference_many_chunks_batches_and_termination(backend):
     # Chunks of 4 Gaussians and 1-tile batches exercise the carried transmittance, the early stop
     # and the dropping of finished tiles; opaque Gaussians (clamped at 0.99) make pixels stop.
     params = _scene(80, 3, opacity=(0.5, 0.999), scale=(0.1, 0.3), seed=5)
     out, _ = _compare(params, _camera(), rtol=1e-10, atol=1e-10, grad_rtol=1e-8, grad_atol=1e-9,
-                      chunk=4, batch_elements=1)
+                      chunk=4, batch_elements=1, backend=backend)
     assert out.alpha.max() > 1 - 1e-3  # some pixels reached termination
 
 
+@pytest.mark.parametrize("backend", CPU_BACKENDS)
 @pytest.mark.parametrize("tile_size", [4, 16])
-def test_tile_size_does_not_change_the_image(tile_size):
+def test_tile_size_does_not_change_the_image(tile_size, backend):
     params = _scene(40, 3, seed=7)
-    a = rasterize(*params, _camera(), backend="torch", tile_size=8)
-    b = rasterize(*params, _camera(), backend="torch", tile_size=tile_size)
+    a = rasterize(*params, _camera(), backend=backend, tile_size=8)
+    b = rasterize(*params, _camera(), backend=backend, tile_size=tile_size)
     for x, y in zip(_outputs(a), _outputs(b)):
         torch.testing.assert_close(x, y, rtol=1e-12, atol=1e-12)
 
@@ -131,19 +143,21 @@ def _stack_on_axis(opacities, scale=0.5):
     return means, quats, scales, torch.tensor(opacities, dtype=dt), torch.eye(n, dtype=dt)
 
 
-def test_alpha_clamp():
+@pytest.mark.parametrize("backend", CPU_BACKENDS)
+def test_alpha_clamp(backend):
     params = _stack_on_axis([0.999])
-    out = rasterize(*params, _axis_camera(), backend="torch")
+    out = rasterize(*params, _axis_camera(), backend=backend)
     assert out.alpha[8, 8, 0].item() == pytest.approx(0.99, abs=1e-12)
-    out = rasterize(*params, _axis_camera(), backend="torch", alpha_clamp=0.5)
+    out = rasterize(*params, _axis_camera(), backend=backend, alpha_clamp=0.5)
     assert out.alpha.max().item() == pytest.approx(0.5, abs=1e-12)
 
 
-def test_early_termination_weights():
+@pytest.mark.parametrize("backend", CPU_BACKENDS)
+def test_early_termination_weights(backend):
     # Alphas 0.95 at the centre pixel: T = 0.05, 0.0025, 1.25e-4, then 6.25e-6 < 1e-4, so the
     # 4th Gaussian is not blended and the pixel stops (the 5th is not blended either).
     params = _stack_on_axis([0.95] * 5)
-    out = rasterize(*params, _axis_camera(), backend="torch")
+    out = rasterize(*params, _axis_camera(), backend=backend)
     expected = torch.tensor([0.95, 0.05 * 0.95, 0.0025 * 0.95, 0.0, 0.0], dtype=torch.float64)
     torch.testing.assert_close(out.features[8, 8], expected, rtol=1e-12, atol=1e-15)
     assert out.alpha[8, 8, 0].item() == pytest.approx(1 - 1.25e-4, abs=1e-12)
@@ -151,11 +165,12 @@ def test_early_termination_weights():
     assert out.depth[8, 8, 0].item() == pytest.approx(expected_depth.item(), rel=1e-12)
 
 
-def test_alpha_cut_at_1_over_255():
+@pytest.mark.parametrize("backend", CPU_BACKENDS)
+def test_alpha_cut_at_1_over_255(backend):
     # One isotropic Gaussian facing the camera: 2D variance (f s / z)^2 + 0.3, peak at (8.5, 8.5).
     o, s, z, f = 0.8, 0.05, 2.0, 20.0
     params = _stack_on_axis([o], scale=s)
-    out = rasterize(*params, _axis_camera(), backend="torch")
+    out = rasterize(*params, _axis_camera(), backend=backend)
     var = (f * s / z) ** 2 + 0.3
     c = torch.arange(16, dtype=torch.float64) + 0.5
     r2 = (c[None, :] - 8.5) ** 2 + (c[:, None] - 8.5) ** 2
@@ -165,40 +180,43 @@ def test_alpha_cut_at_1_over_255():
     torch.testing.assert_close(out.alpha[..., 0], expected, rtol=1e-12, atol=1e-14)
 
 
-def test_behind_camera_and_near_plane_are_culled():
+@pytest.mark.parametrize("backend", CPU_BACKENDS)
+def test_behind_camera_and_near_plane_are_culled(backend):
     dt = torch.float64
     means = torch.tensor([[0.0, 0.0, -2.0], [0.0, 0.0, 0.005], [0.0, 0.0, 3.0]], dtype=dt)
     quats = torch.tensor([[1.0, 0, 0, 0]] * 3, dtype=dt)
     scales = torch.tensor([[1.0] * 3, [1.0] * 3, [0.2] * 3], dtype=dt)
     opac = torch.full((3,), 0.9, dtype=dt)
     feats = torch.eye(3, dtype=dt)
-    out = rasterize(means, quats, scales, opac, feats, _axis_camera(), backend="torch")
+    out = rasterize(means, quats, scales, opac, feats, _axis_camera(), backend=backend)
     assert out.radii[0] == 0 and out.radii[1] == 0 and out.radii[2] > 0
     assert out.features[..., :2].abs().max() == 0
     assert out.features[..., 2].max() > 0.5
     # Only the visible Gaussian receives gradients.
     means.requires_grad_()
-    rasterize(means, quats, scales, opac, feats, _axis_camera(), backend="torch").features.sum().backward()
+    rasterize(means, quats, scales, opac, feats, _axis_camera(), backend=backend).features.sum().backward()
     assert means.grad[:2].abs().max() == 0 and means.grad[2].abs().max() > 0
 
 
-def test_empty_and_degenerate_inputs_give_finite_gradients():
+@pytest.mark.parametrize("backend", CPU_BACKENDS)
+def test_empty_and_degenerate_inputs_give_finite_gradients(backend):
     dt = torch.float32
     empty = [torch.zeros(0, 3, dtype=dt), torch.zeros(0, 4, dtype=dt), torch.zeros(0, 3, dtype=dt),
              torch.zeros(0, dtype=dt), torch.zeros(0, 5, dtype=dt)]
-    out = rasterize(*empty, _axis_camera(), backend="torch")
+    out = rasterize(*empty, _axis_camera(), backend=backend)
     assert out.features.shape == (16, 16, 5) and out.alpha.abs().max() == 0 and out.depth.abs().max() == 0
     # Behind the camera, and an opacity that underflowed to exactly 0.
     params = [torch.tensor([[0.0, 0, -1], [0, 0, 2]]), torch.tensor([[1.0, 0, 0, 0]] * 2),
               torch.full((2, 3), 0.1), torch.tensor([0.5, 0.0]), torch.ones(2, 3)]
     params = [p.requires_grad_() for p in params]
-    out = rasterize(*params, _axis_camera(), backend="torch")
+    out = rasterize(*params, _axis_camera(), backend=backend)
     (out.features.sum() + out.alpha.sum() + out.depth.sum()).backward()
     assert out.alpha.max() == 0 and (out.radii == 0).all()
     assert all(torch.isfinite(p.grad).all() for p in params)
 
 
-def test_tiny_gaussian_lands_on_projected_pixel():
+@pytest.mark.parametrize("backend", CPU_BACKENDS)
+def test_tiny_gaussian_lands_on_projected_pixel(backend):
     camera = _camera(40, 30)
     rng = np.random.default_rng(0)
     for _ in range(5):
@@ -207,18 +225,19 @@ def test_tiny_gaussian_lands_on_projected_pixel():
         dt = torch.float64
         out = rasterize(torch.tensor(p[None], dtype=dt), torch.tensor([[1.0, 0, 0, 0]], dtype=dt),
                         torch.full((1, 3), 1e-4, dtype=dt), torch.tensor([0.9], dtype=dt),
-                        torch.ones(1, 1, dtype=dt), camera, backend="torch")
+                        torch.ones(1, 1, dtype=dt), camera, backend=backend)
         uv, _ = camera.project(p)
         row, col = np.unravel_index(int(out.alpha[..., 0].argmax()), out.alpha.shape[:2])
         assert (row, col) == (int(uv[1]), int(uv[0]))
         np.testing.assert_allclose(out.means2d[0].numpy(), uv, atol=1e-9)
 
 
-def test_background_and_camera_list():
+@pytest.mark.parametrize("backend", CPU_BACKENDS)
+def test_background_and_camera_list(backend):
     params = _scene(20, 3, seed=2)
     bg = torch.tensor([0.2, 0.4, 0.6], dtype=torch.float64)
-    outs = rasterize(*params, [_camera(), _camera(16, 16)], backend="torch", background=bg)
-    plain = rasterize(*params, _camera(), backend="torch")
+    outs = rasterize(*params, [_camera(), _camera(16, 16)], backend=backend, background=bg)
+    plain = rasterize(*params, _camera(), backend=backend)
     assert isinstance(outs, list) and outs[1].features.shape == (16, 16, 3)
     torch.testing.assert_close(outs[0].features, plain.features + bg * (1 - plain.alpha))
 
@@ -229,7 +248,7 @@ def test_backends_on_cpu():
         rasterize(*params, _camera(), backend="gsplat")
     had_gsplat = "gsplat" in sys.modules
     out = rasterize(*params, _camera(), backend="auto")
-    assert out.n_pairs is not None  # the torch backend ran
+    assert out.n_pairs is not None  # a CPU backend ran
     assert ("gsplat" in sys.modules) == had_gsplat  # auto never imports gsplat for CPU tensors
 
 

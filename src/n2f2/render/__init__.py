@@ -3,9 +3,12 @@
 Backends:
 
 * ``"torch"``: pure PyTorch, tiled, custom backward (:mod:`n2f2.render.torch_backend`); any device.
+* ``"numba"``: the torch backend's projection and binning with compiled compositing
+  (:mod:`n2f2.render.numba_backend`); CPU tensors only.
 * ``"gsplat"``: CUDA kernels of gsplat (:mod:`n2f2.render.gsplat_backend`); CUDA tensors only.
-* ``"auto"`` (default): gsplat for CUDA tensors when gsplat imports, the torch backend otherwise
-  (gsplat is never imported on CPU, so no JIT CUDA build is attempted).
+* ``"auto"`` (default): gsplat for CUDA tensors when gsplat imports, numba for CPU tensors when
+  numba imports, the torch backend otherwise (gsplat is never imported on CPU, so no JIT CUDA
+  build is attempted).
 
 Conventions are those of :mod:`n2f2.cameras` (OpenCV axes, pixel centres at +0.5, z-depth).
 """
@@ -24,7 +27,7 @@ from n2f2.render.sh import eval_sh, num_sh_bases
 
 __all__ = ["RenderOutput", "rasterize", "render_rgb", "view_colors", "eval_sh", "num_sh_bases"]
 
-BACKENDS = ("auto", "torch", "gsplat")
+BACKENDS = ("auto", "torch", "numba", "gsplat")
 
 
 @dataclass
@@ -36,7 +39,7 @@ class RenderOutput:
     depth: Tensor  # [H, W, 1] expected z-depth sum(w z) / sum(w); 0 where alpha == 0
     means2d: Tensor  # [N, 2] projected centres (u, v); non-leaf, on the autograd path
     radii: Tensor  # [N] int32 screen radius in pixels, 0 = culled / touches no pixel
-    n_pairs: int | None = None  # pixel-Gaussian pairs evaluated (torch backend; benchmarks)
+    n_pairs: int | None = None  # pixel-Gaussian pairs evaluated (CPU backends; benchmarks)
 
 
 def _check_inputs(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, features: Tensor) -> None:
@@ -94,19 +97,27 @@ def rasterize(
     if backend == "auto":
         from n2f2.render.gsplat_backend import gsplat_usable
 
-        backend = "gsplat" if gsplat_usable(means.device) else "torch"
+        if gsplat_usable(means.device):
+            backend = "gsplat"
+        else:
+            from n2f2.render.numba_backend import numba_usable
+
+            backend = "numba" if means.device.type == "cpu" and numba_usable() else "torch"
     if backend == "gsplat":
         from n2f2.render.gsplat_backend import rasterize_gsplat
 
         raw = rasterize_gsplat(means, quats, scales, opacities, features, cam["viewmat"], cam["K"],
                                camera.width, camera.height, near=near, far=far, eps2d=eps2d)
     else:
-        from n2f2.render.torch_backend import rasterize_torch
+        if backend == "numba":
+            from n2f2.render.numba_backend import rasterize_numba as rasterize_cpu
+        else:
+            from n2f2.render.torch_backend import rasterize_torch as rasterize_cpu
 
-        raw = rasterize_torch(means, quats, scales, opacities, features, cam["viewmat"], cam["K"],
-                              camera.width, camera.height, near=near, far=far, eps2d=eps2d,
-                              alpha_clamp=alpha_clamp, alpha_min=alpha_min,
-                              transmittance_min=transmittance_min, tile_size=tile_size)
+        raw = rasterize_cpu(means, quats, scales, opacities, features, cam["viewmat"], cam["K"],
+                            camera.width, camera.height, near=near, far=far, eps2d=eps2d,
+                            alpha_clamp=alpha_clamp, alpha_min=alpha_min,
+                            transmittance_min=transmittance_min, tile_size=tile_size)
     alpha = raw["alpha"]
     dsum = raw["depth_sum"]
     # Expected depth; where nothing was blended alpha is exactly 0 and so is the depth sum.

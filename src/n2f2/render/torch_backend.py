@@ -465,11 +465,14 @@ def rasterize_torch(
     tile_size: int = 8,
     chunk: int = 128,
     batch_elements: int = 1 << 17,
+    composite=None,  # the compositing autograd Function's apply; default: this module's
 ) -> dict:
     """Rasterize with the pure-PyTorch backend.
 
     ``chunk``: Gaussians per step of a tile list; ``batch_elements``: tiles per batch are
     chosen so one [tiles, pixels, chunk] block has about this many elements (cache-sized).
+    ``composite(kp, aug, bins, cfg) -> [tiles, D, p]`` replaces the compositing step (the
+    numba backend passes its compiled one).
 
     Returns a dict: features [H, W, C], alpha [H, W, 1], depth_sum [H, W, 1] (sum w_i z_i,
     not normalised), means2d [N, 2], radii [N] int32, n_pairs (int, pixel-Gaussian pairs the
@@ -483,7 +486,7 @@ def rasterize_torch(
                           batch_elements=batch_elements)
     ones = torch.ones_like(proj.depths)[:, None]
     aug = torch.cat([features, proj.depths[:, None], ones], dim=1)  # [N, C + 2]
-    out = _untile(_Composite.apply(kp, aug, bins, cfg), bins, width, height)  # [H, W, C + 2]
+    out = _untile((composite or _Composite.apply)(kp, aug, bins, cfg), bins, width, height)  # [H, W, C + 2]
     C = features.shape[1]
     return {
         "features": out[..., :C],

@@ -1,0 +1,276 @@
+"""Tile compositing compiled with numba: the CPU fast path of the rasterizer.
+
+Projection, binning and the per-pair ``log2 alpha`` polynomial are the torch backend's
+(:mod:`n2f2.render.torch_backend`, plain autograd); only the compositing, the loop over
+pixel-Gaussian pairs, runs here, as two compiled kernels that follow 3DGS's CUDA ones:
+
+* forward: per pixel, walk the tile's depth-sorted list front to back, blend, stop at the
+  transmittance limit, and record how many pairs the pixel walked (``stop``);
+* backward: per pixel, walk the same pairs front to back again with the same arithmetic,
+  carrying the prefix sum ``sum_{j<=i} w_j f_j . g`` so that no division by ``1 - alpha``
+  reconstructs a transmittance (the torch backend's formula, written per pair).
+
+Tiles are dealt to threads round-robin in order of list length, longest first. Per-pair
+gradients are written by the one thread that owns the tile (no race); per-Gaussian feature
+gradients go to one buffer per thread, summed at the end.
+
+numba ships its compiler in its wheel, so nothing is built at install time. Kernels are
+compiled on first use (a few seconds) and cached on disk beside this file, or in numba's
+user cache when that folder is read-only. Calls are serialised by a lock: the thread pool
+used here does not allow two Python threads inside a parallel region at once.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import threading
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from n2f2.render.torch_backend import Bins, CompositeConfig, rasterize_torch
+
+try:  # optional at import time: the "auto" backend falls back to torch without it
+    import numba
+    from numba import njit, prange
+except ImportError:  # pragma: no cover - numba is a declared dependency
+    numba = None
+else:
+    # numba's OpenMP layer leaves its threads spinning after each kernel, which slows the torch
+    # operations around it several times over; the plain thread pool does not spin.
+    if "NUMBA_THREADING_LAYER" not in os.environ:
+        numba.config.THREADING_LAYER = "workqueue"
+
+_LOCK = threading.Lock()
+_LN2 = math.log(2.0)
+# Reassociation lets the loops over channels vectorise; no flag that assumes finite values.
+_FAST = {"reassoc", "contract", "nsz", "arcp"}
+
+
+def numba_usable() -> bool:
+    """True when the kernels can run here (numba imports)."""
+    return numba is not None
+
+
+if numba is not None:
+
+    @njit(parallel=True, fastmath=_FAST, cache=True, nogil=True)
+    def _forward_kernel(
+        kp,  # [M, 6] log2 alpha polynomial of each pair, relative to its tile's centre
+        gid,  # [M] int64 Gaussian of each pair
+        tile_start,  # [T] int64
+        tile_len,  # [T] int64
+        order,  # [T'] int64 non-empty tiles, longest list first
+        aug,  # [N, D] features, z, 1
+        basis,  # [5, p] u, v, u^2, uv, v^2 of each pixel (offsets from the tile centre)
+        log_min, log_clamp, t_min,  # thresholds (log2 alpha_min, log2 alpha_clamp, transmittance)
+        nthreads,
+        out,  # [T, p, D] zero-initialised
+        stop,  # [T, p] int64: pairs walked by each pixel
+    ):
+        P = basis.shape[1]
+        D = aug.shape[1]
+        for t in prange(nthreads):
+            T = np.empty(P, dtype=out.dtype)
+            live = np.empty(P, dtype=np.bool_)
+            for ii in range(t, order.shape[0], nthreads):
+                tile = order[ii]
+                s = tile_start[tile]
+                n = tile_len[tile]
+                T[:] = 1.0
+                live[:] = True
+                stop[tile, :] = n
+                n_live = P
+                acc = out[tile]
+                for j in range(n):
+                    q = s + j
+                    k0, k1, k2, k3, k4, k5 = kp[q, 0], kp[q, 1], kp[q, 2], kp[q, 3], kp[q, 4], kp[q, 5]
+                    g = gid[q]
+                    for p in range(P):
+                        if not live[p]:
+                            continue
+                        la = k0 + k1 * basis[0, p] + k2 * basis[1, p] + k3 * basis[2, p] + k4 * basis[3, p] + k5 * basis[4, p]
+                        if la < log_min:
+                            continue
+                        la = min(la, log_clamp)
+                        alpha = 2.0 ** la
+                        T_next = T[p] * (1.0 - alpha)
+                        if T_next < t_min:  # this Gaussian is not blended and the pixel stops
+                            live[p] = False
+                            stop[tile, p] = j
+                            n_live -= 1
+                            continue
+                        w = alpha * T[p]
+                        for d in range(D):
+                            acc[p, d] += w * aug[g, d]
+                        T[p] = T_next
+                    if n_live == 0:
+                        break
+
+    @njit(parallel=True, fastmath=_FAST, cache=True, nogil=True)
+    def _backward_kernel(
+        kp,  # [M, 6]
+        gid,  # [M] int64
+        tile_start,  # [T]
+        order,  # [T']
+        aug,  # [N, D]
+        basis,  # [5, p]
+        log_min, log_clamp,
+        nthreads,
+        out,  # [T, p, D] forward output
+        g_out,  # [T, p, D] upstream gradient
+        stop,  # [T, p] from the forward pass
+        g_kp,  # [M, 6] zero-initialised
+        g_aug,  # [nthreads, N, D] zero-initialised
+    ):
+        # O = sum_i w_i f_i, w_i = alpha_i T_i:  dL/dalpha_i = (T_{i+1} fg_i - total + prefix_i) / (1 - alpha_i)
+        # with fg_i = f_i . g, total = O . g and prefix_i = sum_{j<=i} w_j fg_j.
+        P = basis.shape[1]
+        D = aug.shape[1]
+        for t in prange(nthreads):
+            T = np.empty(P, dtype=out.dtype)
+            base = np.empty(P, dtype=out.dtype)  # prefix - total
+            gacc = np.empty(D, dtype=out.dtype)
+            for ii in range(t, order.shape[0], nthreads):
+                tile = order[ii]
+                s = tile_start[tile]
+                G = g_out[tile]
+                walked = 0
+                for p in range(P):
+                    tot = 0.0
+                    for d in range(D):
+                        tot += out[tile, p, d] * G[p, d]
+                    base[p] = -tot
+                    T[p] = 1.0
+                    walked = max(walked, stop[tile, p])
+                for j in range(walked):
+                    q = s + j
+                    k0, k1, k2, k3, k4, k5 = kp[q, 0], kp[q, 1], kp[q, 2], kp[q, 3], kp[q, 4], kp[q, 5]
+                    g = gid[q]
+                    gacc[:] = 0.0
+                    g0 = g1 = g2 = g3 = g4 = g5 = 0.0
+                    hit = False
+                    for p in range(P):
+                        if j >= stop[tile, p]:
+                            continue
+                        u, v, uu, uv, vv = basis[0, p], basis[1, p], basis[2, p], basis[3, p], basis[4, p]
+                        la = k0 + k1 * u + k2 * v + k3 * uu + k4 * uv + k5 * vv
+                        if la < log_min:
+                            continue
+                        clamped = la > log_clamp
+                        if clamped:
+                            la = log_clamp
+                        alpha = 2.0 ** la
+                        one_m = 1.0 - alpha
+                        T_next = T[p] * one_m
+                        w = alpha * T[p]
+                        fg = 0.0
+                        for d in range(D):
+                            gd = G[p, d]
+                            fg += aug[g, d] * gd
+                            gacc[d] += w * gd
+                        base[p] += w * fg
+                        if not clamped:
+                            d_la = (T_next * fg + base[p]) / one_m * alpha * _LN2
+                            g0 += d_la
+                            g1 += d_la * u
+                            g2 += d_la * v
+                            g3 += d_la * uu
+                            g4 += d_la * uv
+                            g5 += d_la * vv
+                        T[p] = T_next
+                        hit = True
+                    if hit:
+                        g_kp[q, 0] = g0
+                        g_kp[q, 1] = g1
+                        g_kp[q, 2] = g2
+                        g_kp[q, 3] = g3
+                        g_kp[q, 4] = g4
+                        g_kp[q, 5] = g5
+                        for d in range(D):
+                            g_aug[t, g, d] += gacc[d]
+
+
+def _pixel_basis(tile_size: int, dtype: np.dtype) -> np.ndarray:  # [5, p]
+    """u, v, u^2, uv, v^2 of a tile's pixel centres, as offsets from the tile centre; pixel
+    p = row * size + col (the torch backend's ``_pixel_basis`` order)."""
+    o = np.arange(tile_size, dtype=np.float64) + 0.5 - 0.5 * tile_size
+    v, u = np.meshgrid(o, o, indexing="ij")
+    u, v = u.reshape(-1), v.reshape(-1)
+    return np.ascontiguousarray(np.stack([u, v, u * u, u * v, v * v]).astype(dtype))
+
+
+def _threads() -> int:
+    n = max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS))
+    numba.set_num_threads(n)
+    return n
+
+
+class _NumbaComposite(torch.autograd.Function):
+    """Same contract as the torch backend's ``_Composite``: ``kp`` [6, M], ``aug`` [N, D] ->
+    per-tile sums [tiles, D, p]."""
+
+    @staticmethod
+    def forward(ctx, kp: Tensor, aug: Tensor, bins: Bins, cfg: CompositeConfig):
+        dtype = aug.dtype
+        np_dtype = np.dtype(np.float32 if dtype == torch.float32 else np.float64)
+        n_tiles = bins.tiles_x * bins.tiles_y
+        P = bins.tile_size**2
+        D = aug.shape[1]
+        kp_np = kp.detach().T.contiguous().numpy()  # [M, 6]
+        aug_np = aug.detach().contiguous().numpy()
+        lens = bins.tile_len
+        nonempty = torch.nonzero(lens > 0).squeeze(1)
+        order = nonempty[torch.argsort(lens[nonempty], descending=True, stable=True)].numpy()
+        basis = _pixel_basis(bins.tile_size, np_dtype)
+        out = np.zeros((n_tiles, P, D), dtype=np_dtype)
+        stop = np.zeros((n_tiles, P), dtype=np.int64)
+        gid = bins.pair_gid.numpy()
+        ts, tl = bins.tile_start.numpy(), lens.numpy()
+        log_min, log_clamp = math.log2(cfg.alpha_min), math.log2(cfg.alpha_clamp)
+        with _LOCK:
+            nthreads = _threads()
+            _forward_kernel(kp_np, gid, ts, tl, order, aug_np, basis, np_dtype.type(log_min),
+                            np_dtype.type(log_clamp), np_dtype.type(cfg.transmittance_min), nthreads, out, stop)
+        bins.evaluated = int(stop.sum())  # pairs walked (each pixel up to its stop)
+        out_t = torch.from_numpy(out).transpose(1, 2)  # [T, D, p], the torch backend's layout
+        ctx.bins, ctx.cfg = bins, cfg
+        ctx.np = (kp_np, aug_np, order, basis, stop, out, log_min, log_clamp, np_dtype)
+        ctx.save_for_backward(kp, aug)
+        return out_t
+
+    @staticmethod
+    def backward(ctx, g_out: Tensor):
+        kp_np, aug_np, order, basis, stop, out, log_min, log_clamp, np_dtype = ctx.np
+        bins = ctx.bins
+        g_out_np = g_out.detach().to(torch.float32 if np_dtype == np.float32 else torch.float64).transpose(1, 2).contiguous().numpy()
+        g_kp = np.zeros_like(kp_np)
+        with _LOCK:
+            nthreads = _threads()
+            g_aug = np.zeros((nthreads,) + aug_np.shape, dtype=np_dtype)
+            _backward_kernel(kp_np, bins.pair_gid.numpy(), bins.tile_start.numpy(), order,
+                             aug_np, basis, np_dtype.type(log_min), np_dtype.type(log_clamp), nthreads, out,
+                             g_out_np, stop, g_kp, g_aug)
+        return torch.from_numpy(g_kp).T, torch.from_numpy(g_aug.sum(0)), None, None
+
+
+def rasterize_numba(
+    means: Tensor,  # [N, 3]
+    quats: Tensor,  # [N, 4] wxyz
+    scales: Tensor,  # [N, 3]
+    opacities: Tensor,  # [N]
+    features: Tensor,  # [N, C]
+    viewmat: Tensor,  # [4, 4]
+    K: Tensor,  # [3, 3]
+    width: int,
+    height: int,
+    **kw,  # near, far, eps2d, alpha_clamp, alpha_min, transmittance_min, tile_size
+) -> dict:
+    """:func:`~n2f2.render.torch_backend.rasterize_torch` with the compiled compositing; the
+    same dict (``n_pairs`` counts the pairs the pixels walked, without padding)."""
+    if means.device.type != "cpu":
+        raise ValueError("the numba backend runs on CPU tensors only")
+    return rasterize_torch(means, quats, scales, opacities, features, viewmat, K, width, height,
+                           composite=_NumbaComposite.apply, **kw)
