@@ -22,7 +22,7 @@ prefix dot products from block sums + a cumulative sum over scales (``P x D x Q`
 norms once per view from ``G = W^T W`` (see :func:`n2f2.query.composite.prefix_sq_norms`).
 
 Selection score of explicit / levels in 2D (``QueryConfig.selection``): ``"smoothed"`` (default)
-is the maximum of LangSplat's ``R' = 0.5 (box(R) + R)`` from :mod:`n2f2.eval.protocol`, the rule
+is the maximum of LangSplat's ``R' = 0.5 (box(R) + R)`` from :mod:`n2f2.query.maps`, the rule
 the evaluation protocol uses to pick the reported segmentation level; ``"max"`` is the maximum of
 the raw relevancy (LERF). For 3D queries on Gaussians there is no image grid: always ``"max"``.
 """
@@ -41,6 +41,8 @@ from torch import Tensor
 from ..errors import InputError
 from .composite import (DEFAULT_CANONICAL, premultiply, prefix_dot, prefix_sq_norms, supervised_dims,
                         to_blocks)
+from .maps import (LANGSPLAT_BOX_SIZE, LANGSPLAT_THRESHOLD, mask_iou, normalized_for_threshold, resolve_box_size,
+                   segmentation_mask, smoothed_relevancy)
 from .relevancy import (DEFAULT_NEGATIVES, check_texts, inverse_norm, inverse_norm_from_sq,
                         relevancy_from_scores)
 
@@ -503,7 +505,6 @@ class QueryEngine:
     def _selection_scores(self, rel: Tensor, image: bool) -> Tensor:  # [S, ...] -> [S]
         """Per-scale selection score (see module docstring)."""
         if image and self.config.selection == "smoothed":
-            from ..eval.protocol import resolve_box_size, smoothed_relevancy
 
             size = resolve_box_size(_box(self.config), rel.shape[-1])
             sm = smoothed_relevancy(rel.float().cpu().numpy(), size)
@@ -550,7 +551,6 @@ class QueryEngine:
         rel = self.query_gaussians([text], mode).relevancy[0]
         if threshold is not None:
             return rel >= float(threshold)
-        from ..eval.protocol import LANGSPLAT_THRESHOLD, normalized_for_threshold
 
         norm = normalized_for_threshold(rel.float().cpu().numpy())
         return torch.from_numpy(norm > LANGSPLAT_THRESHOLD).to(rel.device)
@@ -593,7 +593,6 @@ def _oracle_scores(rel: Tensor, qi: int, gt_masks: Any, scorer: Optional[OracleS
                    config: QueryConfig) -> Tensor:  # rel [S, H, W] -> [S]
     if scorer is not None:
         return torch.as_tensor(np.asarray(scorer(rel, qi), dtype=np.float64)).to(rel.device, torch.float32)
-    from ..eval.protocol import mask_iou, resolve_box_size, segmentation_mask
 
     gt = np.asarray(gt_masks[qi].cpu() if isinstance(gt_masks, Tensor) else gt_masks[qi]) != 0
     if gt.shape != tuple(rel.shape[1:]):
@@ -606,7 +605,6 @@ def _oracle_scores(rel: Tensor, qi: int, gt_masks: Any, scorer: Optional[OracleS
 
 def _box(config: QueryConfig) -> Union[int, str]:
     """The configured mean-filter size, or the evaluation protocol's default."""
-    from ..eval.protocol import LANGSPLAT_BOX_SIZE
 
     return LANGSPLAT_BOX_SIZE if config.box_size is None else config.box_size
 

@@ -12,7 +12,7 @@ Per view ``V`` and query ``Q`` (``<slug>`` = lower-case query, non-alphanumerics
 * ``V_rgb.png``: the rendered RGB.
 
 2D post-processing (segmentation mask, localization, smoothing) is the evaluation protocol's
-(:mod:`n2f2.eval.protocol`): ``R' = 0.5 (box(R) + R)``, min-max normalise, map to [-1, 1], clip,
+(:mod:`n2f2.query.maps`): ``R' = 0.5 (box(R) + R)``, min-max normalise, map to [-1, 1], clip,
 ``> threshold``, 7x7 majority filter; localization = first maximum of ``box(R)``.
 """
 
@@ -25,6 +25,7 @@ from typing import Any, Optional, Union
 import numpy as np
 
 from ..io import write_json, write_npy, write_png
+from .maps import box_filter, max_locations, segmentation_mask
 
 MASK_COLOR = np.array([0.0, 0.9, 1.0], dtype=np.float32)  # cyan tint of masks (no demo object is cyan)
 
@@ -49,7 +50,6 @@ def unique_slugs(texts: list[str]) -> list[str]:
 
 def localize(relevancy: np.ndarray, box_size: int) -> tuple[int, int]:  # [H, W] -> (x, y)
     """The localization pixel: the first maximum (row-major) of ``box(R)``, as the protocol."""
-    from ..eval.protocol import box_filter, max_locations
 
     x, y = max_locations(box_filter(relevancy, box_size))[0]
     return int(x), int(y)
@@ -57,7 +57,6 @@ def localize(relevancy: np.ndarray, box_size: int) -> tuple[int, int]:  # [H, W]
 
 def segment(relevancy: np.ndarray, box_size: int, threshold: float) -> np.ndarray:  # -> bool [H, W]
     """The protocol's segmentation mask of a relevancy map."""
-    from ..eval.protocol import segmentation_mask
 
     return segmentation_mask(relevancy, threshold=threshold, box_size=box_size) != 0
 

@@ -1,0 +1,171 @@
+"""LangSplat's post-processing of relevancy maps: mean filter, the segmentation map and its
+threshold, the majority filter, and the maxima used for localisation.
+
+These are the rules of LangSplat's ``eval/evaluate_iou_loc.py`` and ``eval/utils.py``, written
+once: ``n2f2 query`` and the viewer use them to turn relevancy into masks and locations, and
+:mod:`n2f2.eval.protocol` (which documents each rule against LangSplat's code) scores with them.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Literal, Union
+
+import numpy as np
+
+# LangSplat constants (eval/evaluate_iou_loc.py, eval/openclip_encoder.py).
+LANGSPLAT_BOX_SIZE = 30  # mean-filter size, pixels
+LANGSPLAT_THRESHOLD = 0.4  # --mask_thresh default
+LANGSPLAT_MIX = 0.5  # R' = 0.5 * (box(R) + R) for segmentation
+LANGSPLAT_MAJORITY_RADIUS = 3  # utils.smooth: scale = 3
+# Width of the LERF-OVS label images LangSplat evaluates at (about 986 px, e.g. 986 x 728).
+# Reference width for box_size="scaled"; pass box_ref_width to use another.
+LERF_REFERENCE_WIDTH = 986
+# cv2.filter2D refuses images of more than 128 channels (OpenCV 4.x/5.0 Python bindings); stacks
+# of maps are filtered in chunks of this many.
+_CV_MAX_CHANNELS = 128
+
+BoxSize = Union[int, Literal["scaled"]]
+Radius = Union[int, Literal["scaled"]]
+
+
+def resolve_box_size(box_size: BoxSize, width: int, ref_width: int = LERF_REFERENCE_WIDTH) -> int:
+    """The filter size in pixels: ``box_size`` itself, or for ``"scaled"``
+    ``round(30 * width / ref_width)`` (halves round up), at least 1."""
+    if box_size == "scaled":
+        return max(1, int(math.floor(LANGSPLAT_BOX_SIZE * width / ref_width + 0.5)))
+    if not isinstance(box_size, (int, np.integer)) or box_size < 1:
+        raise ValueError(f"box_size must be a positive int or 'scaled', got {box_size!r}")
+    return int(box_size)
+
+
+def resolve_majority_radius(radius: Radius, width: int, ref_width: int = LERF_REFERENCE_WIDTH) -> int:
+    """The majority half-window: ``radius`` itself, or for ``"scaled"``
+    ``round(3 * width / ref_width)`` (halves round up), at least 0."""
+    if radius == "scaled":
+        return max(0, int(math.floor(LANGSPLAT_MAJORITY_RADIUS * width / ref_width + 0.5)))
+    if not isinstance(radius, (int, np.integer)) or radius < 0:
+        raise ValueError(f"majority radius must be an int >= 0 or 'scaled', got {radius!r}")
+    return int(radius)
+
+
+# ------------------------------------------------------------------------------ filters
+def box_filter(
+    relevancy: np.ndarray,  # [H, W] or [..., H, W] relevancy maps
+    size: int = LANGSPLAT_BOX_SIZE,
+) -> np.ndarray:  # float32, same shape
+    """``size x size`` mean filter exactly as LangSplat computes it: ``cv2.filter2D`` on a
+    float32 map with kernel ``np.ones((size, size)) / size**2``, default anchor (kernel centre)
+    and default border (BORDER_REFLECT_101). Stacks are filtered as one multi-channel image
+    (LangSplat's localization filters its [H, W, levels] stack in one call)."""
+    import cv2
+
+    r = np.asarray(relevancy, dtype=np.float32)
+    if r.ndim < 2 or r.shape[-1] < 1 or r.shape[-2] < 1:
+        raise ValueError(f"relevancy must be [..., H, W] with H, W >= 1, got shape {r.shape}")
+    size = int(size)
+    if size < 1:
+        raise ValueError(f"box size must be >= 1, got {size}")
+    kernel = np.ones((size, size)) / (size ** 2)  # float64, as in LangSplat
+    h, w = r.shape[-2:]
+    if r.ndim == 2:
+        return cv2.filter2D(np.ascontiguousarray(r), -1, kernel)
+    lead = r.shape[:-2]
+    stack = r.reshape(-1, h, w).transpose(1, 2, 0)  # [H, W, C]
+    out = np.empty_like(stack)
+    for c0 in range(0, stack.shape[-1], _CV_MAX_CHANNELS):
+        chunk = np.ascontiguousarray(stack[..., c0:c0 + _CV_MAX_CHANNELS])
+        out[..., c0:c0 + _CV_MAX_CHANNELS] = cv2.filter2D(chunk, -1, kernel).reshape(chunk.shape)
+    return out.transpose(2, 0, 1).reshape(*lead, h, w)
+
+
+def smoothed_relevancy(
+    relevancy: np.ndarray,  # [..., H, W]
+    size: int = LANGSPLAT_BOX_SIZE,
+) -> np.ndarray:  # float32 [..., H, W]
+    """LangSplat's segmentation map ``R' = 0.5 * (box(R) + R)`` (float32 arithmetic)."""
+    r = np.asarray(relevancy, dtype=np.float32)
+    return np.float32(LANGSPLAT_MIX) * (box_filter(r, size) + r)
+
+
+def normalized_for_threshold(smoothed: np.ndarray) -> np.ndarray:  # [H, W] -> float32 [H, W]
+    """LangSplat's map before thresholding: subtract the minimum, divide by (max + 1e-9), map
+    [0, 1] to [-1, 1] and clip to [0, 1]. Computed in float32 in LangSplat's order."""
+    out = np.asarray(smoothed, dtype=np.float32)
+    out = out - out.min()
+    out = out / (out.max() + np.float32(1e-9))
+    out = out * np.float32(2.0) + np.float32(-1.0)
+    return np.clip(out, np.float32(0.0), np.float32(1.0))
+
+
+def majority_filter(
+    mask: np.ndarray,  # [H, W] binary (bool or 0/1)
+    radius: int = LANGSPLAT_MAJORITY_RADIUS,
+) -> np.ndarray:  # uint8 [H, W], 0/1
+    """LangSplat's ``utils.smooth``, vectorised with an integral image.
+
+    Pixel (i, j) becomes the majority value of the window rows
+    ``[max(0, i - r), min(i + r + 1, H - 1))`` x cols ``[max(0, j - r), min(j + r + 1, W - 1))``.
+    Kept from LangSplat: the upper bound is ``H - 1`` / ``W - 1``, so the last row and column
+    never take part in any window (an off-by-one at the far edge), and a tie goes to 0
+    (``argmax(bincount)`` returns the first maximum). Needs H, W >= 2 (LangSplat's window is
+    empty otherwise and its code raises)."""
+    m = np.asarray(mask)
+    if m.ndim != 2:
+        raise ValueError(f"mask must be [H, W], got shape {m.shape}")
+    h, w = m.shape
+    if h < 2 or w < 2:
+        raise ValueError(f"majority filter needs an image of at least 2x2 pixels, got {h}x{w}")
+    if m.dtype != bool and not np.isin(m, (0, 1)).all():
+        raise ValueError("majority filter expects a binary mask")
+    ones = (m != 0).astype(np.int64)
+    integral = np.zeros((h + 1, w + 1), dtype=np.int64)
+    integral[1:, 1:] = ones.cumsum(0).cumsum(1)
+    i = np.arange(h)
+    j = np.arange(w)
+    r0, r1 = np.maximum(0, i - radius), np.minimum(i + radius + 1, h - 1)
+    c0, c1 = np.maximum(0, j - radius), np.minimum(j + radius + 1, w - 1)
+    count = (integral[r1[:, None], c1[None, :]] - integral[r0[:, None], c1[None, :]]
+             - integral[r1[:, None], c0[None, :]] + integral[r0[:, None], c0[None, :]])
+    n = (r1 - r0)[:, None] * (c1 - c0)[None, :]
+    return (2 * count > n).astype(np.uint8)  # strictly more ones than zeros; ties -> 0
+
+
+def segmentation_mask(
+    relevancy: np.ndarray,  # [H, W] raw relevancy of one level
+    threshold: float = LANGSPLAT_THRESHOLD,
+    box_size: int = LANGSPLAT_BOX_SIZE,
+    majority_radius: int = LANGSPLAT_MAJORITY_RADIUS,
+) -> np.ndarray:  # uint8 [H, W]
+    """LangSplat's predicted mask for one level: smooth, normalise, threshold (strict ``>``),
+    majority filter."""
+    return mask_from_smoothed(smoothed_relevancy(relevancy, box_size), threshold, majority_radius)
+
+
+def mask_from_smoothed(
+    smoothed: np.ndarray,  # [H, W] R' = smoothed_relevancy(R)
+    threshold: float = LANGSPLAT_THRESHOLD,
+    majority_radius: int = LANGSPLAT_MAJORITY_RADIUS,
+) -> np.ndarray:  # uint8 [H, W]
+    binary = (normalized_for_threshold(smoothed) > threshold).astype(np.uint8)
+    return majority_filter(binary, majority_radius)
+
+
+def mask_iou(pred: np.ndarray, gt: np.ndarray) -> float:  # [H, W], [H, W] -> IoU
+    """|pred & gt| / |pred | gt|. Raises on an empty union (LangSplat would produce NaN; the
+    protocol never scores a pair whose ground truth is empty)."""
+    pred = np.asarray(pred) != 0
+    gt = np.asarray(gt) != 0
+    if pred.shape != gt.shape:
+        raise ValueError(f"mask shapes differ: {pred.shape} vs {gt.shape}")
+    union = int(np.logical_or(pred, gt).sum())
+    if union == 0:
+        raise ValueError("IoU of two empty masks is undefined")
+    return int(np.logical_and(pred, gt).sum()) / union
+
+
+def max_locations(filtered: np.ndarray) -> np.ndarray:  # [H, W] -> int64 [P, 2] as (x, y)
+    """Every pixel equal to the map's maximum, as (x = column, y = row), like LangSplat's
+    ``np.nonzero(map == map.max())`` flipped to x, y."""
+    rows, cols = np.nonzero(filtered == filtered.max())
+    return np.stack([cols, rows], axis=1)
