@@ -25,6 +25,24 @@ class TrainedRun:
     part_query: str = "lid of the teapot"
 
 
+@pytest.fixture(scope="session")
+def tiny_random_clip():
+    """A randomly initialised CLIP (2 layers, 32 wide, 16-d embeddings) and its tokenizer: the
+    real CLIP code path at a size tests can afford."""
+    import torch
+    from transformers import CLIPConfig, CLIPModel, CLIPTokenizer
+
+    torch.manual_seed(0)
+    cfg = CLIPConfig(
+        text_config=dict(vocab_size=8, hidden_size=32, intermediate_size=64, num_hidden_layers=2,
+                         num_attention_heads=2, max_position_embeddings=77, bos_token_id=0, eos_token_id=1,
+                         pad_token_id=1),
+        vision_config=dict(image_size=32, patch_size=8, hidden_size=32, intermediate_size=64,
+                           num_hidden_layers=2, num_attention_heads=2),
+        projection_dim=16)
+    return CLIPModel(cfg), CLIPTokenizer()
+
+
 def _cli(*argv) -> None:
     from n2f2.cli import main
 

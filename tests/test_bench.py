@@ -108,7 +108,7 @@ def test_bad_input_is_one_clear_error(tmp_path, capsys):
     assert main(["--out", str(tmp_path / "o"), "--iterations", "0", "--quiet"]) == 2
     capsys.readouterr()
     assert main(["--out", str(tmp_path / "o"), "--scale-jitter", "-0.1", "--quiet"]) == 2
-    assert "scale_jitter" in capsys.readouterr().err
+    assert "--scale-jitter must be" in capsys.readouterr().err
 
 
 def test_scaled_step_keeps_the_number_of_scales():

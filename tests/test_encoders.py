@@ -21,18 +21,9 @@ from n2f2.segments.segmenters import (ClassicalSegmenter, ClassicalSettings, Sam
 
 
 @pytest.fixture(scope="module")
-def tiny_clip() -> ClipEncoder:
-    from transformers import CLIPConfig, CLIPModel, CLIPTokenizer
-
-    torch.manual_seed(0)
-    cfg = CLIPConfig(
-        text_config=dict(vocab_size=8, hidden_size=32, intermediate_size=64, num_hidden_layers=2,
-                         num_attention_heads=2, max_position_embeddings=77, bos_token_id=0, eos_token_id=1,
-                         pad_token_id=1),
-        vision_config=dict(image_size=32, patch_size=8, hidden_size=32, intermediate_size=64,
-                           num_hidden_layers=2, num_attention_heads=2),
-        projection_dim=16)
-    return ClipEncoder(CLIPModel(cfg), CLIPTokenizer(), model_id="tiny-random-clip", batch_size=2)
+def tiny_clip(tiny_random_clip) -> ClipEncoder:
+    model, tokenizer = tiny_random_clip
+    return ClipEncoder(model, tokenizer, model_id="tiny-random-clip", batch_size=2)
 
 
 @pytest.fixture(scope="module")

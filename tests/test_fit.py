@@ -414,6 +414,8 @@ def test_resume_with_bad_checkpoint_is_a_clear_error(tiny_scene, tmp_path, capsy
 
 @pytest.mark.parametrize("value", ["-1", "nan"])
 def test_negative_or_nan_depth_spread_is_a_clear_error(tiny_scene, tmp_path, capsys, value):
-    assert cli_main(_cli_args(tiny_scene.root, tmp_path / "out", 5) + ["--depth-spread", value]) == 2
-    assert "--depth-spread must be >= 0" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as e:  # refused by the option's type, while parsing
+        cli_main(_cli_args(tiny_scene.root, tmp_path / "out", 5) + ["--depth-spread", value])
+    assert e.value.code == 2
+    assert "--depth-spread must be a finite number >= 0" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()

@@ -81,6 +81,21 @@ def test_sized_for_derives_steps_cap_and_windows_from_the_scene(tmp_path):
     assert (given.steps, given.densify_from, given.densify_until) == (300, 40, 220)
 
 
+def test_random_init_resets_opacity_twice_inside_the_densification_window(tmp_path):
+    no_points = _scene(tmp_path / "b", 80, 320, 240)  # 2000 steps, densification until 1467
+    rng = np.random.default_rng(0)
+    with_points = _scene(tmp_path / "p", 80, 320, 240, points=rng.normal(size=(500, 3)))
+    # Random init (asked for, or implied by a scene without points): 0.35 x 2000 = 700, so
+    # resets at steps 700 and 1400, both before densification ends.
+    for cfg in (FitConfig.cpu().sized_for(no_points), FitConfig.cpu().sized_for(with_points, init="random")):
+        assert cfg.opacity_reset_every == 700
+        assert [s for s in range(1, cfg.steps + 1)
+                if s % cfg.opacity_reset_every == 0 and s < cfg.densify_until] == [700, 1400]
+    # Sparse points or a trained PLY: the cpu preset's rule, no reset.
+    assert FitConfig.cpu().sized_for(with_points).opacity_reset_every == 0
+    assert FitConfig.cpu().sized_for(no_points, init="ply").opacity_reset_every == 0
+
+
 def test_resolution_factor_follows_the_schedule():
     cfg = replace(FitConfig(), steps=1000, coarse_until=(0.2, 0.5), coarse_downscale=(4.0, 2.0))
     assert [resolution_factor(cfg, s) for s in (1, 200, 201, 500, 501, 1000)] == [4, 4, 2, 2, 1, 1]
@@ -307,4 +322,6 @@ def test_render_command_draws_a_ply_in_its_colour(tmp_path):
 def test_render_command_rejects_bad_options(tmp_path, capsys):
     assert cli_main(["render", str(tmp_path / "missing.ply"), "--out", str(tmp_path / "o")]) == 2
     assert "missing.ply" in capsys.readouterr().err
-    assert cli_main(["render", str(tmp_path / "x.ply"), "--out", str(tmp_path / "o"), "--views", "0"]) == 2
+    with pytest.raises(SystemExit) as e:  # argparse's one-line error
+        cli_main(["render", str(tmp_path / "x.ply"), "--out", str(tmp_path / "o"), "--views", "0"])
+    assert e.value.code == 2 and "--views" in capsys.readouterr().err

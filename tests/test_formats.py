@@ -299,6 +299,19 @@ def test_downscale_uses_predownscaled_folder(scene_dir: Path) -> None:
     assert all(p.parent.name == "images" for p in load_scene(scene_dir, downscale=2).image_paths)
 
 
+def test_downscaled_camera_rounding_is_not_an_aspect_ratio_error(scene_dir: Path, tmp_path: Path) -> None:
+    """A 739x492 photo at downscale 8: the camera is round(92.4) x round(61.5) = 92 x 62,
+    whose aspect differs from the photo's by the rounding of one camera pixel (6 photo pixels)."""
+    from n2f2.cameras import Camera
+    from n2f2.data import _check_aspect_ratios
+
+    photo = tmp_path / "photo.png"
+    write_png(photo, np.zeros((492, 739, 3), np.uint8))
+    _check_aspect_ratios([Camera(80.0, 80.0, 46.0, 31.0, 92, 62)], [photo], tmp_path / "images.bin")
+    with pytest.raises(InputError, match="aspect ratio"):  # 92 x 70 is another shape
+        _check_aspect_ratios([Camera(80.0, 80.0, 46.0, 35.0, 92, 70)], [photo], tmp_path / "images.bin")
+
+
 def test_image_with_wrong_aspect_ratio(scene_dir: Path) -> None:
     write_png(scene_dir / "images" / names(4)[2], np.zeros((H, H, 3), np.uint8))
     with pytest.raises(InputError, match="aspect ratio") as e:

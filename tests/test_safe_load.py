@@ -44,3 +44,45 @@ def test_crafted_field_through_the_cli_is_one_clear_error(tmp_path, capsys):
     assert cli_main(["eval-field", str(run)]) == 2
     assert "field.pt" in capsys.readouterr().err
     assert not marker.exists()
+
+
+def _copy_run(src, dst):
+    import shutil
+
+    shutil.copytree(src, dst)
+    return dst
+
+
+def _assert_refused(argv, marker, capsys) -> None:
+    rc = cli_main([str(a) for a in argv])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2, f"n2f2 {' '.join(map(str, argv))} exited {rc}: {err}"
+    assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+    assert not marker.exists(), "the crafted file ran code"
+
+
+@pytest.mark.parametrize("command", ["query", "eval", "view", "train --resume"])
+def test_crafted_run_files_run_no_code_in_any_command(command, trained_run, tmp_path, capsys):
+    """A shared run folder whose field.pt / checkpoint.pt is a malicious pickle: every command
+    that loads it refuses with one line, and the payload never runs."""
+    marker = tmp_path / "ran"
+    run = _copy_run(trained_run.run_dir, tmp_path / "run")
+    _crafted(run / "field.pt", marker)
+    _crafted(run / "checkpoint.pt", marker)
+    scene, bank = trained_run.scene_dir, trained_run.bank_dir
+    argv = {
+        "query": ["query", run, "teapot", "--out", tmp_path / "q", "--scene", scene],
+        "eval": ["eval", run, "--labels", scene / "label", "--scene", scene, "--bank", bank, "--out", tmp_path / "e"],
+        "view": ["view", run, "--port", 0, "--scene", scene],
+        "train --resume": ["train", scene, "--gaussians", run / "gaussians.ply", "--segments", bank, "--out", run,
+                           "--resume", "--iterations", 2],
+    }[command]
+    _assert_refused(argv, marker, capsys)
+
+
+def test_crafted_fit_checkpoint_runs_no_code_on_resume(trained_run, tmp_path, capsys):
+    marker = tmp_path / "ran"
+    out = tmp_path / "fit"
+    out.mkdir()
+    _crafted(out / "checkpoint.pt", marker)
+    _assert_refused(["fit-gaussians", trained_run.scene_dir, "--out", out, "--resume", "--steps", 2], marker, capsys)

@@ -94,7 +94,7 @@ def test_downscaled_bank_and_rerun(demo, tmp_path):
     # a rerun of a finished bank skips every image and keeps it readable
     before = (bank_dir / "frame_00001" / "layers.npy").stat().st_mtime_ns
     assert main(["segments", str(scene_dir), "--segmenter", "ground-truth", "--encoder", "captions",
-                 "--depth-source", "gt", "--out", str(bank_dir), "--quiet"]) == 0
+                 "--depth-source", "gt", "--out", str(bank_dir), "--resume", "--quiet"]) == 0
     assert (bank_dir / "frame_00001" / "layers.npy").stat().st_mtime_ns == before
     out = tmp_path / "half"
     assert main(["segments", str(scene_dir), "--segmenter", "ground-truth", "--encoder", "captions",
@@ -135,7 +135,7 @@ def test_extent_scale_measure(demo, tmp_path, capsys):
     assert ext_inverted < eig_inverted, (ext_inverted, eig_inverted)
     # The eigenvalue bank's folder does not take extent records.
     capsys.readouterr()
-    assert main([*args, "--out", str(bank_dir)]) == 2
+    assert main([*args, "--out", str(bank_dir), "--resume"]) == 2
     assert "lifting settings" in capsys.readouterr().err
 
 

@@ -364,13 +364,17 @@ def test_cli_train_and_eval(setup, tmp_path, capsys):
     result = json.loads((run / "eval_field.json").read_text())
     assert result["views"] == [0] and set(result["levels"]) == {"part", "object", "group"}
     capsys.readouterr()
-    # A bank made at another resolution: one clear line, exit 2.
-    assert cli_main(["train", *common, "--downscale", "2", "--iterations", "1"]) == 2
+    # A bank made at another resolution: one clear line, exit 2, and --force kept the results.
+    before = (run / FIELD_NAME).read_bytes()
+    assert cli_main(["train", *common, "--downscale", "2", "--iterations", "1", "--force"]) == 2
     err = capsys.readouterr().err
     assert "bank.json" in err and "Traceback" not in err
-    assert cli_main(["train", *common, "--scale-jitter", "nan", "--iterations", "1"]) == 2
+    assert (run / FIELD_NAME).read_bytes() == before
+    with pytest.raises(SystemExit) as e:
+        cli_main(["train", *common, "--scale-jitter", "nan", "--iterations", "1"])
+    assert e.value.code == 2
     err = capsys.readouterr().err
-    assert "scale_jitter" in err and "Traceback" not in err
+    assert "--scale-jitter must be" in err and "Traceback" not in err
 
 
 # ---------------------------------------------------------------------------------- evaluation

@@ -20,6 +20,7 @@ PASSIVE_WAIT_COMMANDS = ("view",)
 
 from . import __version__
 from .errors import N2F2Error
+from .validate import OneLineArgumentParser
 
 # In data-flow order; a stage whose commands module does not exist yet is skipped.
 COMMAND_MODULES = (
@@ -36,7 +37,7 @@ COMMAND_MODULES = (
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineArgumentParser(
         prog="n2f2",
         description="Nested Neural Feature Fields: hierarchical open-vocabulary queries on 3D Gaussian Splatting scenes.",
     )

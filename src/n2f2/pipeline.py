@@ -1,4 +1,5 @@
-"""``n2f2 demo`` and ``n2f2 run``: the stages in data-flow order, each cached on its inputs.
+"""``n2f2 demo`` and ``n2f2 run``: the stages in data-flow order, each cached on its inputs;
+``n2f2 run-many``: ``run`` on several scenes, one task each (serially or on Ray), and a summary.
 
 A stage is skipped when its recorded key (a hash of its inputs' content and its settings)
 matches the one in ``RUN/stages.json`` and its outputs still exist.
@@ -9,14 +10,17 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
+from .distributed import add_executor_options
 from .errors import InputError
 from .io import write_json
 from .segments.lifting import SCALE_MEASURES
+from .validate import nonneg_int, positive_float, positive_int
 
 STAGES_FILE = "stages.json"
 
@@ -48,6 +52,7 @@ def stage_key(**inputs) -> str:
 class StageCache:
     run_dir: Path
     records: dict = field(default_factory=dict)
+    ran: list = field(default_factory=list)  # stages run (not skipped) by this process
 
     @classmethod
     def open(cls, run_dir: Path) -> "StageCache":
@@ -68,6 +73,7 @@ class StageCache:
         self.records[name] = {"key": key, "seconds": round(time.perf_counter() - start, 2),
                               "outputs": [str(p.relative_to(self.run_dir)) for p in outputs]}
         write_json(self.run_dir / STAGES_FILE, self.records)
+        self.ran.append(name)
         log(f"[{name}] done in {self.records[name]['seconds']:.1f} s")
         return True
 
@@ -189,7 +195,8 @@ def run_pipeline(opt: RunOptions, log=print) -> dict:
         ply = fit_dir / "gaussians.ply"
         fit_args = ["--preset", opt.preset] + (["--steps", opt.fit_steps] if opt.fit_steps else [])
         cache.run("fit-gaussians", stage_key(scene=sdig, args=fit_args, downscale=opt.downscale),
-                  [ply], lambda: _cli(["fit-gaussians", data, "--out", fit_dir, *fit_args, *common, *quiet]), log)
+                  [ply], lambda: _cli(["fit-gaussians", data, "--out", fit_dir, *fit_args, *common, *quiet,
+                                       "--force"]), log)  # inputs changed: replace an older fit
     gdig = file_digest(ply)
 
     # 2. Segment bank.
@@ -230,7 +237,7 @@ def run_pipeline(opt: RunOptions, log=print) -> dict:
         for stale in ("checkpoint.pt", "field.pt"):  # inputs changed: start from scratch
             (out / stale).unlink(missing_ok=True)
         _cli(["train", data, "--gaussians", ply, "--segments", bank, "--out", out, *train_args,
-              *common, *quiet])
+              *common, *quiet, "--force"])
 
     cache.run("train", stage_key(scene=sdig, gaussians=gdig, bank=file_digest(bank / "bank.json"), args=train_args),
               [out / "field.pt"], train, log)
@@ -245,13 +252,18 @@ def run_pipeline(opt: RunOptions, log=print) -> dict:
                                     modes=list(opt.modes)),
                   [eval_json],
                   lambda: _cli(["eval", out, "--labels", labels, "--scene", data, "--bank", bank,
-                                "--out", eval_dir, "--mode", *opt.modes, "--device", opt.device, *quiet]), log)
-    return {"run_dir": str(out), "stages": cache.records, "eval": None if eval_json is None else str(eval_json)}
+                                "--out", eval_dir, "--mode", *opt.modes, "--device", opt.device, *quiet,
+                                "--force"]), log)  # inputs changed: replace an older evaluation
+    return {"run_dir": str(out), "stages": cache.records, "ran": list(cache.ran),
+            "eval": None if eval_json is None else str(eval_json)}
 
 
 # ----------------------------------------------------------------------------- commands
-def _add_run_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--gaussians", metavar="PLY", default=None, help="use these Gaussians instead of fitting")
+def _add_run_options(p: argparse.ArgumentParser, per_scene_inputs: bool = True) -> None:
+    """The options of ``run``; ``per_scene_inputs=False`` leaves out those naming one scene's
+    files (--gaussians, --langsplat-features, --labels), for ``run-many``."""
+    if per_scene_inputs:
+        p.add_argument("--gaussians", metavar="PLY", default=None, help="use these Gaussians instead of fitting")
     p.add_argument("--segmenter", choices=["sam", "classical", "ground-truth"], default=None,
                    help="segmenter (default: ground-truth on the demo scene, else sam)")
     p.add_argument("--encoder", choices=["clip", "captions"], default=None,
@@ -260,15 +272,16 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                         "the text encoder the features are aligned with (default: the one an n2f2 export "
                         "recorded in DIR/encoder.json, else clip)")
     p.add_argument("--model", metavar="ID", default=None, help="CLIP model id or folder")
-    p.add_argument("--langsplat-features", metavar="DIR", default=None,
-                   help="LangSplat language_features folder (<stem>_s.npy, <stem>_f.npy): import instead of "
-                        "segmenting")
-    p.add_argument("--labels", metavar="DIR", default=None,
-                   help="LangSplat-format labels (default: DATA/label when it exists)")
+    if per_scene_inputs:
+        p.add_argument("--langsplat-features", metavar="DIR", default=None,
+                       help="LangSplat language_features folder (<stem>_s.npy, <stem>_f.npy): import instead of "
+                            "segmenting")
+        p.add_argument("--labels", metavar="DIR", default=None,
+                       help="LangSplat-format labels (default: DATA/label when it exists)")
     p.add_argument("--preset", choices=["cpu", "paper"], default="cpu", help="fit and train presets (default cpu)")
-    p.add_argument("--fit-steps", type=int, default=None, help="override the fit preset's step count")
-    p.add_argument("--train-steps", type=int, default=None, help="override the train preset's iterations")
-    p.add_argument("--dim", type=int, default=None,
+    p.add_argument("--fit-steps", type=positive_int, default=None, help="override the fit preset's step count")
+    p.add_argument("--train-steps", type=positive_int, default=None, help="override the train preset's iterations")
+    p.add_argument("--dim", type=positive_int, default=None,
                    help="override the train preset's feature-field dims D (cpu 128, paper 512)")
     p.add_argument("--variant", choices=["nested", "flat", "levels"], default=None, help="field variant (default nested)")
     p.add_argument("--depth-source", choices=["render", "gt"], default="render",
@@ -279,7 +292,7 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                         "segments measured smaller than their own parts). Default: the preset's (cpu "
                         "extent, paper eigenvalue)")
     p.add_argument("--modes", nargs="+", default=["composite", "explicit", "oracle"], help="evaluation modes")
-    p.add_argument("--downscale", type=float, default=1.0, help="image downscale factor, as 3DGS -r")
+    p.add_argument("--downscale", type=positive_float, default=1.0, help="image downscale factor, as 3DGS -r")
     p.add_argument("--skip-missing", action="store_true",
                    help="drop views whose image file is missing (default: a missing image is an error)")
     p.add_argument("--device", default="cpu", help="torch device (default cpu)")
@@ -307,6 +320,128 @@ def _cmd_run(args: argparse.Namespace) -> int:
     result = run_pipeline(_run_options(args, Path(args.data), Path(args.out)))
     print(f"run: {result['run_dir']} in {time.perf_counter() - start:.1f} s"
           + (f"; evaluation: {result['eval']}" if result["eval"] else ""))
+    return 0
+
+
+# ----------------------------------------------------------------------------- run-many
+SUMMARY_NAME = "summary"  # DIR/summary.json and DIR/summary.md
+SUMMARY_STAGES = ("fit-gaussians", "segments", "train", "eval")
+
+
+def _eval_mious(eval_json: str | None) -> dict:
+    """{mode: {box: mIoU}} of a run's eval.json ({} without evaluation)."""
+    if eval_json is None:
+        return {}
+    scores = json.loads(Path(eval_json).read_text())["scores"]
+    return {mode: {box: float(v["miou"]) for box, v in boxes.items()} for mode, boxes in scores.items()}
+
+
+def run_scene(opt: RunOptions) -> dict:
+    """One scene of ``run-many``: :func:`run_pipeline` into ``opt.out``, then the scene's summary
+    row. Bad input is the row's status (``failed`` and the error), not an exception, so the
+    other scenes go on."""
+    from .errors import N2F2Error
+
+    name = Path(opt.out).name
+    start = time.perf_counter()
+    row = {"scene": name, "data": str(opt.data), "run_dir": str(opt.out)}
+    try:
+        result = run_pipeline(opt, log=lambda msg: print(f"{name}: {msg}", flush=True))
+        mious = _eval_mious(result["eval"])
+    except N2F2Error as e:
+        return {**row, "status": "failed", "error": str(e), "seconds": round(time.perf_counter() - start, 2),
+                "stages": {}, "miou": {}, "eval": None}
+    stages = {stage: {"seconds": rec.get("seconds"), "ran": stage in result["ran"]}
+              for stage, rec in result["stages"].items()}
+    return {**row, "status": "ok", "error": None, "seconds": round(time.perf_counter() - start, 2),
+            "stages": stages, "miou": mious, "eval": result["eval"]}
+
+
+def _summary_markdown(summary: dict) -> str:
+    from .eval.reports import markdown_table
+
+    rows = summary["scenes"]
+    modes = [m for m in ("composite", "explicit", "oracle") if any(m in r["miou"] for r in rows)]
+    modes += sorted({m for r in rows for m in r["miou"]} - set(modes))
+    boxes = [b for b in ("exact", "scaled") if any(b in r["miou"].get(m, {}) for r in rows for m in modes)]
+    body = []
+    for r in rows:
+        cells = [r["scene"], r["status"]]
+        for m in modes:
+            cells.append(" / ".join(f"{100 * r['miou'][m][b]:.1f}" if b in r["miou"].get(m, {}) else "-"
+                                    for b in boxes))
+        for stage in SUMMARY_STAGES:
+            st = r["stages"].get(stage)
+            cells.append("-" if st is None or st["seconds"] is None
+                         else f"{st['seconds']:.1f}" + ("" if st["ran"] else " (cached)"))
+        cells.append(f"{r['seconds']:.1f}")
+        body.append(cells)
+    box_note = " / ".join(boxes)
+    headers = (["scene", "status"] + [f"{m} mIoU % ({box_note})" for m in modes]
+               + [f"{s} s" for s in SUMMARY_STAGES] + ["wall s"])
+    text = (f"# run-many: {len(rows)} scenes, executor {summary['executor']}, {summary['seconds']:.1f} s\n\n"
+            + markdown_table(headers, body))
+    failed = [r for r in rows if r["status"] != "ok"]
+    if failed:
+        text += "\n" + "".join(f"- {r['scene']}: {r['error']}\n" for r in failed)
+    text += ("\nmIoU per box of LangSplat's protocol (exact: 30 px box; scaled: box scaled to the image "
+             "width). Stage times are those of the stage's last run; (cached): skipped this time, its inputs "
+             "unchanged.\n")
+    return text
+
+
+def run_many(opts: list[RunOptions], out: Path, executor, progress: bool = True) -> dict:
+    """:func:`run_scene` for every scene, one task each on ``executor`` (serial or Ray), then
+    ``out/summary.json`` and ``out/summary.md``. Returns the summary."""
+    from tqdm import tqdm
+
+    from .distributed import TaskFailure
+    from .io import write_text
+
+    start = time.perf_counter()
+    rows: list = [None] * len(opts)
+    bar = tqdm(total=len(opts), desc="run-many", unit="scene", disable=not progress)
+    with executor:
+        for k, row in executor.map(run_scene, opts):
+            if isinstance(row, TaskFailure):  # run_scene reports bad input itself; kept for safety
+                row = {"scene": Path(opts[k].out).name, "data": str(opts[k].data), "run_dir": str(opts[k].out),
+                       "status": "failed", "error": str(row), "seconds": 0.0, "stages": {}, "miou": {}, "eval": None}
+            rows[k] = row
+            if row["status"] != "ok":
+                bar.write(f"run-many: {row['scene']} failed: {row['error']}", file=sys.stderr)
+            bar.update(1)
+    bar.close()
+    summary = {"executor": executor.name, "seconds": round(time.perf_counter() - start, 2), "scenes": rows}
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(out / f"{SUMMARY_NAME}.json", summary)
+    write_text(out / f"{SUMMARY_NAME}.md", _summary_markdown(summary))
+    return summary
+
+
+def _cmd_run_many(args: argparse.Namespace) -> int:
+    from dataclasses import replace
+
+    from .distributed import executor_from_args
+
+    out = Path(args.out)
+    scenes = [Path(d) for d in args.data]
+    names = [d.resolve().name for d in scenes]
+    for name in sorted(set(names)):
+        same = [str(d) for d, n in zip(scenes, names) if n == name]
+        if len(same) > 1:
+            raise InputError(None, f"scenes {', '.join(same)} share the folder name {name!r}, and each scene's run "
+                             f"goes to {out}/<scene folder name>")
+    executor = executor_from_args(args, gpu=str(args.device).startswith("cuda"))
+    opts = [_run_options(args, d, out / n) for d, n in zip(scenes, names)]
+    if executor.name == "ray":  # stage progress bars do not survive Ray's log streaming
+        device = "cuda" if str(args.device).startswith("cuda") else args.device  # the GPU Ray gives the task
+        opts = [replace(o, quiet=True, device=device) for o in opts]
+    summary = run_many(opts, out, executor, progress=not args.quiet)
+    print((out / f"{SUMMARY_NAME}.md").read_text())
+    failed = [r["scene"] for r in summary["scenes"] if r["status"] != "ok"]
+    if failed:
+        raise InputError(None, f"{len(failed)} of {len(scenes)} scenes failed: {', '.join(failed)} "
+                         f"(details in {out / SUMMARY_NAME}.md)")
     return 0
 
 
@@ -341,7 +476,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     scene_meta = json.loads((scene_dir / "scene.json").read_text())
     views = [int(v) for v in scene_meta.get("labelled_views", [0])[:2]]
     _cli(["query", out / "run", *DEMO_QUERIES[args.layout], "--views", *views, "--out", out / "queries",
-          *(["--quiet"] if args.quiet else [])])
+          *(["--quiet"] if args.quiet else []), "--force"])  # the demo's own folder, answered afresh each run
     if result["eval"]:
         md = Path(result["eval"]).with_suffix(".md")
         if md.is_file():
@@ -359,10 +494,10 @@ def register(subparsers) -> None:
                     "segments; captions embedded by all-MiniLM-L6-v2, an offline stand-in for CLIP), train the nested field, "
                     "evaluate with LangSplat's protocol, and write a few relevancy PNGs.")
     p.add_argument("--out", default="demo_out", help="output folder (default: demo_out)")
-    p.add_argument("--views", type=int, default=40, help="number of views (default: 40)")
-    p.add_argument("--width", type=int, default=160, help="image width (default: 160)")
-    p.add_argument("--height", type=int, default=120, help="image height (default: 120)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
+    p.add_argument("--views", type=positive_int, default=40, help="number of views (default: 40)")
+    p.add_argument("--width", type=positive_int, default=160, help="image width (default: 160)")
+    p.add_argument("--height", type=positive_int, default=120, help="image height (default: 120)")
+    p.add_argument("--seed", type=nonneg_int, default=0, help="random seed (default: 0)")
     p.add_argument("--layout", choices=["tabletop", "lounge"], default="tabletop",
                    help="scene layout: tabletop (round table with a tea set and snacks, 6 x 6 m room; every "
                         "preset was tuned on it) or lounge (sofa, floor lamp and a coffee table with small "
@@ -381,3 +516,17 @@ def register(subparsers) -> None:
     r.add_argument("--out", required=True, metavar="DIR", help="run folder")
     _add_run_options(r)
     r.set_defaults(func=_cmd_run)
+
+    m = subparsers.add_parser(
+        "run-many", help="`run` on several scenes, one task per scene (serially or on Ray), and a summary table",
+        description="Run every stage (as `n2f2 run`, with the same stage cache) on each scene into "
+                    "DIR/<scene folder name>/, one task per scene: serially, or as Ray tasks on this machine "
+                    "or a cluster (docs/distributed.md). A scene failing on bad input is reported and the "
+                    "others go on; then DIR/summary.md and DIR/summary.json give each scene's mIoU per mode, "
+                    "time per stage and status, and the command exits 2 if any scene failed.")
+    m.add_argument("data", nargs="+", metavar="SCENE", help="scene folders (COLMAP or nerfstudio) or photo folders")
+    m.add_argument("--out", required=True, metavar="DIR", help="folder of the runs (DIR/<scene folder name>/) "
+                                                            "and the summary")
+    _add_run_options(m, per_scene_inputs=False)
+    add_executor_options(m, "scene")
+    m.set_defaults(func=_cmd_run_many, gaussians=None, langsplat_features=None, labels=None)

@@ -170,16 +170,15 @@ def _predownscaled(image_paths: list[Path], factor: float) -> list[Path]:
 def _check_aspect_ratios(cameras, image_paths: list[Path], listing: Path) -> None:
     """Read each image header (not its pixels) and reject one whose aspect ratio differs
     from its camera's: resizing it would silently distort the image."""
-    from PIL import Image, UnidentifiedImageError
+    from .scene import open_image
 
     for cam, image_path in zip(cameras, image_paths):
-        try:
-            with Image.open(image_path) as im:
-                w, h = im.size
-        except (UnidentifiedImageError, OSError) as e:
-            raise InputError(image_path, f"cannot read image ({e})") from None
-        # Rounding to whole pixels (e.g. images_2 written with floor instead of round) moves a
-        # side by at most one pixel; anything more is a different image shape.
-        if abs(h - w * cam.height / cam.width) > 1.0 + 1e-9 and abs(w - h * cam.width / cam.height) > 1.0 + 1e-9:
+        with open_image(image_path) as im:
+            w, h = im.size
+        # Rounding to whole pixels moves a side by at most one pixel of the image (images_2
+        # written with floor instead of round) plus one pixel of the camera, which is
+        # w / cam.width image pixels when the camera is downscaled; more is another shape.
+        tol = 1.0 + max(w / cam.width, h / cam.height) + 1e-9
+        if abs(h - w * cam.height / cam.width) > tol and abs(w - h * cam.width / cam.height) > tol:
             raise InputError(image_path, f"image is {w}x{h} pixels but the camera in {listing.name} is "
                                          f"{cam.width}x{cam.height} (after downscaling): a different aspect ratio")

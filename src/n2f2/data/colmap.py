@@ -191,6 +191,9 @@ def colmap_lens(camera: ColmapCamera, source: Path) -> tuple[tuple[float, float,
     fy = p[ify] if ify is not None else fx
     cx, cy = (p[1], p[2]) if ify is None else (p[2], p[3])
     extra = p[3:] if ify is None else p[4:]
+    if fx <= 0 or fy <= 0:
+        raise InputError(source, f"camera {camera.id} has focal length fx={fx}, fy={fy}; both must be positive")
+    _check_size(source, f"camera {camera.id}", camera.width, camera.height)
     if make_lens == "omega":
         if any(extra):
             raise InputError(source, f"camera {camera.id} uses the {model} model with omega = {extra[0]}, "
@@ -274,6 +277,7 @@ def read_cameras_binary(path: str | Path) -> dict[int, ColmapCamera]:
                                      f"(is this really a COLMAP cameras.bin?)")
         model, n_params = CAMERA_MODELS[model_id]
         params = r.unpack(f"<{n_params}d", f"{n_params} parameters of camera {cam_id} ({model})")
+        _check_size(r.path, f"camera {cam_id}", width, height)
         cameras[cam_id] = ColmapCamera(cam_id, model, int(width), int(height), tuple(params))
     return cameras
 
@@ -290,10 +294,18 @@ def read_images_binary(path: str | Path) -> list[ColmapImage]:
     return images
 
 
+# Bytes of one points3D.bin record without its track: id, xyz, rgb, error, track length.
+_POINT_RECORD_BYTES = struct.calcsize("<QdddBBBdQ")
+
+
 def read_points3d_binary(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """``points [P, 3] float64``, ``colors [P, 3] uint8``. Tracks are skipped."""
     r = _BinaryReader(Path(path))
     n = r.count("point count")
+    room = len(r.data) - r.offset
+    if n * _POINT_RECORD_BYTES > room:
+        raise InputError(r.path, f"file is truncated: it declares {n} points, expected at least "
+                                 f"{_POINT_RECORD_BYTES} bytes each, but only {room} bytes remain")
     points = np.empty((n, 3), dtype=np.float64)
     colors = np.empty((n, 3), dtype=np.uint8)
     head = struct.Struct("<QdddBBBdQ")  # id, xyz, rgb, error, track length
@@ -302,7 +314,22 @@ def read_points3d_binary(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
         r.skip(8 * track, f"track of point #{k}")
         points[k] = (x, y, z)
         colors[k] = (cr, cg, cb)
+    _check_points_finite(r.path, points, lambda k: f"point #{k}")
     return points, colors
+
+
+def _check_points_finite(path: Path, points: np.ndarray,  # [P, 3]
+                         where) -> None:
+    """An :class:`InputError` naming the first point (``where(k)``) with a NaN or infinite coordinate."""
+    bad = np.flatnonzero(~np.isfinite(points).all(axis=1))
+    if bad.size:
+        more = f" ({bad.size} points are)" if bad.size > 1 else ""
+        raise InputError(path, f"{where(int(bad[0]))} has a NaN or infinite coordinate{more}")
+
+
+def _check_size(path: Path, what: str, width, height) -> None:
+    if not (0 < width < 2**31 and 0 < height < 2**31):
+        raise InputError(path, f"{what} has image size {width}x{height}; width and height must be positive")
 
 
 def _text_lines(path: Path):
@@ -336,6 +363,7 @@ def read_cameras_text(path: str | Path) -> dict[int, ColmapCamera]:
         if len(params) != CAMERA_MODEL_IDS[model][1]:
             raise InputError(path, f"line {number}: the {model} model has {CAMERA_MODEL_IDS[model][1]} "
                                    f"parameters, got {len(params)}")
+        _check_size(path, f"line {number}: camera {cam_id}", width, height)
         cameras[cam_id] = ColmapCamera(cam_id, model, width, height, params)
     return cameras
 
@@ -368,7 +396,7 @@ def read_images_text(path: str | Path) -> list[ColmapImage]:
 
 def read_points3d_text(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     path = Path(path)
-    xyz, rgb = [], []
+    xyz, rgb, numbers = [], [], []
     for number, line in _text_lines(path):
         if not line:
             continue
@@ -379,7 +407,9 @@ def read_points3d_text(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
         except (ValueError, IndexError):
             raise InputError(path, f"line {number}: expected 'POINT3D_ID X Y Z R G B ERROR TRACK...', "
                                    f"got {line[:80]!r}") from None
+        numbers.append(number)
     points = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    _check_points_finite(path, points, lambda k: f"line {numbers[k]}")
     colors = np.asarray(rgb, dtype=np.int64).reshape(-1, 3)
     if colors.size and (colors.min() < 0 or colors.max() > 255):
         raise InputError(path, "point colours must be in 0..255")

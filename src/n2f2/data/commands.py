@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import json
 
+from ..validate import positive_float, positive_int
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
@@ -15,7 +17,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "sparse points, ground truth and bounds.",
     )
     p.add_argument("data", metavar="DATA", help="scene folder (with transforms.json or sparse/0/)")
-    p.add_argument("--downscale", "-r", type=float, default=1.0,
+    p.add_argument("--downscale", "-r", type=positive_float, default=1.0,
                    help="image downscale factor, as 3DGS -r (default: 1)")
     p.add_argument("--format", choices=("auto", "colmap", "nerfstudio"), default="auto",
                    help="scene format; auto prefers transforms.json over COLMAP (default: auto)")
@@ -122,7 +124,7 @@ def register_sfm(subparsers: argparse._SubParsersAction) -> None:
                    help=f"lens model estimated before undistortion (default: {d.camera_model})")
     p.add_argument("--per-image-camera", action="store_true",
                    help="estimate intrinsics per photo instead of one camera shared by all")
-    p.add_argument("--max-image-size", type=int, default=d.max_image_size, metavar="N",
+    p.add_argument("--max-image-size", type=positive_int, default=d.max_image_size, metavar="N",
                    help=f"longest side features are extracted at (default: {d.max_image_size})")
     p.add_argument("--overwrite", action="store_true",
                    help="replace a finished result in DATA made from other photos or settings")

@@ -14,6 +14,10 @@ Conventions (as LangSplat's ``evaluate_iou_loc.py`` reads them):
   ``findContours`` / ``fillPoly`` use: the pixel centre of column ``x`` is at the continuous
   coordinate ``u = x + 0.5`` of :mod:`n2f2.cameras`. A polygon becomes a mask with
   ``cv2.fillPoly`` on ``int32`` vertices (truncated, like LangSplat), boundary included.
+  A polygon reaching more than one image size outside the image is first clipped to that
+  box (exact polygon clipping: its area inside the image is unchanged; OpenCV may round the
+  clipped edges' boundary pixels differently), so huge coordinates neither overflow ``int32``
+  nor make the fill walk empty space.
 * A category may occur several times in one frame (several connected pieces, or several
   instances); its mask is the union of its polygons.
 * ``bbox`` is ``[x1, y1, x2, y2]``, the inclusive pixel-index bounds of the polygon.
@@ -22,6 +26,7 @@ Conventions (as LangSplat's ``evaluate_iou_loc.py`` reads them):
 from __future__ import annotations
 
 import json
+import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,6 +38,9 @@ from ..errors import InputError
 from ..io import write_json
 
 _FRAME_RE = re.compile(r"^frame_(\d+)$")
+# Largest label image (height x width): twice PIL's decompression-bomb warning limit, the most
+# pixels n2f2 decodes from an image file.
+MAX_LABEL_PIXELS = 2 * 89_478_485
 
 
 @dataclass
@@ -94,14 +102,47 @@ def frame_view_index(name: str) -> int:
 # ----------------------------------------------------------------------------- masks <-> polygons
 def polygon_to_mask(polygon: Sequence[Sequence[float]],  # [K, 2] (x, y) pixel indices
                     height: int, width: int) -> np.ndarray:
-    """bool [H, W]: the polygon filled with ``cv2.fillPoly`` (int32 vertices, as LangSplat)."""
+    """bool [H, W]: the polygon filled with ``cv2.fillPoly`` (int32 vertices, as LangSplat).
+    A polygon reaching beyond one image size outside the image is clipped to that box first
+    (see the module docstring)."""
     import cv2
 
-    pts = np.asarray(polygon, dtype=np.float64).reshape(-1, 2).astype(np.int32)
+    pts = np.asarray(polygon, dtype=np.float64).reshape(-1, 2)
+    margin = max(height, width)
+    box = (-margin, -margin, width - 1 + margin, height - 1 + margin)  # x0, y0, x1, y1
+    if len(pts) and ((pts[:, 0] < box[0]) | (pts[:, 0] > box[2]) | (pts[:, 1] < box[1]) | (pts[:, 1] > box[3])).any():
+        pts = clip_polygon(pts, box)
     mask = np.zeros((height, width), dtype=np.uint8)
     if len(pts):
-        cv2.fillPoly(mask, [pts], 1)
+        cv2.fillPoly(mask, [pts.astype(np.int32)], 1)
     return mask.astype(bool)
+
+
+def clip_polygon(points: np.ndarray,  # [K, 2] (x, y)
+                 box: tuple[float, float, float, float],  # x0, y0, x1, y1
+                 ) -> np.ndarray:  # [M, 2] float64
+    """Sutherland-Hodgman: the polygon cut by each side of ``box`` in turn. Every point inside
+    the box keeps its winding number (a part cut off by one side cannot wind around a point on
+    the other side), so even-odd and non-zero filling inside the box are unchanged."""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    x0, y0, x1, y1 = box
+    # (axis, bound, sign): keep the points where sign * (p[axis] - bound) <= 0
+    for axis, bound, sign in ((0, x0, -1.0), (0, x1, 1.0), (1, y0, -1.0), (1, y1, 1.0)):
+        if len(pts) == 0:
+            break
+        nxt = np.roll(pts, -1, axis=0)
+        d_cur = sign * (pts[:, axis] - bound)
+        d_nxt = sign * (nxt[:, axis] - bound)
+        out = []
+        for p, q, dp, dq in zip(pts, nxt, d_cur, d_nxt):
+            if dp <= 0:
+                out.append(p)
+            if (dp <= 0) != (dq <= 0):  # the edge crosses the side: add the crossing
+                c = p + (dp / (dp - dq)) * (q - p)
+                c[axis] = bound
+                out.append(c)
+        pts = np.asarray(out, dtype=np.float64).reshape(-1, 2)
+    return pts
 
 
 def mask_to_polygons(mask: np.ndarray,  # [H, W] bool
@@ -214,6 +255,9 @@ def read_frame_labels(path: str | Path) -> FrameLabels:
     for key in ("height", "width"):
         if not _is_int(info.get(key)) or info[key] <= 0:
             raise InputError(path, f"'info.{key}' must be a positive integer, got {info.get(key)!r}")
+    if info["height"] * info["width"] > MAX_LABEL_PIXELS:
+        raise InputError(path, f"'info' declares a {info['width']}x{info['height']} image, more than the "
+                               f"{MAX_LABEL_PIXELS} pixels a label mask may have")
     if "name" in info and not isinstance(info["name"], str):
         raise InputError(path, f"'info.name' must be a string, got {info['name']!r}")
     objs = data.get("objects")
@@ -268,4 +312,9 @@ def _is_int(v: object) -> bool:
 
 
 def _is_num(v: object) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v)
+    if not isinstance(v, (int, float)) or isinstance(v, bool):
+        return False
+    try:
+        return math.isfinite(v)
+    except OverflowError:  # an integer too large for a float
+        return False

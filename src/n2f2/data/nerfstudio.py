@@ -207,12 +207,12 @@ def _frame_camera(path: Path, meta: dict, frame: dict, index: int,
         w, h = _image_size(image_path, path)
     fx, fy = get("fl_x"), get("fl_y")
     if fx is None:
-        angle_x = get("camera_angle_x")
+        angle_x = _angle(path, get("camera_angle_x"), f"{where}: camera_angle_x")
         if angle_x is None:
             raise InputError(path, f"{where}: no focal length (fl_x) and no camera_angle_x")
         fx = 0.5 * w / math.tan(0.5 * angle_x)
     if fy is None:
-        angle_y = get("camera_angle_y")
+        angle_y = _angle(path, get("camera_angle_y"), f"{where}: camera_angle_y")
         fy = 0.5 * h / math.tan(0.5 * angle_y) if angle_y is not None else fx
     cx, cy = get("cx"), get("cy")
     cx = w / 2.0 if cx is None else cx
@@ -225,16 +225,20 @@ def _frame_camera(path: Path, meta: dict, frame: dict, index: int,
         raise InputError(path, f"{where}: {e}") from None
 
 
+def _angle(path: Path, value: Optional[float], what: str) -> Optional[float]:
+    """A field of view in radians, strictly between 0 and pi (or None when absent)."""
+    if value is not None and not 0.0 < value < math.pi:
+        raise InputError(path, f"{what} must be a field of view in radians between 0 and pi, got {value}")
+    return value
+
+
 def _image_size(image_path: Path, source: Path) -> tuple[int, int]:
-    from PIL import Image, UnidentifiedImageError
+    from .scene import open_image
 
     if not image_path.is_file():
         raise InputError(image_path, f"image listed in {source.name} does not exist")
-    try:
-        with Image.open(image_path) as im:  # reads the header only
-            return im.size
-    except (UnidentifiedImageError, OSError) as e:
-        raise InputError(image_path, f"cannot read image ({e})") from None
+    with open_image(image_path) as im:  # reads the header only
+        return im.size
 
 
 # ================================================================================== writing
@@ -317,8 +321,12 @@ def read_ply_points(path: str | Path) -> tuple[np.ndarray, Optional[np.ndarray]]
                 raise InputError(path, f"malformed header line {line!r}")
             if words[1] != "vertex":
                 raise InputError(path, f"the first element is {words[1]!r}; expected 'vertex'")
+            if not words[2].isdigit():
+                raise InputError(path, f"vertex count {words[2]!r} is not a whole number >= 0")
             element, count = "vertex", int(words[2])
         elif words[0] == "property" and element == "vertex":
+            if len(words) < 3:
+                raise InputError(path, f"malformed header line {line!r}")
             if words[1] == "list":
                 raise InputError(path, "vertex element has a list property; not a point cloud")
             if words[1] not in _PLY_TYPES or len(words) < 3:
@@ -329,6 +337,9 @@ def read_ply_points(path: str | Path) -> tuple[np.ndarray, Optional[np.ndarray]]
         raise InputError(path, "needs a 'vertex' element with x, y, z properties")
 
     if fmt == "ascii":
+        if 2 * count * len(props) - 1 > len(data) - body_start:  # each value but the last takes 2 bytes or more
+            raise InputError(path, f"file is truncated: header says {count} vertices with {len(props)} values "
+                                   f"each, the file holds {len(data) - body_start} bytes after the header")
         rows = data[body_start:].decode("ascii", errors="replace").split("\n")
         rows = [r for r in rows if r.strip()][:count]
         try:

@@ -6,11 +6,15 @@ matches LangSplat's label convention (``frame_00001`` is index 0).
 
 from __future__ import annotations
 
+import contextlib
+import struct
 import sys
+import warnings
+import zlib
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
-from typing import Optional, Sequence
+from typing import Any, Iterator, Optional, Sequence
 
 import numpy as np
 
@@ -161,19 +165,106 @@ def _read_json_cached(path: str, mtime_ns: int) -> dict:
     return json.loads(Path(path).read_text())
 
 
-def load_image(path: Path, width: int, height: int) -> np.ndarray:
+@contextlib.contextmanager
+def open_image(path: Path) -> Iterator[Any]:
+    """The PIL image of ``path``, its header read and its pixels not yet decoded. A file PIL
+    cannot identify, and a header declaring more pixels than PIL decodes safely (twice
+    ``Image.MAX_IMAGE_PIXELS``: a decompression bomb), are an :class:`InputError` naming it."""
     from PIL import Image, UnidentifiedImageError
+
+    try:
+        with warnings.catch_warnings():
+            # Between one and two times the limit PIL only warns; such images are read.
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            im = Image.open(path)
+    except Image.DecompressionBombError as e:
+        raise InputError(path, f"image is too large to decode safely ({e})") from None
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as e:
+        raise InputError(path, f"cannot read image ({e})") from None
+    with im:
+        yield im
+
+
+# Errors PIL and OpenCV raise for corrupt pixel data (truncated files, bad checksums, ...).
+_DECODE_ERRORS = (OSError, SyntaxError, ValueError, EOFError, struct.error, zlib.error)
+
+
+def load_image(path: Path, width: int, height: int) -> np.ndarray:
+    """float32 [H, W, 3] in [0, 1] of the image file, resized to ``width`` x ``height``. 8-bit
+    images are divided by 255, 16-bit ones (grayscale or colour PNG, 16-bit TIFF) by 65535;
+    grayscale becomes three equal channels, alpha is dropped."""
+    from PIL import Image
 
     if not path.is_file():
         raise InputError(path, "image listed by the scene file does not exist")
-    try:
-        with Image.open(path) as im:
-            im = im.convert("RGB")
-            if im.size != (width, height):
-                im = im.resize((width, height), Image.BICUBIC if width < im.size[0] else Image.BILINEAR)
-            arr = np.asarray(im, dtype=np.float32) / 255.0
-    except (UnidentifiedImageError, OSError) as e:
-        raise InputError(path, f"cannot read image ({e})") from None
+    with open_image(path) as im:
+        try:
+            if _is_16bit(im, path):
+                arr = _read_16bit(im, path)
+                if arr.shape[:2] != (height, width):
+                    arr = _resize_float(arr, width, height, Image.BICUBIC if width < arr.shape[1] else Image.BILINEAR)
+            else:
+                im = im.convert("RGB")
+                if im.size != (width, height):
+                    im = im.resize((width, height), Image.BICUBIC if width < im.size[0] else Image.BILINEAR)
+                arr = np.asarray(im, dtype=np.float32) / 255.0
+        except Image.DecompressionBombError as e:
+            raise InputError(path, f"image is too large to decode safely ({e})") from None
+        except _DECODE_ERRORS as e:
+            raise InputError(path, f"cannot read image ({e})") from None
     if arr.size == 0:
         raise InputError(path, "image is empty")
     return arr
+
+
+_GRAY16_MODES = ("I;16", "I;16L", "I;16B", "I;16N", "I")
+
+
+def _is_16bit(im: Any, path: Path) -> bool:
+    """16 bits per sample: PIL's 16-bit grayscale modes, a PNG whose header says bit depth 16,
+    or a TIFF of unsigned 16-bit samples (PIL reads 16-bit colour PNGs and TIFFs as 8-bit RGB,
+    dropping the low byte)."""
+    if im.mode in _GRAY16_MODES:
+        return True
+    if im.format == "PNG":
+        with open(path, "rb") as f:
+            head = f.read(26)  # signature (8), IHDR length + type (8), width, height, bit depth, colour type
+        return len(head) == 26 and head[12:16] == b"IHDR" and head[24] == 16
+    if im.format == "TIFF":
+        tags = getattr(im, "tag_v2", {})
+        bits, sample_format = tags.get(258), tags.get(339, 1)  # BitsPerSample, SampleFormat (1 = unsigned)
+        bits = bits if isinstance(bits, tuple) else (bits,)
+        sample_format = sample_format if isinstance(sample_format, tuple) else (sample_format,)
+        return all(b == 16 for b in bits) and all(f == 1 for f in sample_format)
+    return False
+
+
+def _read_16bit(im: Any, path: Path) -> np.ndarray:  # -> float32 [h, w, 3] in [0, 1]
+    if im.mode in _GRAY16_MODES:
+        gray = np.asarray(im).astype(np.float32)
+        if im.mode == "I":  # 32-bit integers holding 16-bit samples
+            gray = np.clip(gray, 0.0, 65535.0)
+        return np.repeat((gray / 65535.0)[..., None], 3, axis=2)
+    import cv2
+
+    data = np.fromfile(path, dtype=np.uint8)
+    pixels = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    if pixels is None or pixels.dtype != np.uint16:
+        raise OSError(f"OpenCV cannot decode this 16-bit {im.format or 'image'}")
+    if pixels.ndim == 2:
+        pixels = np.repeat(pixels[..., None], 3, axis=2)
+    elif pixels.shape[2] <= 2:  # gray (+ alpha)
+        pixels = np.repeat(pixels[..., :1], 3, axis=2)
+    else:  # OpenCV's BGR (+ alpha)
+        pixels = pixels[..., 2::-1]
+    return np.ascontiguousarray(pixels, dtype=np.float32) / 65535.0
+
+
+def _resize_float(image: np.ndarray,  # [h, w, 3] float32 in [0, 1]
+                  width: int, height: int, resample: int) -> np.ndarray:  # -> [height, width, 3]
+    """The 8-bit path's PIL filter, applied per channel in float (PIL mode "F"), kept in [0, 1]."""
+    from PIL import Image
+
+    channels = [np.asarray(Image.fromarray(np.ascontiguousarray(image[..., c]), mode="F")
+                           .resize((width, height), resample)) for c in range(image.shape[2])]
+    return np.clip(np.stack(channels, axis=2), 0.0, 1.0).astype(np.float32)

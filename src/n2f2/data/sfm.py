@@ -195,7 +195,7 @@ def _photo_sizes(folder: Path, names: list[str]) -> list[tuple[int, int]]:
         try:
             with Image.open(folder / name) as im:
                 sizes.append(im.size)
-        except (UnidentifiedImageError, OSError) as e:
+        except (UnidentifiedImageError, OSError, Image.DecompressionBombError) as e:
             raise InputError(folder / name, f"cannot read image ({e})") from None
     return sizes
 

@@ -48,6 +48,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..segments.lifting import SCALE_MEASURES
+from ..validate import OneLineArgumentParser, nonneg_float, positive_float, positive_int
 
 PAPER_DIM = 512
 PAPER_STEPS = (1, 8, 32, 128, 170)  # paper Table 6
@@ -1310,18 +1311,18 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--bank", default=None, metavar="DIR",
                    help="segment bank of the scene (default: build it into OUT/data/bank: ground-truth "
                         "segments, caption embeddings)")
-    p.add_argument("--iterations", type=int, default=None, help="training steps per variant (default 1000; quick 150)")
-    p.add_argument("--dim", type=int, default=None,
+    p.add_argument("--iterations", type=positive_int, default=None, help="training steps per variant (default 1000; quick 150)")
+    p.add_argument("--dim", type=positive_int, default=None,
                    help="feature dims D of every field (default 128; quick 32; paper 512). k is scaled to "
                         "keep each paper setting's number of scales")
     p.add_argument("--variants", nargs="+", choices=list(VARIANTS), default=None, metavar="NAME",
                    help=f"variants to run (default all: {' '.join(VARIANTS)})")
-    p.add_argument("--temperatures", nargs="+", type=float, default=None, metavar="T",
+    p.add_argument("--temperatures", nargs="+", type=positive_float, default=None, metavar="T",
                    help="composite temperatures evaluated on the N2F2 run (default 1 0.1 0.01; 1 = paper)")
     p.add_argument("--scale-measure", choices=list(SCALE_MEASURES), default=None,
                    help="segment scale measure of the bank the bench builds (default extent, as the cpu "
                         "pipeline; eigenvalue = the paper's)")
-    p.add_argument("--scale-jitter", type=float, default=None,
+    p.add_argument("--scale-jitter", type=nonneg_float, default=None,
                    help="TrainConfig.scale_jitter of every run (default 0.03, as the cpu preset; 0 = the paper)")
     p.add_argument("--quick", action="store_true",
                    help="a few minutes: small generated scene, D = 32, 150 steps")
@@ -1371,9 +1372,12 @@ def main(argv: Optional[list[str]] = None) -> int:
 
     from ..errors import N2F2Error
 
-    p = argparse.ArgumentParser(prog="n2f2 bench")
+    p = OneLineArgumentParser(prog="n2f2 bench")
     _add_arguments(p)
-    args = p.parse_args(argv)
+    try:
+        args = p.parse_args(argv)
+    except SystemExit as e:  # a bad option: its one line is printed already
+        return int(e.code or 0)
     try:
         return _cmd_bench(args)
     except N2F2Error as e:

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import argparse
 
+from ..validate import positive_float
+
 
 def register(subparsers) -> None:
     from ..query.engine import MODES
@@ -37,33 +39,55 @@ def register(subparsers) -> None:
                    help="skip (and count) labels of frames that are not views of the scene instead of failing")
     p.add_argument("--rescale-labels", action="store_true",
                    help="scale labels drawn at another resolution to the render size (not LangSplat)")
-    p.add_argument("--temperature", type=float, default=1.0,
+    p.add_argument("--temperature", type=positive_float, default=1.0,
                    help="composite gamma = softmax(score / T); 1 = paper (default)")
     p.add_argument("--no-relevancy", action="store_true", help="do not write the relevancy .npy files")
+    p.add_argument("--force", action="store_true",
+                   help="replace the evaluation already in OUT (eval.json, eval.md, the plots, relevancy/)")
     p.add_argument("--device", default="cpu", help="torch device (default cpu)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
+
+
+# What `n2f2 eval` writes into OUT (n2f2.eval.runner.write_eval_outputs), plots by pattern.
+RESULT_NAMES = ("eval.json", "eval.md", "relevancy", "scores.png", "simple_compound.png", "recall_at_k.png")
+RESULT_PATTERNS = ("scales_*.png", "delta_*.png")
+
+
+def eval_results(out) -> list[str]:
+    """The names of a previous evaluation's files that ``out`` may hold."""
+    from pathlib import Path
+
+    out = Path(out)
+    found = sorted(p.name for pattern in RESULT_PATTERNS for p in out.glob(pattern)) if out.is_dir() else []
+    return [*RESULT_NAMES, *found]
 
 
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from ..errors import InputError
+    from ..io import claim_out_dir, remove_results
     from ..query.engine import QueryConfig
     from .runner import EvalConfig, evaluate_run, load_eval, write_eval_outputs
 
     if not args.temperature > 0:
         raise InputError(None, f"--temperature must be > 0, got {args.temperature}")
-    if args.compare is not None:
-        load_eval(args.compare)  # fail on a bad comparison file before any work
     out = Path(args.out) if args.out else Path(args.run_dir) / "eval"
+    present = claim_out_dir(out, eval_results(out), force=args.force, resume_flag=None)
+    if args.compare is not None:
+        if "eval.json" in present and Path(args.compare).resolve() == (out / "eval.json").resolve():
+            raise InputError(args.compare, "--compare names the eval.json this evaluation replaces: copy it "
+                                           "elsewhere first")
+        load_eval(args.compare)  # fail on a bad comparison file before any work
     config = EvalConfig(modes=tuple(args.mode) if args.mode else None,
                         missing_frames="skip" if args.skip_missing_frames else "error",
                         rescale_labels=args.rescale_labels, progress=not args.quiet)
     result = evaluate_run(args.run_dir, args.labels, scene=args.scene, bank=args.bank,
                           query_types=args.query_types, config=config,
                           query_config=QueryConfig(temperature=args.temperature), device=args.device,
-                          relevancy_dir=None if args.no_relevancy else out / "relevancy")
+                          relevancy_dir=None if args.no_relevancy else out / "relevancy",
+                          on_ready=lambda: remove_results(out, present))  # --force: the inputs are checked
     write_eval_outputs(result, out, compare=args.compare)
     for m in result.modes:
         parts = [f"{b}: loc {100 * s.loc_accuracy:.1f}% mIoU {100 * s.miou:.1f}% (box {','.join(map(str, s.box_sizes))} px)"

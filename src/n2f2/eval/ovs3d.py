@@ -64,7 +64,9 @@ def read_ovs3d_segmentations(
     size: Optional[tuple[int, int]] = None,  # (W, H) to resize masks to (nearest); None = as stored
 ) -> Ovs3dLabels:
     """Read 3D-OVS ground truth; any problem raises InputError naming the file."""
-    from PIL import Image, UnidentifiedImageError
+    from PIL import Image
+
+    from ..data.scene import _DECODE_ERRORS, open_image
 
     root = Path(path)
     if (root / "segmentations").is_dir():
@@ -91,14 +93,16 @@ def read_ovs3d_segmentations(
             p = folder / f"{c}.png"
             if not p.is_file():
                 raise InputError(p, f"mask of class {c!r} is missing (every view needs every class)")
-            try:
-                with Image.open(p) as im:
+            with open_image(p) as im:  # a decompression bomb or a non-image: one InputError
+                try:
                     im = im.convert("L")
                     if size is not None and im.size != tuple(size):
                         im = im.resize(tuple(size), Image.NEAREST)
                     masks.append(np.asarray(im) == 255)  # (v / 255).astype(int8) == 1
-            except (UnidentifiedImageError, OSError) as e:
-                raise InputError(p, f"cannot read mask ({e})") from None
+                except Image.DecompressionBombError as e:
+                    raise InputError(p, f"mask is too large to decode safely ({e})") from None
+                except _DECODE_ERRORS as e:
+                    raise InputError(p, f"cannot read mask ({e})") from None
         shapes = {m.shape for m in masks}
         if len(shapes) != 1:
             raise InputError(folder, f"masks of one view differ in size: {sorted(shapes)}")

@@ -62,7 +62,7 @@ import math
 import time
 from dataclasses import asdict, dataclass, field as dc_field, replace
 from pathlib import Path
-from typing import Any, Mapping, Optional, Sequence, Union
+from typing import Any, Callable, Mapping, Optional, Sequence, Union
 
 import numpy as np
 
@@ -348,8 +348,11 @@ def evaluate_run(
     device: str = "cpu",
     encoder: Any = None,  # text encoder override (tests); default: the one the field was trained with
     relevancy_dir: Optional[Union[str, Path]] = None,  # write raw float32 maps here (see module doc)
+    on_ready: Optional[Callable[[], None]] = None,  # called once every input is checked, before any write
 ) -> EvalResult:
-    """Evaluate a trained run on LangSplat-format labels (see the module docstring)."""
+    """Evaluate a trained run on LangSplat-format labels (see the module docstring).
+    ``on_ready`` runs once every input is read and checked, before the first file is written
+    (``n2f2 eval --force`` removes the previous results there)."""
     from tqdm import tqdm
 
     from ..data.labels import read_label_dir
@@ -426,6 +429,8 @@ def evaluate_run(
         except ValueError as e:
             raise InputError(label_dir / f"{frame.frame_name}.json",
                              f"{e} (render size; pass --rescale-labels to scale the labels)") from None
+    if on_ready is not None:
+        on_ready()
     for frame in tqdm(frames, desc="eval views", unit="view", disable=not config.progress):
         idx = frame.view_index
         categories = frame.categories

@@ -38,6 +38,7 @@ from torch import Tensor, nn
 from ..config import ConfigDict
 from ..errors import InputError
 from ..io import load_torch, save_torch
+from ..validate import _non_finite
 from .triplane import PositionalEncoding, TriPlane
 
 BACKBONES = ("triplane", "mlp")
@@ -303,16 +304,20 @@ def load_field(path: str | Path, device: str | torch.device = "cpu") -> tuple[Ne
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "feature field file does not exist")
-    try:
-        blob = load_torch(path)
-    except Exception as e:  # pickle / zip errors of a truncated or foreign file
-        raise InputError(path, f"cannot read feature field ({type(e).__name__}: {e})") from None
+    blob = load_torch(path, "feature field")
     if not isinstance(blob, dict) or blob.get("format") != FIELD_FORMAT:
         raise InputError(path, "not an n2f2 feature field (expected the field.pt written by `n2f2 train`)")
     if blob.get("version", 0) > FIELD_VERSION:
         raise InputError(path, f"feature field format version {blob['version']} is newer than this n2f2 "
                                f"(reads up to {FIELD_VERSION})")
-    meta = blob["meta"]
+    meta = blob.get("meta")
+    if not isinstance(meta, dict) or not isinstance(blob.get("state_dict"), dict):
+        raise InputError(path, "feature field is incomplete (no meta or state_dict); retrain it with `n2f2 train`")
+    # Older versions could save a diverged field; its NaN would surface as a crash mid-query.
+    bad = _non_finite(blob["state_dict"]) or _non_finite({"bbox_min": meta.get("bbox_min"),
+                                                         "bbox_max": meta.get("bbox_max")})
+    if bad:
+        raise InputError(path, f"feature field holds NaN or infinite values: {bad}; retrain it with `n2f2 train`")
     try:
         field = build_field(meta)
         field.load_state_dict(blob["state_dict"])

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import argparse
 
+from ..validate import (finite_float, nonneg_float, nonneg_int, positive_float, positive_int,
+                        unit_interval)
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -17,19 +20,21 @@ def register(subparsers) -> None:
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--preset", choices=["cpu", "paper"], default="cpu",
                    help="cpu: a few minutes for small scenes (default); paper: 3DGS's 30k steps")
-    p.add_argument("--steps", type=int, default=None, help="number of optimisation steps (overrides the preset)")
+    p.add_argument("--steps", type=positive_int, default=None, help="number of optimisation steps (overrides the preset)")
     p.add_argument("--resume", action="store_true", help="continue from DIR/checkpoint.pt")
-    p.add_argument("--downscale", type=float, default=1.0, help="image downscale factor, as 3DGS -r (default 1)")
+    p.add_argument("--force", action="store_true",
+                   help="replace the results already in DIR (gaussians.ply, checkpoint.pt, fit_report.json, ...)")
+    p.add_argument("--downscale", type=positive_float, default=1.0, help="image downscale factor, as 3DGS -r (default 1)")
     p.add_argument("--init", default=None, metavar="points|random|PLY",
                    help="initialisation: the scene's sparse points, random Gaussians in the camera frusta, or "
                         "an INRIA 3DGS PLY trained elsewhere in the same world frame, fitted further "
                         "(default: sparse points when the scene has them, else random)")
-    p.add_argument("--checkpoint-every", type=int, default=None, metavar="N",
+    p.add_argument("--checkpoint-every", type=nonneg_int, default=None, metavar="N",
                    help="write a checkpoint every N steps (default: the preset's; 0: only at the end)")
-    p.add_argument("--max-gaussians", type=int, default=None, metavar="N", help="cap on the Gaussian count")
-    p.add_argument("--depth-spread", type=float, default=None, metavar="W", dest="depth_spread_weight",
+    p.add_argument("--max-gaussians", type=positive_int, default=None, metavar="N", help="cap on the Gaussian count")
+    p.add_argument("--depth-spread", type=nonneg_float, default=None, metavar="W", dest="depth_spread_weight",
                    help="weight of the depth-spread regulariser (cpu preset 1.0, paper 0 = off as 3DGS)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--seed", type=nonneg_int, default=0, help="random seed (default 0)")
     p.add_argument("--skip-missing", action="store_true",
                    help="drop views whose image file is missing (default: a missing image is an error)")
     p.add_argument("--device", default="cpu", help="torch device (default cpu)")
@@ -45,7 +50,9 @@ def run(args: argparse.Namespace) -> int:
     from ..data import load_scene
     from ..data.sfm import posed_scene_path
     from ..errors import InputError
-    from .fit import FitConfig, fit_gaussians, saved_config
+    from ..io import claim_out_dir, remove_results
+    from .fit import (BACKGROUND_NAME, CHECKPOINT_NAME, PLY_NAME, REPORT_NAME, TEST_RENDERS_DIR, FitConfig,
+                      fit_gaussians, saved_config)
     from .ply import read_ply
 
     for name, flag in (("steps", "--steps"), ("checkpoint_every", "--checkpoint-every"),
@@ -55,6 +62,11 @@ def run(args: argparse.Namespace) -> int:
             raise InputError(None, f"{flag} must be >= 0, got {value}")
     if args.downscale <= 0:
         raise InputError(None, f"--downscale must be > 0, got {args.downscale}")
+    results = (PLY_NAME, CHECKPOINT_NAME, REPORT_NAME, BACKGROUND_NAME, TEST_RENDERS_DIR)
+    present = claim_out_dir(args.out, results, resume=args.resume, force=args.force)
+    if args.resume and present and CHECKPOINT_NAME not in present:  # a fresh start would replace them
+        raise InputError(Path(args.out), f"--resume: no {CHECKPOINT_NAME} to continue from, but the folder holds "
+                         f"results ({', '.join(present)}); pass --force to replace them, or choose another --out")
     # A resumed run keeps the checkpoint's schedule; only explicit flags change it.
     base = saved_config(args.out) if args.resume else None
     data = posed_scene_path(Path(args.data), Path(args.out) / "sfm", progress=not args.quiet)  # photos: pose them
@@ -62,7 +74,8 @@ def run(args: argparse.Namespace) -> int:
     if base is None:
         base = replace(FitConfig.preset(args.preset), seed=args.seed)
         if args.preset == "cpu":
-            base = base.sized_for(scene, steps=args.steps)  # a --steps keeps the schedule's fractions
+            init_kind = args.init if args.init in ("points", "random") else None if args.init is None else "ply"
+            base = base.sized_for(scene, steps=args.steps, init=init_kind)  # a --steps keeps the schedule's fractions
     config = replace(base, device=args.device)
     overrides = {k: getattr(args, k) for k in ("steps", "checkpoint_every", "max_gaussians", "depth_spread_weight")
                  if getattr(args, k) is not None}
@@ -72,6 +85,8 @@ def run(args: argparse.Namespace) -> int:
         if Path(init).suffix.lower() != ".ply":
             raise InputError(None, f"--init must be points, random or a .ply file, got {init!r}")
         init = read_ply(init)
+    if args.force:  # the inputs are read: now the old results go
+        remove_results(args.out, present)
     report = fit_gaussians(scene, config, args.out, resume=args.resume, init=init, progress=not args.quiet)
     test = "n/a" if report.test_psnr is None else f"{report.test_psnr:.2f} dB"
     depth = "" if report.depth_median_rel_extent is None else \
@@ -92,23 +107,26 @@ def _register_render(subparsers) -> None:
     )
     p.add_argument("ply", metavar="PLY", help="Gaussians in the INRIA 3DGS PLY layout")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
-    p.add_argument("--views", type=int, default=8, help="number of orbit views (default 8)")
-    p.add_argument("--elevation", type=float, default=20.0, help="degrees above the horizon (default 20)")
-    p.add_argument("--up", type=float, nargs=3, default=(0.0, -1.0, 0.0), metavar=("X", "Y", "Z"),
+    p.add_argument("--views", type=positive_int, default=8, help="number of orbit views (default 8)")
+    p.add_argument("--elevation", type=finite_float, default=20.0, help="degrees above the horizon (default 20)")
+    p.add_argument("--up", type=finite_float, nargs=3, default=(0.0, -1.0, 0.0), metavar=("X", "Y", "Z"),
                    help="world up vector (default 0 -1 0: COLMAP worlds, whose cameras look down +z with y down)")
-    p.add_argument("--size", type=int, nargs=2, default=(512, 384), metavar=("W", "H"), help="image size")
-    p.add_argument("--fov", type=float, default=50.0, help="horizontal field of view in degrees (default 50)")
-    p.add_argument("--background", type=float, nargs=3, default=(1.0, 1.0, 1.0), metavar=("R", "G", "B"),
+    p.add_argument("--size", type=positive_int, nargs=2, default=(512, 384), metavar=("W", "H"), help="image size")
+    p.add_argument("--fov", type=positive_float, default=50.0, help="horizontal field of view in degrees (default 50)")
+    p.add_argument("--background", type=unit_interval, nargs=3, default=(1.0, 1.0, 1.0), metavar=("R", "G", "B"),
                    help="background colour in [0, 1] (default white)")
+    p.add_argument("--force", action="store_true",
+                   help="replace the renders already in DIR (orbit_XX.png / .npy, cameras.json)")
     p.set_defaults(func=run_render)
 
 
 def run_render(args: argparse.Namespace) -> int:
     import math
+    import re
     from pathlib import Path
 
     from ..errors import InputError
-    from ..io import write_json, write_npy, write_png
+    from ..io import claim_out_dir, remove_results, write_json, write_npy, write_png
     from .orbit import orbit_cameras, render_views
     from .ply import read_ply
 
@@ -123,11 +141,17 @@ def run_render(args: argparse.Namespace) -> int:
         raise InputError(None, "--up must be a finite non-zero vector and --elevation finite")
     if not all(0.0 <= v <= 1.0 for v in args.background):
         raise InputError(None, f"--background must be in [0, 1], got {args.background}")
+    out = Path(args.out)
+    # Every orbit render there, also those of an earlier run with more --views.
+    old = sorted(p.name for p in out.glob("orbit_*") if re.fullmatch(r"orbit_\d+\.(png|npy)", p.name)) \
+        if out.is_dir() else []
+    present = claim_out_dir(out, ["cameras.json", *old], force=args.force, resume_flag=None)
     g = read_ply(args.ply)
     g.sh_degree = g.max_sh_degree
     cameras = orbit_cameras(g, args.views, elevation=args.elevation, up=tuple(args.up), width=w, height=h,
                             fov=args.fov)
-    out = Path(args.out)
+    if args.force:  # the PLY is read: now the old renders go
+        remove_results(out, present)
     for k, (cam, image) in enumerate(zip(cameras, render_views(g, cameras, tuple(args.background)))):
         write_npy(out / f"orbit_{k:02d}.npy", image)
         write_png(out / f"orbit_{k:02d}.png", image)

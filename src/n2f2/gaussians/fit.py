@@ -32,6 +32,7 @@ from ..config import ConfigDict
 from ..data.scene import Scene
 from ..errors import InputError
 from ..io import load_torch, save_torch, write_json
+from ..validate import MAX_BAD_STEPS, NonFiniteError
 from .init import (background_shell, init_from_points, init_random_in_frusta, random_points_in_frusta,
                    uncovered_cells)
 from .model import Gaussians, inverse_sigmoid, quat_to_rotmat, rgb_to_sh
@@ -145,7 +146,7 @@ class FitConfig(ConfigDict):
         """The 30k-step schedule of the 3DGS paper (for GPU users)."""
         return FitConfig()
 
-    def sized_for(self, scene: Scene, steps: Optional[int] = None) -> "FitConfig":
+    def sized_for(self, scene: Scene, steps: Optional[int] = None, init: Optional[str] = None) -> "FitConfig":
         """This schedule with its scene-dependent constants derived from ``scene`` (the cpu
         preset's rule; the constants above give the demo scene's 1500 steps and 12k cap):
 
@@ -157,7 +158,12 @@ class FitConfig(ConfigDict):
         * views larger than ``COARSE_PIXELS`` are fitted at about that many pixels for the
           first ``COARSE_FRACTION`` of the steps (a step's cost scales with its pixels);
         * the background is learned only for a backdrop without sparse points
-          (``BACKDROP_UNCOVERED``); otherwise it is black, as 3DGS."""
+          (``BACKDROP_UNCOVERED``); otherwise it is black, as 3DGS;
+        * a random initialisation (``init="random"``, or ``None`` on a scene without sparse
+          points) resets opacities every ``RANDOM_INIT_RESET_FRACTION`` of the steps, as 3DGS
+          does on every scene: random Gaussians that only some training views constrain become
+          floaters in front of the others, and only a reset clears them (initialised from
+          sparse points, the short schedule does better without it; see :meth:`cpu`)."""
         train, _ = split_views(scene, self.test_every)
         cams = [scene.cameras[i] for i in train]
         if scene.points is not None and len(scene.points):
@@ -170,6 +176,9 @@ class FitConfig(ConfigDict):
             steps = int(np.clip(round(EPOCHS * len(train), -2), MIN_STEPS, MAX_STEPS))
         ref = FitConfig.cpu()  # the fractions of the 1500-step schedule
         frac = steps / ref.steps
+        has_points = scene.points is not None and len(scene.points) > 0
+        random_init = init == "random" or (init is None and not has_points)
+        reset = int(round(RANDOM_INIT_RESET_FRACTION * steps, -2)) if random_init else self.opacity_reset_every
         coarse = math.sqrt(pixels / COARSE_PIXELS)
         return replace(
             self,
@@ -183,6 +192,7 @@ class FitConfig(ConfigDict):
             coarse_downscale=(coarse,) if coarse > 1.25 else (),
             background_from_images=self.background_from_images and backdrop,
             background_sh_degree=self.background_sh_degree if backdrop else -1,
+            opacity_reset_every=reset,
         )
 
     @staticmethod
@@ -249,6 +259,10 @@ COARSE_FRACTION = 0.5  # ... for this fraction of the steps
 # a backdrop SfM could not triangulate. The generated layouts' points leave 1-3 % empty (their
 # walls are surfaces; a learned background cost the tabletop 1 dB), real object captures ~70 %.
 BACKDROP_UNCOVERED = 0.1
+# Opacity reset period of a random initialisation, as a fraction of the steps: twice inside the
+# densification window (which ends at 73 % of the run), the second leaving 30 % of the run to
+# recover (3DGS's last reset, at 12k of 30k steps, leaves 60 %).
+RANDOM_INIT_RESET_FRACTION = 0.35
 
 
 @dataclass
@@ -707,10 +721,7 @@ def _state_finite(g: Gaussians, adam: GaussianAdam) -> bool:
 
 
 def load_checkpoint(path: Path) -> dict:
-    try:
-        ck = load_torch(path)
-    except Exception as e:  # noqa: BLE001 - any unreadable file is the user's input problem
-        raise InputError(path, f"cannot read checkpoint ({e})") from None
+    ck = load_torch(path, "checkpoint")
     if not isinstance(ck, dict) or ck.get("format") != _CHECKPOINT_FORMAT:
         raise InputError(path, "not an n2f2 fit-gaussians checkpoint")
     return ck
@@ -793,6 +804,7 @@ def fit_gaussians(
     t_train = time.perf_counter()
     ema = None
     step = start
+    bad_run = 0  # skipped steps in a row: MAX_BAD_STEPS of them stop the fit
     coarse_targets: dict[tuple[int, float], Tensor] = {}
     step_times: list[float] = []
     for step in range(start + 1, end + 1):
@@ -834,7 +846,12 @@ def fit_gaussians(
         g.zero_grad(set_to_none=True)
         if not ok:
             skipped += 1
+            bad_run += 1
+            if bad_run >= MAX_BAD_STEPS:
+                bar.close()
+                raise _fit_stopped(step, f"the last {bad_run} steps")
         else:
+            bad_run = 0
             if step < config.densify_until and out.means2d.grad is not None:
                 stats.add(out.means2d.grad, out.radii, camera.width, camera.height)
             lv = float(loss.detach())
@@ -858,6 +875,8 @@ def fit_gaussians(
             t_train = time.perf_counter()
             save_checkpoint(step)
     bar.close()
+    if step_times and bad_run == len(step_times):
+        raise _fit_stopped(step, f"all {bad_run} steps of this run")
     train_time += time.perf_counter() - t_train
     final = max(step, start)
     save_checkpoint(final)
@@ -878,6 +897,12 @@ def fit_gaussians(
     result = FitReport(**report)
     write_json(out_dir / REPORT_NAME, result.to_dict())
     return result
+
+
+def _fit_stopped(step: int, which: str) -> NonFiniteError:
+    return NonFiniteError(None, f"fit stopped at step {step}: {which} had a NaN or infinite loss or gradient and "
+                                "were skipped (nothing non-finite was saved); check the images and the options "
+                                "(--depth-spread)")
 
 
 def _subsample(curve: list, n: int) -> list:

@@ -25,6 +25,7 @@ import torch
 
 from ..errors import InputError
 from ..io import atomic_path
+from ..validate import NonFiniteError
 from .model import Gaussians, num_sh_bases, sh_degree_from_bases
 
 # PLY scalar type names (both spellings) -> numpy dtype character.
@@ -64,7 +65,8 @@ def write_ply(path: str | Path, gaussians: Gaussians) -> None:
         ]
         data = torch.cat([c.detach().float().cpu() for c in columns], dim=1).numpy()
     if not np.isfinite(data).all():
-        raise ValueError("refusing to write a PLY with NaN or infinite Gaussian parameters")
+        bad = int((~np.isfinite(data).all(axis=1)).sum())
+        raise NonFiniteError(path, f"refusing to write: {bad} of {n} Gaussians have NaN or infinite parameters")
     header = "\n".join(["ply", "format binary_little_endian 1.0", f"element vertex {n}"]
                        + [f"property float {name}" for name in names] + ["end_header"]) + "\n"
     with atomic_path(path) as tmp:
@@ -116,9 +118,12 @@ def _parse_header(path: Path, f) -> tuple[str, list[tuple[str, int, list[tuple[s
 
 
 def _read_vertices(path: Path) -> np.ndarray:
-    """The vertex element as a numpy structured array."""
+    """The vertex element as a numpy structured array. Element counts are checked against the
+    file's size before anything is allocated."""
+    size = path.stat().st_size
     with open(path, "rb") as f:
         fmt, elements = _parse_header(path, f)
+        body = size - f.tell()
         names = [e[0] for e in elements]
         if "vertex" not in names:
             raise InputError(path, "PLY has no 'vertex' element")
@@ -132,8 +137,15 @@ def _read_vertices(path: Path) -> np.ndarray:
         _, count, props = elements[vi]
         if len({p for p, _ in props}) != len(props):
             raise InputError(path, "PLY vertex element has duplicate property names")
+        if not props:
+            raise InputError(path, "PLY vertex element has no properties")
         if fmt == "ascii":
             lines_before = sum(c for _, c, _ in elements[:vi])
+            # Every value but the file's last takes at least two bytes ("0 ", "0\n"): a count the
+            # file cannot hold is refused before reading.
+            if 2 * (lines_before + count * len(props)) - 1 > body:
+                raise InputError(path, f"PLY truncated: header says {count} vertices of {len(props)} values, "
+                                       f"the file holds {body} bytes after the header")
             for _ in range(lines_before):
                 f.readline()
             dtype = np.dtype([(p, t) for p, t in props])
@@ -143,11 +155,18 @@ def _read_vertices(path: Path) -> np.ndarray:
                 if len(words) < len(props):
                     raise InputError(path, f"PLY truncated: header says {count} vertices, "
                                            f"vertex row {i} is missing or short")
-                rows.append(tuple(float(w) for w in words[: len(props)]))
+                try:
+                    rows.append(tuple(float(w) for w in words[: len(props)]))
+                except ValueError:
+                    raise InputError(path, f"vertex row {i} holds something that is not a number: "
+                                           f"{b' '.join(words[: len(props)]).decode('ascii', 'replace')[:80]!r}") from None
             return np.array(rows, dtype=dtype) if rows else np.zeros(0, dtype)
         endian = _FORMATS[fmt]
         skip = sum(c * np.dtype([(p, endian + t) for p, t in pr]).itemsize for _, c, pr in elements[:vi])
         dtype = np.dtype([(p, endian + t) for p, t in props])
+        if skip + count * dtype.itemsize > body:
+            raise InputError(path, f"PLY truncated: header says {count} vertices ({count * dtype.itemsize} bytes), "
+                                   f"the file holds {max(0, body - skip)} bytes for them")
         f.seek(skip, 1)
         payload = f.read(count * dtype.itemsize)
     if len(payload) < count * dtype.itemsize:
@@ -163,6 +182,8 @@ def read_ply(path: str | Path, device: torch.device | str | None = None) -> Gaus
     if not path.is_file():
         raise InputError(path, "PLY file does not exist")
     v = _read_vertices(path)
+    if len(v) == 0:
+        raise InputError(path, "PLY holds no Gaussians (0 vertices)")
     have = set(v.dtype.names or ())
     missing = [p for p in _REQUIRED if p not in have]
     rest_ids = sorted(int(m.group(1)) for p in have if (m := re.fullmatch(r"f_rest_(\d+)", p)))

@@ -20,6 +20,8 @@ On disk (one folder per scene)::
 Records are plain ``.npy`` files, so :class:`SegmentBank` memory-maps them. Extraction is
 resumable: a rerun skips images whose record exists, then (re)fits the quantile transform
 over all valid segments (paper: scales quantised by a quantile transformation, s in [0, 1)).
+With a Ray executor (``n2f2 segments --executor ray``) each image is a Ray task; the calling
+process still writes every record, so the bank resumes the same way.
 """
 
 from __future__ import annotations
@@ -27,10 +29,11 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import sys
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Optional, Protocol, Sequence
+from typing import TYPE_CHECKING, Optional, Protocol, Sequence
 
 import numpy as np
 
@@ -39,6 +42,9 @@ from ..io import write_json
 from .bins import QuantileScaleBins
 from .lifting import SCALE_DESCRIPTIONS, DepthProvider, LiftSettings, lift_view
 from .segmenters import SegmentSet, layers_to_masks, segment_layers
+
+if TYPE_CHECKING:
+    from ..distributed import Executor
 
 BANK_FORMAT = "n2f2-segment-bank"
 BANK_VERSION = 1
@@ -144,7 +150,7 @@ class SegmentBank:
             raise InputError(meta_path, f"bank format version {meta.get('version')} is newer than this n2f2 ({BANK_VERSION})")
         if not meta.get("complete"):
             raise InputError(meta_path, "segment bank is incomplete (extraction was interrupted); "
-                             "rerun the same `n2f2 segments` command to finish it")
+                             "rerun the same `n2f2 segments` command with --resume to finish it")
         try:
             return SegmentBank(root, meta)
         except (KeyError, ValueError) as e:
@@ -285,23 +291,86 @@ def _check_resume(meta_path: Path, header: dict) -> None:
     try:
         old = json.loads(meta_path.read_text())
     except (OSError, ValueError) as e:
-        raise InputError(meta_path, f"cannot read existing bank.json ({e}); delete the folder to start over") from None
+        raise InputError(meta_path, f"cannot read existing bank.json ({e}); pass --force to replace the bank, or "
+                         "choose another --out") from None
     if old.get("format") != BANK_FORMAT:
         raise InputError(meta_path, "output folder holds something that is not a segment bank")
     for key in ("scene", "segmenter", "encoder", "lifting"):
         if old.get(key) != header.get(key):
-            raise InputError(meta_path, f"existing bank was made with different {key} settings; choose another "
-                             "--out, or delete the folder to start over")
+            raise InputError(meta_path, f"existing bank was made with different {key} settings; pass --force to "
+                             "replace it, or choose another --out")
+
+
+def extract_record(scene, source: SegmentSource, depth: DepthProvider, i: int,
+                   lift: LiftSettings) -> tuple[dict, Optional[list[str]]]:
+    """Image ``i``'s record: segments and embeddings from ``source``, each segment's scale lifted
+    with ``depth``. Returns the arrays the bank stores (name -> array) and the captions (ground
+    truth only). The same code runs in the driver and in a Ray worker."""
+    stem, cam = scene.image_names[i], scene.cameras[i]
+    image = scene.image(i)
+    segs, emb = source.extract(i, stem, image)
+    S = segs.num_segments
+    if segs.layers.shape[1:] != (cam.height, cam.width):
+        raise InputError(scene.image_paths[i], f"segments are {segs.width}x{segs.height} but the image is "
+                         f"{cam.width}x{cam.height}")
+    emb = np.asarray(emb, dtype=np.float32)
+    if emb.shape != (S, int(source.encoder_spec["embed_dim"])):
+        raise ValueError(f"{stem}: embeddings {emb.shape} for {S} segments")
+    d, ok = depth(i)
+    scales, npts = lift_view(segs.layers, d, ok, cam, S, lift)
+    areas = segs.areas()
+    arrays = {"layers": segs.layers.astype(np.int32), "embeddings": emb.astype(np.float16),
+              "scales": scales.astype(np.float32), "areas": areas.astype(np.int64),
+              "valid": np.isfinite(scales) & (areas > 0), "num_points": npts.astype(np.int64),
+              "scores": segs.scores.astype(np.float32)}
+    if segs.source_ids is not None:
+        arrays["source_ids"] = np.asarray(segs.source_ids, dtype=np.int64)
+    return arrays, segs.captions
+
+
+class WorkerSetup(Protocol):
+    """How a Ray worker builds what :func:`extract_record` needs: a picklable, hashable recipe
+    (e.g. the options of ``n2f2 segments``), built once per worker process."""
+
+    def build(self) -> tuple:  # (scene, source, depth provider)
+        ...
+
+
+def _extract_in_worker(task: tuple) -> tuple[dict, Optional[list[str]], float]:
+    """One Ray task: image ``i``'s record, built in the worker from ``setup``."""
+    from ..distributed import worker_state
+
+    setup, i, stem, lift = task
+
+    def build():
+        scene, source, depth = setup.build()
+        source.prepare(list(scene.image_names))
+        return scene, source, depth
+
+    scene, source, depth = worker_state(setup, build)
+    t0 = time.perf_counter()  # per-image time, as the serial loop measures it (models loaded)
+    if i >= len(scene) or scene.image_names[i] != stem:
+        raise InputError(scene.root, f"the worker's scene has no image {stem!r} at index {i}; do all Ray "
+                         "nodes see the same scene folder?")
+    arrays, captions = extract_record(scene, source, depth, i, lift)
+    return arrays, captions, time.perf_counter() - t0
 
 
 def build_bank(scene, source: SegmentSource, depth: DepthProvider, out: str | Path, *,
                depth_source: str = "render", lift: Optional[LiftSettings] = None,
-               num_quantiles: int = 1000, progress: bool = True) -> dict:
+               num_quantiles: int = 1000, progress: bool = True, executor: Optional["Executor"] = None,
+               worker_setup: Optional[WorkerSetup] = None) -> dict:
     """Extract (or finish extracting) the segment bank of ``scene`` into ``out``.
 
     For every image without a record: segments + embeddings from ``source``, depth from
     ``depth``, lifted scales, one atomic record. Then fit the quantile transform over all
-    valid segments and write the final ``bank.json``. Returns the report (counts, timing)."""
+    valid segments and write the final ``bank.json``. Returns the report (counts, timing).
+
+    With a Ray ``executor`` (:mod:`n2f2.distributed`), each missing image is one Ray task that
+    builds its own scene, source and depth from ``worker_setup``; records are written here, as
+    tasks finish. An image failing on bad input is reported and the others go on; the bank
+    then stays incomplete and an :class:`InputError` names the failed images. Without one
+    (or with the serial executor), images are extracted here in order and the first error stops."""
     from tqdm import tqdm
 
     lift = lift or LiftSettings()
@@ -310,6 +379,10 @@ def build_bank(scene, source: SegmentSource, depth: DepthProvider, out: str | Pa
     stems = list(scene.image_names)
     if len(set(stems)) != len(stems):
         raise InputError(scene.root, "image file names (without extension) are not unique; the bank keys records by them")
+    if executor is not None and executor.name == "serial":
+        executor = None  # the in-process loop below
+    if executor is not None and worker_setup is None:
+        raise ValueError("a distributed executor needs worker_setup")
     source.prepare(stems)
     header = {
         "format": BANK_FORMAT,
@@ -329,30 +402,33 @@ def build_bank(scene, source: SegmentSource, depth: DepthProvider, out: str | Pa
     todo = [i for i, s in enumerate(stems) if not _record_complete(out, s)]
     times = []
     bar = tqdm(total=len(stems), initial=len(stems) - len(todo), desc="segments", unit="img", disable=not progress)
-    for i in todo:
-        t0 = time.perf_counter()
-        stem, cam = stems[i], scene.cameras[i]
-        image = scene.image(i)
-        segs, emb = source.extract(i, stem, image)
-        S = segs.num_segments
-        if segs.layers.shape[1:] != (cam.height, cam.width):
-            raise InputError(scene.image_paths[i], f"segments are {segs.width}x{segs.height} but the image is "
-                             f"{cam.width}x{cam.height}")
-        emb = np.asarray(emb, dtype=np.float32)
-        if emb.shape != (S, int(source.encoder_spec["embed_dim"])):
-            raise ValueError(f"{stem}: embeddings {emb.shape} for {S} segments")
-        d, ok = depth(i)
-        scales, npts = lift_view(segs.layers, d, ok, cam, S, lift)
-        areas = segs.areas()
-        arrays = {"layers": segs.layers.astype(np.int32), "embeddings": emb.astype(np.float16),
-                  "scales": scales.astype(np.float32), "areas": areas.astype(np.int64),
-                  "valid": np.isfinite(scales) & (areas > 0), "num_points": npts.astype(np.int64),
-                  "scores": segs.scores.astype(np.float32)}
-        if segs.source_ids is not None:
-            arrays["source_ids"] = np.asarray(segs.source_ids, dtype=np.int64)
-        _write_record(out, stem, arrays, segs.captions)
-        times.append(time.perf_counter() - t0)
-        bar.update(1)
+    if executor is None:
+        for i in todo:
+            t0 = time.perf_counter()
+            arrays, captions = extract_record(scene, source, depth, i, lift)
+            _write_record(out, stems[i], arrays, captions)
+            times.append(time.perf_counter() - t0)
+            bar.update(1)
+    else:
+        from ..distributed import TaskFailure
+
+        failed = []
+        tasks = [(worker_setup, i, stems[i], lift) for i in todo]
+        for k, result in executor.map(_extract_in_worker, tasks):
+            i = todo[k]
+            if isinstance(result, TaskFailure):
+                failed.append(i)
+                bar.write(f"segments: {result}", file=sys.stderr)
+                continue
+            arrays, captions, seconds = result
+            _write_record(out, stems[i], arrays, captions)
+            times.append(seconds)
+            bar.update(1)
+        if failed:
+            bar.close()
+            names = ", ".join(Path(scene.image_paths[i]).name for i in sorted(failed))
+            raise InputError(out, f"{len(failed)} of {len(todo)} images failed ({names}); the records of the "
+                             "others are kept: fix the inputs and rerun with --resume to finish the bank")
     bar.close()
 
     # Fit the quantile transform over every valid segment of the scene.

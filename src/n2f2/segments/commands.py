@@ -9,14 +9,21 @@ and argparse cannot tell a folder name from a sub-action name.
 from __future__ import annotations
 
 import argparse
+from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Optional
 
+from ..distributed import add_executor_options
+from ..validate import positive_float
 from .lifting import SCALE_MEASURES
 
 
 def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("data", metavar="DATA", help="scene folder (COLMAP sparse/0 or nerfstudio transforms.json)")
-    p.add_argument("--out", required=True, metavar="BANK", help="output segment bank folder (reruns resume)")
+    p.add_argument("--out", required=True, metavar="BANK", help="output segment bank folder")
+    p.add_argument("--resume", action="store_true",
+                   help="finish the bank in BANK (its images with a record are skipped; settings must match)")
+    p.add_argument("--force", action="store_true", help="replace the bank already in BANK")
     p.add_argument("--gaussians", metavar="PLY",
                    help="fitted 3DGS (gaussians.ply, or the fit-gaussians folder) whose expected depth "
                         "lifts segments to 3D; not needed with --depth-source gt")
@@ -27,7 +34,7 @@ def _common(p: argparse.ArgumentParser) -> None:
                    help="segment scale from its 3D points: eigenvalue = largest eigenvalue of their "
                         "covariance (paper, default); extent = squared diagonal of their robust oriented "
                         "box (2nd-98th percentile along each principal axis; not in the paper)")
-    p.add_argument("--downscale", type=float, default=1.0, help="image downscale factor, as 3DGS -r (default 1)")
+    p.add_argument("--downscale", type=positive_float, default=1.0, help="image downscale factor, as 3DGS -r (default 1)")
     p.add_argument("--skip-missing", action="store_true",
                    help="drop views whose image file is missing (default: a missing image is an error)")
     p.add_argument("--device", default="cpu", help="torch device for models and rendering (default cpu)")
@@ -41,7 +48,7 @@ def register(subparsers) -> None:
                     "each segment (CLIP, or ground-truth captions with all-MiniLM-L6-v2 as an offline "
                     "stand-in for CLIP), lift it to 3D with the Gaussians' expected depth to measure its "
                     "physical scale, and fit the quantile transform of scales. Writes BANK/bank.json and "
-                    "one record per image; a rerun skips finished images.")
+                    "one record per image; --resume finishes an interrupted bank.")
     _common(p)
     p.add_argument("--segmenter", choices=["sam", "classical", "ground-truth"], default="sam",
                    help="sam: SAM automatic masks (paper, default); classical: multi-scale Felzenszwalb "
@@ -55,6 +62,7 @@ def register(subparsers) -> None:
     p.add_argument("--sam-model", metavar="ID", default=None,
                    help="SAM model: Hugging Face id or a local folder saved with save_pretrained "
                         "(default facebook/sam-vit-huge)")
+    add_executor_options(p, "image")
     p.set_defaults(func=run_segments)
 
     q = subparsers.add_parser(
@@ -86,6 +94,7 @@ def register(subparsers) -> None:
     x.add_argument("--levels", nargs=4, metavar=("DEFAULT", "S", "M", "L"), default=None,
                    help="bank layer (index, or level name such as part / object / group) for each LangSplat "
                         "level (default: 1 0 1 2, i.e. object part object group)")
+    x.add_argument("--force", action="store_true", help="replace the LangSplat files already in DIR")
     x.add_argument("--quiet", action="store_true", help="no progress bar")
     x.set_defaults(func=run_export_langsplat)
 
@@ -122,6 +131,18 @@ def _load(args):
     return scene
 
 
+def _claim_bank(args: argparse.Namespace) -> list[str]:
+    """Open ``--out``: a folder already holding a bank (bank.json or records) is refused
+    without --resume or --force. Returns what is there (for --force to remove)."""
+    from ..io import claim_out_dir
+    from .bank import RECORD_FILES
+
+    out = Path(args.out)
+    records = [d.name for d in out.iterdir() if d.is_dir() and any((d / f).is_file() for f in RECORD_FILES)] \
+        if out.is_dir() else []
+    return claim_out_dir(out, ["bank.json", *sorted(records)], resume=args.resume, force=args.force)
+
+
 def _finish(report: dict) -> int:
     c, t, s = report["counts"], report["timing"], report["scale_stats"]
     per = "" if t["seconds_per_image"] is None else f", {t['seconds_per_image']:.2f} s/image"
@@ -142,28 +163,75 @@ def _lift_settings(args: argparse.Namespace):
     return LiftSettings(scale_measure=args.scale_measure)
 
 
-def run_segments(args: argparse.Namespace) -> int:
-    from .bank import SegmentAndEncode, build_bank
-    from .encoders import ClipEncoder, DEFAULT_CLIP_MODEL, get_encoder
-    from .segmenters import get_segmenter
+@dataclass(frozen=True)
+class SegmentsSetup:
+    """What ``n2f2 segments`` builds from its options: the scene, the segment source (segmenter
+    + encoder) and the depth provider. Built in this process, and once in every Ray worker
+    (picklable and hashable, so a worker keeps what it built for its next images)."""
 
-    scene = _load(args)
-    depth = _depth_provider(args, scene)  # fail on a missing PLY before loading models
-    segmenter = get_segmenter(args.segmenter, scene=scene, model_id=args.sam_model, device=args.device)
-    if args.encoder == "clip":
-        encoder = ClipEncoder.from_pretrained(args.model or DEFAULT_CLIP_MODEL, device=args.device)
-    else:
-        encoder = get_encoder("captions", device=args.device)
-    report = build_bank(scene, SegmentAndEncode(segmenter, encoder), depth, args.out,
-                        depth_source=args.depth_source, lift=_lift_settings(args), progress=not args.quiet)
+    data: str
+    downscale: float
+    skip_missing: bool
+    depth_source: str
+    gaussians: Optional[str]
+    segmenter: str
+    encoder: str
+    model: Optional[str]
+    sam_model: Optional[str]
+    device: str
+
+    @staticmethod
+    def from_args(args: argparse.Namespace) -> "SegmentsSetup":
+        return SegmentsSetup(data=str(args.data), downscale=float(args.downscale), skip_missing=bool(args.skip_missing),
+                             depth_source=args.depth_source, gaussians=None if args.gaussians is None else str(args.gaussians),
+                             segmenter=args.segmenter, encoder=args.encoder, model=args.model,
+                             sam_model=args.sam_model, device=str(args.device))
+
+    def for_ray_worker(self) -> "SegmentsSetup":
+        """A Ray task sees only the GPU Ray gave it, as device ``cuda``."""
+        return replace(self, device="cuda") if self.device.startswith("cuda") else self
+
+    def build(self) -> tuple:
+        """(scene, source, depth provider), checking the inputs before loading models."""
+        from .bank import SegmentAndEncode
+        from .encoders import DEFAULT_CLIP_MODEL, ClipEncoder, get_encoder
+        from .segmenters import get_segmenter
+
+        scene = _load(self)
+        depth = _depth_provider(self, scene)  # fail on a missing PLY before loading models
+        segmenter = get_segmenter(self.segmenter, scene=scene, model_id=self.sam_model, device=self.device)
+        if self.encoder == "clip":
+            encoder = ClipEncoder.from_pretrained(self.model or DEFAULT_CLIP_MODEL, device=self.device)
+        else:
+            encoder = get_encoder("captions", device=self.device)
+        return scene, SegmentAndEncode(segmenter, encoder), depth
+
+
+def run_segments(args: argparse.Namespace) -> int:
+    from ..distributed import executor_from_args
+    from ..io import remove_results
+    from .bank import build_bank
+
+    present = _claim_bank(args)
+    executor = executor_from_args(args, gpu=str(args.device).startswith("cuda"))  # Ray missing: fail first
+    setup = SegmentsSetup.from_args(args)
+    scene, source, depth = setup.build()
+    if args.force:  # the inputs are read: now the old bank goes
+        remove_results(args.out, present)
+    with executor:
+        report = build_bank(scene, source, depth, args.out, depth_source=args.depth_source,
+                            lift=_lift_settings(args), progress=not args.quiet, executor=executor,
+                            worker_setup=setup.for_ray_worker())
     return _finish(report)
 
 
 def run_from_langsplat(args: argparse.Namespace) -> int:
     from ..errors import InputError
+    from ..io import remove_results
     from .bank import build_bank
     from .langsplat import LangSplatSource, langsplat_encoder_spec, recorded_encoder
 
+    present = _claim_bank(args)
     features = Path(args.features) if args.features else Path(args.data) / "language_features"
     if not features.is_dir():
         raise InputError(features, "LangSplat features folder does not exist")
@@ -174,6 +242,12 @@ def run_from_langsplat(args: argparse.Namespace) -> int:
     scene = _load(args)
     depth = _depth_provider(args, scene)
     source = LangSplatSource(features, spec)
+    # Every file checked and hashed before the bank is touched.
+    source.prepare(scene.image_names, [(c.height, c.width) for c in scene.cameras])
+    if args.resume:
+        source.check_resumed_bank(args.out)
+    if args.force:
+        remove_results(args.out, present)
     report = build_bank(scene, source, depth, args.out, depth_source=args.depth_source, lift=_lift_settings(args),
                         progress=not args.quiet)
     return _finish(report)
@@ -183,7 +257,7 @@ def run_export_langsplat(args: argparse.Namespace) -> int:
     from .langsplat import DEFAULT_LEVEL_LAYERS, export_langsplat
 
     report = export_langsplat(args.bank, args.out, level_layers=args.levels or DEFAULT_LEVEL_LAYERS,
-                              progress=not args.quiet)
+                              progress=not args.quiet, force=args.force)
     lv = ", ".join(f"{k} = layer {v}" for k, v in report["levels"].items())
     print(f"segments-export-langsplat: {report['images']} images, {report['rows']} feature rows ({lv}); "
           f"{report['segments_not_exported']} segments in no exported layer -> {report['out']}")

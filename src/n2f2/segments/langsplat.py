@@ -21,6 +21,8 @@ ignore it), which lets the import default to the text encoder that made the feat
 
 from __future__ import annotations
 
+import hashlib
+import io
 import json
 from pathlib import Path
 from typing import Optional, Sequence
@@ -28,7 +30,8 @@ from typing import Optional, Sequence
 import numpy as np
 
 from ..errors import InputError
-from ..io import write_json, write_npy
+from ..io import claim_out_dir, write_json, write_npy
+from ..validate import finite_array
 from .encoders import DEFAULT_CLIP_MODEL
 from .segmenters import SegmentSet, segment_layers
 
@@ -47,13 +50,22 @@ ENCODER_FILE = "encoder.json"  # written by export_langsplat beside the .npy fil
 DEFAULT_LEVEL_LAYERS = (1, 0, 1, 2)
 
 
-def _load(path: Path) -> np.ndarray:
+def _read_bytes(path: Path) -> bytes:
     if not path.is_file():
         raise InputError(path, "LangSplat feature file does not exist (run LangSplat's preprocess.py, "
                          "or point --features at its language_features folder)")
     try:
-        return np.load(path, allow_pickle=False)
-    except (OSError, ValueError) as e:
+        return path.read_bytes()
+    except OSError as e:
+        raise InputError(path, f"cannot read .npy file ({e.strerror or e})") from None
+
+
+def _load(path: Path, data: Optional[bytes] = None) -> np.ndarray:
+    """The array in ``path`` (or in ``data``, its bytes read already)."""
+    data = _read_bytes(path) if data is None else data
+    try:
+        return np.load(io.BytesIO(data), allow_pickle=False)
+    except (OSError, ValueError, EOFError) as e:
         raise InputError(path, f"cannot read .npy file ({e})") from None
 
 
@@ -63,16 +75,29 @@ def read_langsplat(features_dir: str | Path, stem: str,
 
     Returns ``(layers [4, H, W] int32, -1 = none; embeddings [N, E] float32)``. Raises
     :class:`InputError` naming the file when the maps are not ``[levels, H, W]`` of the expected
-    image size, hold non-integers or indices outside ``[-1, N)``, or when a row index appears
-    in two levels."""
+    image size, hold non-integers or indices outside ``[-1, N)``, when a row index appears in
+    two levels, or when a feature row is not finite."""
     features_dir = Path(features_dir)
     s_path, f_path = features_dir / f"{stem}_s.npy", features_dir / f"{stem}_f.npy"
-    seg = _load(s_path)
-    feats = _load(f_path)
+    return _check_pair(_load(s_path), _load(f_path), s_path, f_path, height, width)
+
+
+def _check_pair(seg: np.ndarray,  # [levels, H, W] (or [H, W]) segment maps as stored
+                feats: np.ndarray,  # [N, E] features as stored
+                s_path: Path, f_path: Path,
+                height: Optional[int] = None, width: Optional[int] = None) -> tuple[np.ndarray, np.ndarray]:
+    """The checks of :func:`read_langsplat` on arrays already loaded."""
     if feats.ndim != 2:
         raise InputError(f_path, f"expected features [N, E], got shape {feats.shape}")
     if not np.issubdtype(feats.dtype, np.floating):
         raise InputError(f_path, f"expected float features, got {feats.dtype}")
+    if feats.shape[1] == 0:
+        raise InputError(f_path, f"features have no dimensions (shape {feats.shape})")
+    feats = finite_array(f_path, f_path.name, feats)
+    big = np.flatnonzero((np.abs(feats) > np.finfo(np.float16).max).any(axis=1))
+    if big.size:  # the bank stores embeddings as float16
+        raise InputError(f_path, f"row {int(big[0])} of {f_path.name} has values beyond float16's range "
+                         f"(+-{float(np.finfo(np.float16).max):g}); LangSplat features are L2-normalised")
     if seg.ndim == 2:
         seg = seg[None]
     if seg.ndim != 3 or seg.shape[1] == 0 or seg.shape[2] == 0:
@@ -80,11 +105,16 @@ def read_langsplat(features_dir: str | Path, stem: str,
     if height is not None and width is not None and seg.shape[1:] != (height, width):
         raise InputError(s_path, f"segment maps are {seg.shape[2]}x{seg.shape[1]} but the image is "
                          f"{width}x{height} (use --downscale so the scene matches LangSplat's resolution)")
+    if seg.dtype == np.bool_ or not (np.issubdtype(seg.dtype, np.integer) or np.issubdtype(seg.dtype, np.floating)):
+        raise InputError(s_path, f"expected integer segment maps (stored as int or float), got {seg.dtype}")
+    n = feats.shape[0]
     if np.issubdtype(seg.dtype, np.floating):
         if not np.isfinite(seg).all() or (seg != np.round(seg)).any():
             raise InputError(s_path, "segment maps hold non-integer values")
+        if seg.size and (seg.min() < -1 or seg.max() >= n):  # before the cast, which could overflow
+            bad = seg.max() if seg.max() >= n else seg.min()
+            raise InputError(s_path, f"segment index {bad:g} is outside [-1, {n}): {f_path.name} has only {n} rows")
     layers = seg.astype(np.int64)
-    n = feats.shape[0]
     if layers.size and (layers.min() < -1 or layers.max() >= n):
         raise InputError(s_path, f"segment index {int(layers.max()) if layers.max() >= n else int(layers.min())} "
                          f"is outside [-1, {n}): {f_path.name} has only {n} rows")
@@ -163,17 +193,43 @@ class LangSplatSource:
         self.encoder_spec = dict(encoder_spec)
         self.encoder_spec.setdefault("description", langsplat_encoder_spec("clip")["description"])
         self._dim: Optional[int] = None
+        self._prepared: Optional[list[str]] = None
+        self._digest: Optional[str] = None
 
-    def prepare(self, stems: list[str]) -> None:
-        """Learn the embedding width from the first image's ``_f.npy`` (memory-mapped), so
-        ``bank.json`` can name it before extraction starts."""
-        if stems:
-            path = self.features_dir / f"{stems[0]}_f.npy"
-            _load(path)  # existence / readability, with a clear error
-            feats = np.load(path, mmap_mode="r")
-            if feats.ndim != 2:
-                raise InputError(path, f"expected features [N, E], got shape {feats.shape}")
-            self._set_dim(int(feats.shape[1]), path)
+    def prepare(self, stems: list[str], sizes: Optional[Sequence[tuple[int, int]]] = None) -> None:
+        """Check every image's pair of files (readable, finite features of one width, valid
+        segment maps, of the image's (height, width) when ``sizes`` are given) before anything
+        is written, and hash their content: the digest goes into ``segmenter_spec``, so a bank
+        resumed after the features changed is refused. Repeating the call is free."""
+        stems = list(stems)
+        if self._prepared == stems and sizes is None:
+            return
+        h = hashlib.sha256()
+        for k, stem in enumerate(stems):
+            s_path, f_path = self.features_dir / f"{stem}_s.npy", self.features_dir / f"{stem}_f.npy"
+            s_data, f_data = _read_bytes(s_path), _read_bytes(f_path)
+            for path, data in ((s_path, s_data), (f_path, f_data)):
+                h.update(path.name.encode() + b"\0" + len(data).to_bytes(8, "little"))
+                h.update(data)
+            height, width = sizes[k] if sizes is not None else (None, None)
+            _, feats = _check_pair(_load(s_path, s_data), _load(f_path, f_data), s_path, f_path, height, width)
+            self._set_dim(int(feats.shape[1]), f_path)
+        self._digest = h.hexdigest()
+        self._prepared = stems
+
+    def check_resumed_bank(self, out: str | Path) -> None:
+        """Refuse to resume the bank in ``out`` when it was built from other features than the
+        ones now in the folder (after :meth:`prepare`, which hashes them)."""
+        meta_path = Path(out) / "bank.json"
+        if self._digest is None or not meta_path.is_file():
+            return
+        try:
+            old = json.loads(meta_path.read_text()).get("segmenter", {})
+        except (OSError, ValueError, AttributeError):
+            return  # the bank's own resume check reports an unreadable bank.json
+        if isinstance(old, dict) and old.get("name") == "langsplat" and old.get("features_sha256") != self._digest:
+            raise InputError(meta_path, f"the bank was built from other LangSplat features than those now in "
+                                        f"{self.features_dir} (they changed since); pass --force to rebuild it")
 
     def _set_dim(self, dim: int, path: Path) -> None:
         if self._dim is None:
@@ -190,7 +246,10 @@ class LangSplatSource:
 
     @property
     def segmenter_spec(self) -> dict:
-        return {"name": "langsplat", "features": str(self.features_dir), "levels": list(LANGSPLAT_LEVELS)}
+        spec = {"name": "langsplat", "features": str(self.features_dir), "levels": list(LANGSPLAT_LEVELS)}
+        if self._digest is not None:
+            spec["features_sha256"] = self._digest
+        return spec
 
     def extract(self, index: int, stem: str, image: np.ndarray) -> tuple[SegmentSet, np.ndarray]:
         H, W = image.shape[:2]
@@ -250,7 +309,7 @@ def _level_layers(spec: Sequence, bank_levels: Sequence[str]) -> tuple[int, ...]
 
 def export_langsplat(bank, out_dir: str | Path,
                      level_layers: Sequence[int | str] = DEFAULT_LEVEL_LAYERS,
-                     progress: bool = True) -> dict:
+                     progress: bool = True, force: bool = False) -> dict:
     """Write a segment bank (a :class:`~n2f2.segments.bank.SegmentBank` or its folder) as
     LangSplat ``language_features``: per image ``<stem>_s.npy`` ``[4, H, W]`` and
     ``<stem>_f.npy`` ``[N, E]``, plus ``encoder.json`` (the bank's encoder spec).
@@ -262,7 +321,8 @@ def export_langsplat(bank, out_dir: str | Path,
     (its seg maps are a float torch tensor), and the features as float32 rows holding the
     bank's float16 embeddings (LangSplat also rounds its CLIP features through float16).
     Segments of bank layers that no level takes are not exported (counted in the report).
-    Returns a report: images, rows, segments not exported, output folder."""
+    A folder already holding any of these files is refused (an :class:`InputError`), unless
+    ``force``. Returns a report: images, rows, segments not exported, output folder."""
     from tqdm import tqdm
 
     from .bank import SegmentBank
@@ -271,6 +331,8 @@ def export_langsplat(bank, out_dir: str | Path,
         bank = SegmentBank.open(bank)
     levels = _level_layers(level_layers, bank.segmenter_spec.get("levels") or [])
     out = Path(out_dir)
+    targets = [f"{stem}_{kind}.npy" for stem in bank.image_names for kind in ("s", "f")] + [ENCODER_FILE]
+    claim_out_dir(out, targets, force=force, resume_flag=None)
     out.mkdir(parents=True, exist_ok=True)
     rows_total = dropped = 0
     for i in tqdm(range(bank.num_images), desc="export", unit="img", disable=not progress):

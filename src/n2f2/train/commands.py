@@ -6,25 +6,27 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ..validate import nonneg_float, nonneg_int, positive_float, positive_int
+
 # Field options: name -> (type, help). None = keep the preset's (or the checkpoint's) value.
 _FIELD_OPTIONS = {
     "backbone": (str, "triplane: TriPlane + 3-layer MLP (paper); mlp: positional encoding + MLP"),
-    "dim": (int, "D, feature-field dims = number of quantized scales (cpu 128, paper 512)"),
-    "plane_resolution": (int, "TriPlane resolution (cpu 128, paper 512)"),
-    "plane_channels": (int, "TriPlane channels, rasterized by deferred rendering (cpu 32, paper 64)"),
-    "hidden": (int, "MLP hidden width (256)"),
-    "pe_frequencies": (int, "positional-encoding frequencies of the MLP backbone (8)"),
+    "dim": (positive_int, "D, feature-field dims = number of quantized scales (cpu 128, paper 512)"),
+    "plane_resolution": (positive_int, "TriPlane resolution (cpu 128, paper 512)"),
+    "plane_channels": (positive_int, "TriPlane channels, rasterized by deferred rendering (cpu 32, paper 64)"),
+    "hidden": (positive_int, "MLP hidden width (256)"),
+    "pe_frequencies": (nonneg_int, "positional-encoding frequencies of the MLP backbone (8)"),
     "variant": (str, "nested (N2F2), flat (non-nested ablation), levels (3 scale groups, LangSplat-like)"),
-    "step_size": (int, "k of the dimension-scale mapping, paper Table 6 (1)"),
+    "step_size": (positive_int, "k of the dimension-scale mapping, paper Table 6 (1)"),
 }
 _TRAIN_OPTIONS = {
-    "iterations": (int, "optimisation steps (cpu 3000, paper 30000)"),
-    "views_per_step": (int, "views rasterized per step without --blend-cache (1)"),
-    "render_downscale": (int, "render training views downscaled by this integer factor (1 = bank resolution)"),
-    "pixels_per_step": (int, "sampled pixels per step (4096)"),
-    "checkpoint_every": (int, "write checkpoint.pt every N steps; 0: only at the end"),
-    "cos_weight": (float, "lambda of the cosine loss (0.001)"),
-    "scale_jitter": (float, "uniform noise added to each sampled quantized scale before B(s) (cpu 0.03, "
+    "iterations": (positive_int, "optimisation steps (cpu 3000, paper 30000)"),
+    "views_per_step": (positive_int, "views rasterized per step without --blend-cache (1)"),
+    "render_downscale": (positive_int, "render training views downscaled by this integer factor (1 = bank resolution)"),
+    "pixels_per_step": (positive_int, "sampled pixels per step (4096)"),
+    "checkpoint_every": (nonneg_int, "write checkpoint.pt every N steps; 0: only at the end"),
+    "cos_weight": (nonneg_float, "lambda of the cosine loss (0.001)"),
+    "scale_jitter": (nonneg_float, "uniform noise added to each sampled quantized scale before B(s) (cpu 0.03, "
                             "paper 0 = off; not in the paper)"),
 }
 
@@ -56,10 +58,12 @@ def register(subparsers) -> None:
     p.add_argument("--train-on-all", action="store_true",
                    help="also train on the views scene.json lists as test_views (held out by default)")
     p.add_argument("--resume", action="store_true", help="continue from DIR/checkpoint.pt")
-    p.add_argument("--downscale", type=float, default=1.0, help="image downscale factor, as 3DGS -r (default 1)")
+    p.add_argument("--force", action="store_true",
+                   help="replace the results already in DIR (field.pt, checkpoint.pt, train_report.json)")
+    p.add_argument("--downscale", type=positive_float, default=1.0, help="image downscale factor, as 3DGS -r (default 1)")
     p.add_argument("--skip-missing", action="store_true",
                    help="drop views whose image file is missing (default: a missing image is an error)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--seed", type=nonneg_int, default=0, help="random seed (default 0)")
     p.add_argument("--device", default=None, help="torch device (default: cuda when available, else cpu)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run_train)
@@ -98,8 +102,9 @@ def run_train(args: argparse.Namespace) -> int:
     from ..data import load_scene
     from ..errors import InputError
     from ..gaussians import read_ply
+    from ..io import claim_out_dir, remove_results
     from ..segments import SegmentBank
-    from .trainer import TrainConfig, field_preset, saved_configs, train_field
+    from .trainer import RESULT_NAMES, TrainConfig, field_preset, saved_configs, train_field
 
     device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
     preset = args.preset or ("paper" if str(device).startswith("cuda") else "cpu")
@@ -110,6 +115,7 @@ def run_train(args: argparse.Namespace) -> int:
     if args.downscale <= 0:
         raise InputError(None, f"--downscale must be > 0, got {args.downscale}")
 
+    present = claim_out_dir(args.out, RESULT_NAMES, resume=args.resume, force=args.force)
     field_over = {k: getattr(args, k) for k in _FIELD_OPTIONS if getattr(args, k) is not None}
     train_over = {k: getattr(args, k) for k in _TRAIN_OPTIONS if getattr(args, k) is not None}
     saved = saved_configs(args.out) if args.resume else None
@@ -134,6 +140,9 @@ def run_train(args: argparse.Namespace) -> int:
     scene = load_scene(args.data, downscale=args.downscale, skip_missing=args.skip_missing)
     bank = SegmentBank.open(args.segments)
     gaussians = read_ply(gpath)
+    if args.force:  # the inputs are read and match: now the old results go
+        bank.validate_against(scene)
+        remove_results(args.out, present)
     report = train_field(scene, gaussians, bank, args.out, field_config=field_config, config=config,
                          resume=args.resume, progress=not args.quiet,
                          paths={"scene": str(Path(args.data).resolve()), "gaussians": str(gpath.resolve()),

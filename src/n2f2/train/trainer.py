@@ -21,6 +21,10 @@ Checkpoints (``RUN/checkpoint.pt``: field + W + config + optimiser + step + samp
 curve) are written atomically every ``checkpoint_every`` steps; ``resume=True`` continues from
 the saved step with exactly the saved state, so an interrupted run ends where an uninterrupted
 one would.
+
+A step whose loss or gradient is not finite is skipped (no update; counted as
+``skipped_steps``); :data:`~n2f2.validate.MAX_BAD_STEPS` of them in a row stop the run with a
+:class:`~n2f2.validate.NonFiniteError`. Nothing holding NaN or infinity is ever saved.
 """
 
 from __future__ import annotations
@@ -42,6 +46,7 @@ from ..errors import InputError
 from ..field.model import FieldConfig, NestedField, bbox_from_points, save_field
 from ..io import load_torch, save_torch, write_json
 from ..segments.bins import ONE_MINUS_EPS
+from ..validate import MAX_BAD_STEPS, NonFiniteError, check_finite, finite_array
 from .blend import BlendCache, build_blend_cache
 from .sampling import PixelBatch, SegmentPool, ViewSegments
 
@@ -49,6 +54,7 @@ FIELD_NAME = "field.pt"
 CHECKPOINT_NAME = "checkpoint.pt"
 REPORT_NAME = "train_report.json"
 GAUSSIANS_NAME = "gaussians.ply"
+RESULT_NAMES = (FIELD_NAME, CHECKPOINT_NAME, REPORT_NAME)  # what a finished or started run holds
 _CHECKPOINT_FORMAT = "n2f2-field-checkpoint-v1"
 
 
@@ -90,6 +96,18 @@ class TrainConfig(ConfigDict):
     def __post_init__(self) -> None:
         if not 0.0 <= self.scale_jitter < 1.0:  # NaN fails too
             raise ValueError(f"scale_jitter must be in [0, 1), got {self.scale_jitter}")
+        for name in ("views_per_step", "render_downscale", "pixels_per_step", "log_every"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+                raise ValueError(f"{name} must be a positive integer, got {value!r}")
+        for name in ("iterations", "checkpoint_every", "seed"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
+                raise ValueError(f"{name} must be an integer >= 0, got {value!r}")
+        for name in ("lr_triplane", "lr_mlp", "cos_weight", "blend_cache_mb"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and np.isfinite(value) and value >= 0):
+                raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
 
     @staticmethod
     def paper() -> "TrainConfig":
@@ -223,10 +241,7 @@ def _peak_rss_mb() -> float:
 
 
 def _load_checkpoint(path: Path) -> dict:
-    try:
-        ck = load_torch(path)
-    except Exception as e:  # noqa: BLE001 - any unreadable file is the user's input problem
-        raise InputError(path, f"cannot read checkpoint ({type(e).__name__}: {e})") from None
+    ck = load_torch(path, "checkpoint")
     if not isinstance(ck, dict) or ck.get("format") != _CHECKPOINT_FORMAT:
         raise InputError(path, "not an n2f2 train checkpoint")
     return ck
@@ -246,7 +261,10 @@ def _view_segments(bank: Any, views: list[int], cameras: list, show_progress: bo
 
     out = {}
     for v in tqdm(views, desc="loading segments", disable=not show_progress, leave=False):
-        out[v] = ViewSegments.from_record(v, bank.record(v), (cameras[v].height, cameras[v].width))
+        record = bank.record(v)
+        name = f"{bank.image_names[v]}/embeddings.npy"  # a bank written before imports were checked
+        finite_array(Path(getattr(bank, "root", ".")) / name, name, record.embeddings)
+        out[v] = ViewSegments.from_record(v, record, (cameras[v].height, cameras[v].width))
     return out
 
 
@@ -310,11 +328,13 @@ def train_field(
     optimizer = torch.optim.Adam(field.param_groups(config.lr_triplane * extent, config.lr_mlp))
     generator = torch.Generator().manual_seed(config.seed)
     step, curve, train_time = 0, {"step": [], "loss": [], "l2": [], "cos": []}, 0.0
+    skipped = bad_run = 0  # steps skipped for a non-finite loss / gradient: in all, and in a row
     if checkpoint is not None:
         field.load_state_dict(checkpoint["field_state"])
         optimizer.load_state_dict(checkpoint["optimizer"])
         generator.set_state(checkpoint["rng"])
         step, curve, train_time = int(checkpoint["step"]), checkpoint["curve"], float(checkpoint["train_time"])
+        skipped = int(checkpoint.get("skipped", 0))
 
     meta = {
         "encoder_spec": getattr(bank, "encoder_spec", None),
@@ -356,7 +376,12 @@ def train_field(
                                "bbox_min": list(map(float, bbox_min)), "bbox_max": list(map(float, bbox_max))},
                 "optimizer": optimizer.state_dict(), "rng": generator.get_state(),
                 "train_config": config.to_dict(), "curve": curve, "window": list(window), "train_time": train_time,
-                "num_gaussians": int(geometry["means"].shape[0])}
+                "num_gaussians": int(geometry["means"].shape[0]), "skipped": skipped}
+
+    def save_checkpoint() -> None:
+        blob = checkpoint_blob()
+        check_finite(ck_path, {"field_state": blob["field_state"], "optimizer": blob["optimizer"]["state"]})
+        save_torch(ck_path, blob)
 
     out.mkdir(parents=True, exist_ok=True)
     iter_times: list[float] = []
@@ -382,15 +407,25 @@ def train_field(
         loss, l2, cos = hierarchical_loss(phi, batch.target.to(device), config.cos_weight)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        optimizer.step()
+        finite = _finite_step(loss, field.parameters())
+        if finite:
+            optimizer.step()
+            bad_run = 0
+        else:  # no update: the field and the optimiser state stay as they were
+            skipped += 1
+            bad_run += 1
+            if bad_run >= MAX_BAD_STEPS:
+                bar.close()
+                raise _stopped(step + 1, f"the last {bad_run} steps")
         step += 1
         dt = time.perf_counter() - t0
         train_time += dt
         iter_times.append(dt)
         cpu_times.append(time.process_time() - c0)
         values = (loss.item(), l2.item(), cos.item())
-        window.append(values)
-        if step % config.log_every == 0 or step == config.iterations:
+        if finite:
+            window.append(values)
+        if (step % config.log_every == 0 or step == config.iterations) and window:
             m = np.mean(window, axis=0)
             for key, value in zip(("loss", "l2", "cos"), m):
                 curve[key].append(float(value))
@@ -399,13 +434,16 @@ def train_field(
             bar.set_postfix(loss=f"{m[0]:.4g}", cos=f"{1 - m[2]:.3f}")
         bar.update(1)
         if config.checkpoint_every and step % config.checkpoint_every == 0 and step < config.iterations:
-            save_torch(ck_path, checkpoint_blob())
+            save_checkpoint()
         if callback is not None:
             callback(step, values[0])
     bar.close()
+    if iter_times and bad_run == len(iter_times):
+        raise _stopped(step, f"all {bad_run} steps of this run")
 
-    save_torch(ck_path, checkpoint_blob())
+    save_checkpoint()
     field.eval()
+    check_finite(out / FIELD_NAME, field.state_dict())
     gpath = _record_gaussians(paths.get("gaussians"), out)
     field_meta = {**meta, "gaussians": gpath, "step": step, "train_config": config.to_dict()}
     save_field(out / FIELD_NAME, field, field_meta)
@@ -422,6 +460,7 @@ def train_field(
         "heldout_views": test_views,
         "scene_extent": extent,
         "final_loss": curve["loss"][-1] if curve["loss"] else None,
+        "skipped_steps": skipped,
         "train_time_s": train_time,
         # This session's iterations only (a resumed run measures what it ran).
         "time_per_iteration_s": float(np.median(iter_times)) if iter_times else None,
@@ -433,6 +472,21 @@ def train_field(
     }
     write_json(out / REPORT_NAME, report)
     return report
+
+
+def _stopped(step: int, which: str) -> NonFiniteError:
+    return NonFiniteError(None, f"training stopped at step {step}: {which} had a NaN or infinite loss or "
+                                "gradient and were skipped (nothing non-finite was saved); check the segment "
+                                "bank's embeddings and the loss options (--cos-weight, --pixels-per-step)")
+
+
+def _finite_step(loss: Tensor, params: Any) -> bool:
+    """Whether the loss and every parameter's gradient are finite, from one sum over all of
+    them: NaN and infinity propagate through it (a sum of finite gradients so large that it
+    overflows counts as non-finite too). Much cheaper than ``isfinite(...).all()`` per tensor:
+    0.8 vs 14 ms for the cpu preset field's 1.7M parameters on one (shared) core."""
+    sums = [loss.detach().float().sum()] + [p.grad.sum() for p in params if p.grad is not None]
+    return bool(torch.isfinite(torch.stack(sums).sum()))
 
 
 def _to(batch: PixelBatch, device: torch.device) -> PixelBatch:

@@ -1,1 +1,2 @@
-"""Live viewer: a local web page and JSON API over a trained run (see ``viewer.server``)."""
+"""Live viewer of a trained run: the Gaussians as splats in the browser with queries that
+recolour them (``viewer.splats``, viser), and a JSON API with a 2D page (``viewer.server``)."""

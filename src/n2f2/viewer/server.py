@@ -19,7 +19,11 @@ API (all JSON; errors are ``{"error": "..."}`` with a 4xx/5xx status, never a tr
 deg, "radius": r}}`` around the scene's orbit centre (see :class:`OrbitFrame`).
 
 Safety: binds 127.0.0.1 unless told otherwise; request bodies are capped (``max_body_bytes``),
-as are the number and length of queries; nothing in a request is ever used as a file path.
+as are the number and length of queries; nothing in a request is ever used as a file path. Every
+malformed request gets a JSON error with a 4xx status, also those the HTTP parser refuses before
+the app sees them (a non-numeric Content-Length, a garbled request line: see
+:func:`json_error_protocol`). Renders are cached per camera in an LRU bounded in bytes
+(``ViewerLimits.render_cache_bytes``, ``n2f2 view --cache-mb``).
 """
 
 from __future__ import annotations
@@ -51,7 +55,9 @@ class ViewerLimits:
     max_body_bytes: int = 16 * 1024
     max_queries: int = 8
     max_query_chars: int = 200
-    render_cache_size: int = 32
+    # Bytes of cached renders (LRU). One 640x480 view of a D = 128 field holds ~160 MB in
+    # composite mode and ~470 MB in explicit mode; a render larger than the bound is not cached.
+    render_cache_bytes: int = 512 * 2**20
 
 
 class ApiError(Exception):
@@ -111,6 +117,18 @@ class OrbitFrame:
         return Camera(k.fx, k.fy, k.cx, k.cy, k.width, k.height, R=R, t=t)
 
 
+def finite_number(value: Any) -> Optional[float]:
+    """``value`` as a float when it is a finite JSON number (not a bool), else None; an integer
+    too large for a float is None too (``float(10**400)`` raises OverflowError)."""
+    if not isinstance(value, (int, float)) or isinstance(value, bool):
+        return None
+    try:
+        v = float(value)
+    except OverflowError:
+        return None
+    return v if math.isfinite(v) else None
+
+
 # ----------------------------------------------------------------------------- image helpers
 def png_base64(image: np.ndarray) -> str:
     """uint8 or [0, 1] float array [H, W] / [H, W, 3|4] -> base64 PNG."""
@@ -121,6 +139,98 @@ def png_base64(image: np.ndarray) -> str:
     buf = io.BytesIO()
     Image.fromarray(image).save(buf, format="PNG")
     return base64.b64encode(buf.getvalue()).decode("ascii")
+
+
+# ----------------------------------------------------------------------------- the render cache
+def tensor_bytes(obj: Any, seen: Optional[set[int]] = None, exclude: frozenset[int] = frozenset()) -> int:
+    """Bytes of the tensor storages reachable from ``obj`` (tensors, dataclasses, dicts, lists),
+    each storage counted once: a view keeps its whole storage alive, so that is what it costs.
+    ``exclude`` holds storage pointers owned elsewhere (the field's ``W``)."""
+    import dataclasses
+
+    import torch
+
+    seen = set() if seen is None else seen
+    if isinstance(obj, torch.Tensor):
+        storage = obj.untyped_storage()
+        ptr = storage.data_ptr()
+        if ptr in seen or ptr in exclude:
+            return 0
+        seen.add(ptr)
+        return int(storage.nbytes())
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return sum(tensor_bytes(getattr(obj, f.name), seen, exclude) for f in dataclasses.fields(obj))
+    if isinstance(obj, dict):
+        return sum(tensor_bytes(v, seen, exclude) for v in obj.values())
+    if isinstance(obj, (list, tuple)):
+        return sum(tensor_bytes(v, seen, exclude) for v in obj)
+    return 0
+
+
+def compact_tensors(obj: Any, exclude: frozenset[int] = frozenset()) -> None:
+    """Copy every tensor field of ``obj`` (a dataclass, and the dataclasses in its dict fields)
+    that is a view into a larger storage, so that caching ``obj`` keeps only its own data (a
+    rendered alpha map can be a slice of the rasterizer's whole output buffer)."""
+    import dataclasses
+
+    import torch
+
+    for f in dataclasses.fields(obj):
+        value = getattr(obj, f.name)
+        if isinstance(value, torch.Tensor):
+            storage = value.untyped_storage()
+            if storage.data_ptr() not in exclude and storage.nbytes() > value.numel() * value.element_size():
+                setattr(obj, f.name, value.clone(memory_format=torch.contiguous_format))
+        elif isinstance(value, dict):
+            for v in value.values():
+                if dataclasses.is_dataclass(v) and not isinstance(v, type):
+                    compact_tensors(v, exclude)
+
+
+class ByteLRU:
+    """A least-recently-used map bounded by the total size of its values (``sizeof(value)``
+    bytes each). A value larger than the whole bound is not stored. Not thread-safe: the
+    Viewer's lock guards it."""
+
+    def __init__(self, max_bytes: int, sizeof: Any):
+        self.max_bytes = int(max_bytes)
+        self.sizeof = sizeof
+        self._items: OrderedDict[str, tuple[Any, int]] = OrderedDict()
+        self.nbytes = 0
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def __contains__(self, key: str) -> bool:
+        return key in self._items
+
+    def keys(self) -> list[str]:
+        """Keys, least recently used first."""
+        return list(self._items)
+
+    def get(self, key: str) -> Any:
+        """The value (now the most recently used) or None."""
+        item = self._items.get(key)
+        if item is None:
+            return None
+        self._items.move_to_end(key)
+        return item[0]
+
+    def put(self, key: str, value: Any) -> bool:
+        """Store ``value``, evicting least-recently-used entries until it fits; False when it is
+        larger than the bound (then nothing is evicted and it is not stored)."""
+        size = int(self.sizeof(value))
+        if size > self.max_bytes:
+            return False
+        old = self._items.pop(key, None)
+        if old is not None:
+            self.nbytes -= old[1]
+        while self._items and self.nbytes + size > self.max_bytes:
+            _, (_, evicted) = self._items.popitem(last=False)
+            self.nbytes -= evicted
+        self._items[key] = (value, size)
+        self.nbytes += size
+        return True
 
 
 # ----------------------------------------------------------------------------- the viewer state
@@ -138,7 +248,18 @@ class Viewer:
         self.orbit = OrbitFrame.from_cameras(list(self.scene.cameras))
         self.modes = tuple(m for m in VIEWER_MODES if m in engine.modes())
         self.lock = threading.Lock()
-        self._renders: OrderedDict[str, Any] = OrderedDict()
+        # The field's W is shared by every cache (and the engine): it is not a render's cost.
+        self._shared = frozenset({engine.W.untyped_storage().data_ptr()}) if hasattr(engine, "W") else frozenset()
+        self._renders = ByteLRU(limits.render_cache_bytes, lambda cache: tensor_bytes(cache, exclude=self._shared))
+
+    def encoder_description(self) -> str:
+        """The text encoder's description, from the field's metadata when it records one (no
+        need to load the encoder, which another thread may be loading under the lock)."""
+        spec = (getattr(self.engine, "meta", None) or {}).get("encoder_spec") or {}
+        if spec.get("description"):
+            return str(spec["description"])
+        with self.lock:
+            return str(getattr(self.engine.encoder, "description", ""))
 
     # -------------------------------------------------------------- parsing
     def parse_camera(self, body: Any) -> tuple[str, Any]:
@@ -159,10 +280,10 @@ class Viewer:
                 raise ApiError(422, "'camera.orbit' must be an object")
             vals = []
             for key in ("azimuth", "elevation", "radius"):
-                v = orbit.get(key)
-                if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v):
+                v = finite_number(orbit.get(key))
+                if v is None:
                     raise ApiError(422, f"'camera.orbit.{key}' must be a finite number")
-                vals.append(float(v))
+                vals.append(v)
             az, el, r = vals
             if not -89.0 <= el <= 89.0 or not 0.0 < r <= 1e4:
                 raise ApiError(422, "orbit elevation must be in [-89, 89] degrees and radius in (0, 1e4]")
@@ -204,23 +325,27 @@ class Viewer:
         # Cached per (camera, mode): the explicit mode's per-scale caches cost about 3x the
         # composite one's (416 vs 127 ms on a demo view), so they are made only when asked for.
         key = f"{key}|{mode}"
-        if key in self._renders:
-            self._renders.move_to_end(key)
-            return self._renders[key], True
+        cache = self._renders.get(key)
+        if cache is not None:
+            return cache, True
         cache = self.engine.render_view(view, modes=[mode], rgb=True)
-        self._renders[key] = cache
-        while len(self._renders) > self.limits.render_cache_size:
-            self._renders.popitem(last=False)
+        compact_tensors(cache, self._shared)
+        self._renders.put(key, cache)
         return cache, False
+
+    def query_view(self, key: str, view: Any, texts: list[str], mode: str) -> tuple[Any, Any]:
+        """Render (or reuse) a camera and answer ``texts`` in it under one hold of the lock:
+        -> (ViewCache, QueryResult)."""
+        with self.lock:
+            cache, _ = self._render_locked(key, view, mode)
+            return cache, self.engine.query(cache, texts, mode=mode)
 
     def render_and_query(self, key: str, view: Any, texts: list[str], mode: str) -> tuple[Any, list[dict]]:
         """A query request's engine work under one hold of the lock, so that concurrent requests
         finish one after another: with two holds (render, then query) every queued render ran
         before any query, and all 50 requests of a burst finished together at its end. The PNG
         encoding runs outside the lock."""
-        with self.lock:
-            cache, _ = self._render_locked(key, view, mode)
-            result = self.engine.query(cache, texts, mode=mode)
+        cache, result = self.query_view(key, view, texts, mode)
         return cache, self._results(cache, texts, result)
 
     def _results(self, view_cache: Any, texts: list[str], result: Any) -> list[dict]:
@@ -307,11 +432,11 @@ def create_app(viewer: Viewer):
         """Read at most ``max_body_bytes`` (also when Content-Length lies or is absent)."""
         declared = request.headers.get("content-length")
         if declared is not None:
-            try:
-                if int(declared) > limits.max_body_bytes:
-                    raise ApiError(413, f"request body too large: at most {limits.max_body_bytes} bytes")
-            except ValueError:
-                raise ApiError(400, "bad Content-Length header") from None
+            digits = declared.strip()
+            if not (digits.isascii() and digits.isdigit()):
+                raise ApiError(400, "bad Content-Length header")
+            if int(declared) > limits.max_body_bytes:
+                raise ApiError(413, f"request body too large: at most {limits.max_body_bytes} bytes")
         body = bytearray()
         async for chunk in request.stream():
             body.extend(chunk)
@@ -319,7 +444,9 @@ def create_app(viewer: Viewer):
                 raise ApiError(413, f"request body too large: at most {limits.max_body_bytes} bytes")
         try:
             data = json.loads(body.decode("utf-8"))
-        except (UnicodeDecodeError, json.JSONDecodeError):
+        except RecursionError:
+            raise ApiError(400, "request body is nested too deeply") from None
+        except ValueError:  # bad UTF-8, bad JSON, or an integer literal past Python's digit limit
             raise ApiError(400, "request body is not valid JSON") from None
         if not isinstance(data, dict):
             raise ApiError(400, "request body must be a JSON object")
@@ -338,7 +465,7 @@ def create_app(viewer: Viewer):
                   "orbit": viewer.orbit.orbit_of(cam)}
                  for i, (name, cam) in enumerate(zip(scene.image_names, scene.cameras))]
         return {"views": views, "modes": list(viewer.modes),
-                "encoder": getattr(viewer.engine.encoder, "description", ""),
+                "encoder": viewer.encoder_description(),
                 "limits": {"max_queries": limits.max_queries, "max_query_chars": limits.max_query_chars,
                            "max_body_bytes": limits.max_body_bytes}}
 
@@ -378,9 +505,10 @@ def create_app(viewer: Viewer):
         text = viewer.parse_queries(data.get("query"))[0]
         mode = viewer.parse_mode(data.get("mode"))
         threshold = data.get("threshold")
-        if threshold is not None and (not isinstance(threshold, (int, float)) or isinstance(threshold, bool)
-                                      or not 0.0 <= float(threshold) <= 1.0):
-            raise ApiError(422, "'threshold' must be a number in [0, 1] or null")
+        if threshold is not None:
+            threshold = finite_number(threshold)
+            if threshold is None or not 0.0 <= threshold <= 1.0:
+                raise ApiError(422, "'threshold' must be a number in [0, 1] or null")
         payload, n = await run_in_threadpool(viewer.selection_ply, text, mode, threshold)
         return Response(payload, media_type="application/octet-stream",
                         headers={"Content-Disposition": 'attachment; filename="selection.ply"',
@@ -389,14 +517,33 @@ def create_app(viewer: Viewer):
     return app
 
 
-def serve(run_dir: str | Path, host: str = "127.0.0.1", port: int = 7007, scene: Optional[str] = None,
-          limits: ViewerLimits = ViewerLimits()) -> None:
+def json_error_protocol() -> type:
+    """uvicorn's h11 protocol, answering the requests its parser refuses (a non-numeric
+    Content-Length, a garbled request line or header) with a JSON error body instead of
+    uvicorn's plain text, so every malformed request gets ``{"error": ...}`` and a 4xx."""
+    from uvicorn.protocols.http.h11_impl import H11Protocol
+
+    class JsonErrorH11Protocol(H11Protocol):
+        def send_400_response(self, msg: str) -> None:
+            import h11
+
+            body = json.dumps({"error": f"malformed HTTP request ({msg.rstrip('.')})"}).encode()
+            headers = [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
+                       (b"connection", b"close")]
+            for data in (self.conn.send(h11.Response(status_code=400, headers=headers, reason=b"Bad Request")),
+                         self.conn.send(h11.Data(data=body)), self.conn.send(h11.EndOfMessage())):
+                if data:
+                    self.transport.write(data)
+            self.transport.close()
+
+    return JsonErrorH11Protocol
+
+
+def api_server(viewer: Viewer, host: str = "127.0.0.1", port: int = 7008) -> Any:
+    """A ``uvicorn.Server`` for the JSON API (and the 2D page) of ``viewer``; ``server.run()``
+    blocks, so callers run it in a thread beside the 3D viewer."""
     import uvicorn
 
-    from ..query.engine import QueryEngine
-
-    engine = QueryEngine.from_run(run_dir, scene=scene)
-    viewer = Viewer(engine, limits)
-    app = create_app(viewer)
-    print(f"n2f2 viewer on http://{host}:{port}  (Ctrl+C to stop)")
-    uvicorn.run(app, host=host, port=port, log_level="warning")
+    config = uvicorn.Config(create_app(viewer), host=host, port=port, log_level="warning",
+                            http=json_error_protocol())
+    return uvicorn.Server(config)
