@@ -43,6 +43,11 @@ GOAL_NS_PER_PAIR = 20.0
 
 
 def run_case(n: int, size: int, channels: int, repeats: int, backend: str) -> dict:
+    # As the n2f2 batch commands (see n2f2/cli.py): torch's idle OpenMP threads must not spin
+    # through the compiled kernels. Set before torch loads.
+    from n2f2.cli import BATCH_SPIN_COUNT
+
+    os.environ.setdefault("GOMP_SPINCOUNT", BATCH_SPIN_COUNT)
     import torch
 
     from n2f2.render import rasterize

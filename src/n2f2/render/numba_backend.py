@@ -18,6 +18,11 @@ numba ships its compiler in its wheel, so nothing is built at install time. Kern
 compiled on first use (a few seconds) and cached on disk beside this file, or in numba's
 user cache when that folder is read-only. Calls are serialised by a lock: the thread pool
 used here does not allow two Python threads inside a parallel region at once.
+
+torch's OpenMP threads must not spin-wait through these kernels (with OpenMP's default spin
+count a render took 25x longer on 2 cores): the ``n2f2`` command sets ``GOMP_SPINCOUNT`` (see
+:mod:`n2f2.cli`); library users on few cores set it, or ``OMP_WAIT_POLICY=PASSIVE``, before
+importing torch.
 """
 
 from __future__ import annotations
