@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 import torch
 
-from n2f2.query.composite import (canonical_scores, composite_weights, prefix_dot, prefix_sq_norms,
-                                  prefix_weights, premultiply, supervised_dims, to_blocks)
-from n2f2.query.engine import build_composite_cache, build_linear_cache, build_prefix_cache
+from n2f2.query.composite import (canonical_scores, composite_weights, prefix_dot, prefix_margin_at,
+                                  prefix_margin_max, prefix_sq_norms, prefix_terms, prefix_weights, premultiply,
+                                  supervised_dims, to_blocks)
+from n2f2.query.engine import build_composite_cache, build_linear_cache, build_prefix_cache, select_scale
 from n2f2.query.relevancy import normalize_features, relevancy
 
 DT = torch.float64
@@ -182,6 +183,107 @@ def test_levels_fast_path_equals_slow_path():
         torch.testing.assert_close(fast[level], _relevancy_literal(phi, texts, negs).T, rtol=0, atol=1e-10)
 
 
+# ------------------------------------------------------------------------------ explicit selection
+def _explicit_reference(theta, W, texts, negatives, dims):  # -> relevancy [S, Q, P] in float64
+    """Relevancy at every scale, written out: ``phi_d`` grown block by block (so a zero block of
+    theta leaves it exactly as it was and the scales tie exactly), scored by the literal
+    softmax-and-min definition."""
+    theta, W = theta.double(), W.double()
+    phi = torch.zeros(theta.shape[0], W.shape[0], dtype=DT)
+    out, prev = [], 0
+    for d in dims:
+        phi = phi + theta[:, prev:d] @ W[:, prev:d].T
+        prev = d
+        out.append(_relevancy_literal(phi, texts.double(), negatives.double()).T)
+    return torch.stack(out)
+
+
+def _assert_choice(chosen, ref_scores, tol=1e-6):  # chosen: Q ints; ref_scores [Q, S] float64
+    """Each chosen scale is a best scale of the reference (up to float32 rounding), and the first
+    one when the reference's best scales are one scale or an exact tie."""
+    for q, c in enumerate(chosen):
+        best = ref_scores[q].max()
+        assert ref_scores[q, c] >= best - tol
+        near = (ref_scores[q] >= best - tol).nonzero().flatten()
+        if bool((ref_scores[q, near] == best).all()):
+            assert c == int(near[0])
+
+
+def _assert_same_as_full(chosen, scores, rel, full):  # [Q], [Q, S], [Q, P]; full [S, Q, P]
+    """The streamed selection equals the one made on the cache's whole ``[S, Q, P]`` relevancy."""
+    full_scores = full.amax(dim=-1).T
+    assert chosen.tolist() == full_scores.argmax(dim=1).tolist()
+    ulp = 2.0 ** -24  # torch's sigmoid may round the last few elements of a call differently
+    torch.testing.assert_close(scores, full_scores, rtol=0, atol=ulp)
+    torch.testing.assert_close(rel, full[chosen, torch.arange(len(chosen))], rtol=0, atol=ulp)
+
+
+@pytest.mark.parametrize("step", [1, 3])
+@pytest.mark.parametrize("compiled", [True, False])
+def test_prefix_margins_equal_the_full_tensor_and_direct(step, compiled, monkeypatch):
+    """The streamed per-scale maxima and chosen-scale margins equal the score caches' ``[S, Q, P]``
+    margins bit for bit (compiled kernels or torch, one thread or two) and a direct computation."""
+    from n2f2.query import composite
+
+    monkeypatch.setattr(composite, "MARGIN_CHUNK", 64)  # several windows in the torch path
+    theta, W, _ = _random_field(N=300, D=12, E=10)
+    g = torch.Generator().manual_seed(8)
+    texts = _unit(torch.randn(3, 10, generator=g, dtype=DT)).float()
+    negs = _unit(torch.randn(4, 10, generator=g, dtype=DT)).float()
+    theta, W = theta.float(), W.float()
+    scales = torch.tensor([12 // step - 1, 0, 6 // step])
+
+    def streamed_and_full(theta):  # -> (max [S, Q], at [Q, P]) streamed, and the [S, Q, P] margins
+        cache = build_prefix_cache(theta, W, negs, step)
+        S, k, _ = cache.blocks.shape
+        q = (texts @ W[:, : S * k]).T
+        terms = prefix_terms(cache.blocks, q)
+        mx = prefix_margin_max(*terms, cache.inv_norm, cache.neg_max, compiled=compiled)
+        at = prefix_margin_at(*terms, cache.inv_norm, cache.neg_max, scales, compiled=compiled)
+        return mx, at, prefix_dot(cache.blocks, q).mul_(cache.inv_norm).sub_(cache.neg_max)  # the caches' arithmetic
+
+    mx, at, full = streamed_and_full(theta)
+    assert torch.equal(mx, full.amax(dim=-1)) and torch.equal(at, full[scales, torch.arange(3)])  # bit for bit
+    # Independent: per scale, phi_d normalised, cosine with the text minus the largest with a negative.
+    for s, d in enumerate(supervised_dims(12, step)):
+        phi = normalize_features(theta[:, :d].double() @ W[:, :d].double().T)
+        margin = phi @ texts.double().T - (phi @ negs.double().T).amax(-1, keepdim=True)  # [P, Q]
+        torch.testing.assert_close(mx[s].double(), margin.amax(0), rtol=0, atol=1e-5)
+        torch.testing.assert_close(at[scales == s].double(), margin.T[scales == s], rtol=0, atol=1e-5)
+    # Enough points for two threads.
+    big = torch.randn(140_000, 12, generator=g)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        mx, at, full = streamed_and_full(big)
+    finally:
+        torch.set_num_threads(threads)
+    assert torch.equal(mx, full.amax(dim=-1)) and torch.equal(at, full[scales, torch.arange(3)])
+    # A NaN feature makes the maxima NaN, as torch.amax does, and only its own margins.
+    theta[7, 4] = float("nan")
+    mx, at, _ = streamed_and_full(theta)
+    assert bool(mx.isnan().all()) and at.isnan().nonzero()[:, 1].unique().tolist() == [7]
+
+
+def test_selection_ties_where_the_sigmoid_rounds_to_one():
+    """Margins that differ but whose relevancy rounds to 1.0 in float32 tie: the first scale is
+    chosen, as on the full relevancy tensor (a choice by largest margin would take scale 1)."""
+    e = torch.eye(4)
+    W = torch.stack([e[0] + 0.3 * e[1], -0.3 * e[1], 0.5 * e[2]], dim=1)  # [E=4, D=3]
+    theta = torch.tensor([[1.0, 1.0, 0.0], [-1.0, 0.0, 1.0], [0.2, -1.0, 0.5]])  # Gaussian 0: phi = e0 at d >= 2
+    negs = _unit(torch.stack([-e[0] + 0.1 * e[1], -e[0] - 0.1 * e[1], -e[0] + 0.1 * e[2], -e[0] + 0.1 * e[3]]))
+    text = e[:1]
+    cache = build_prefix_cache(theta, W, negs, 1)
+    margins = prefix_margin_max(*cache.terms(text), cache.inv_norm, cache.neg_max)[:, 0]
+    assert margins[1] > margins[0] > 1.8  # relevancy sigmoid(10 m) is 1.0 in float32 for both
+    ref = torch.stack([_relevancy_literal(theta[:, :d] @ W[:, :d].T, text, negs)[:, 0] for d in (1, 2, 3)])
+    assert bool((ref.amax(-1) == 1.0).all())
+    chosen, scores, rel = select_scale(cache, text)
+    assert chosen.tolist() == [0] and scores.tolist() == [[1.0, 1.0, 1.0]]
+    torch.testing.assert_close(rel[0], ref[0], rtol=0, atol=1e-6)
+    _assert_same_as_full(chosen, scores, rel, cache.relevancy(text))
+
+
 # ------------------------------------------------------------------------------ engine (real
 # rasterizer and field, a tiny scene, a deterministic stand-in text encoder)
 class HashEncoder:
@@ -307,6 +409,59 @@ def test_query_gaussians_equals_direct(engine):
     torch.testing.assert_close(res.relevancy, direct.T, rtol=0, atol=1e-6)
 
 
+@pytest.fixture(scope="module")
+def trained_engine(trained_run):
+    from n2f2.query import QueryEngine
+
+    return QueryEngine.from_run(trained_run.run_dir)
+
+
+def _trained_texts(trained_run):
+    return [trained_run.part_query, "teapot", "red mug", "wooden table"]
+
+
+def test_query_gaussians_explicit_equals_per_scale_reference(trained_engine, trained_run):
+    eng = trained_engine
+    texts = _trained_texts(trained_run)
+    res = eng.query_gaussians(texts, "explicit")
+    emb, negs = eng.encode(texts), eng.encode(list(eng.config.negatives))
+    ref = _explicit_reference(eng.theta, eng.W, emb, negs, eng.scale_dims)  # [S, Q, N]
+    ref_scores = ref.amax(dim=-1).T
+    _assert_choice(res.chosen, ref_scores)
+    assert res.chosen_labels == [f"d={eng.scale_dims[c]}" for c in res.chosen]
+    torch.testing.assert_close(res.scale_scores.double(), ref_scores, rtol=0, atol=1e-5)
+    for q, c in enumerate(res.chosen):
+        torch.testing.assert_close(res.relevancy[q].double(), ref[c, q], rtol=0, atol=1e-5)
+    full = eng.gaussian_cache("explicit").relevancy(emb)  # the [S, Q, N] tensor 2D views use
+    _assert_same_as_full(torch.tensor(res.chosen), res.scale_scores, res.relevancy, full)
+
+
+@pytest.mark.parametrize("zero_from", [1, 12])
+def test_explicit_ties_pick_the_first_scale(trained_engine, trained_run, zero_from):
+    """With theta's dimensions from ``zero_from`` on set to 0, every scale from ``d = zero_from``
+    on is the same feature: their scores tie exactly and the first of them is the one chosen
+    where they hold the maximum (all queries when ``zero_from = 1``)."""
+    eng = trained_engine
+    assert eng.step == 1
+    texts = _trained_texts(trained_run)
+    theta = eng.theta.clone()
+    theta[:, zero_from:] = 0.0
+    emb, negs = eng.encode(texts), eng.encode(list(eng.config.negatives))
+    cache = build_prefix_cache(theta, eng.W, negs, eng.step)  # what gaussian_cache("explicit") builds
+    chosen, scores, rel = select_scale(cache, emb)
+    ref = _explicit_reference(theta, eng.W, emb, negs, eng.scale_dims)
+    ref_scores = ref.amax(dim=-1).T
+    tied = slice(zero_from - 1, None)
+    assert bool((ref_scores[:, tied] == ref_scores[:, zero_from - 1:zero_from]).all())
+    assert bool((scores[:, tied] == scores[:, zero_from - 1:zero_from]).all())
+    _assert_choice(chosen.tolist(), ref_scores)
+    if zero_from == 1:
+        assert chosen.tolist() == [0] * len(texts)
+    for q, c in enumerate(chosen.tolist()):
+        torch.testing.assert_close(rel[q].double(), ref[c, q], rtol=0, atol=1e-5)
+    _assert_same_as_full(chosen, scores, rel, cache.relevancy(emb))
+
+
 def test_selection_ply_loads_back_and_renders(engine, tmp_path):
     from n2f2.gaussians import read_ply
     from n2f2.render import render_rgb
@@ -408,3 +563,12 @@ def test_levels_mode_on_a_levels_field(engine):
 
     with pytest.raises(InputError, match="levels"):
         lv.query(view, texts, "composite")
+    # 3D on the Gaussians: per query the level with the highest maximum, as explicit mode picks a scale.
+    res3 = lv.query_gaussians(texts, "levels")
+    ref = torch.stack([_relevancy_literal(per_level[:, level].double(), lv.encode(texts).double(),
+                                          negs.double()).T for level in range(3)])  # [3, Q, N]
+    _assert_choice(res3.chosen, ref.amax(dim=-1).T)
+    for q, c in enumerate(res3.chosen):
+        torch.testing.assert_close(res3.relevancy[q].double(), ref[c, q], rtol=0, atol=1e-5)
+    full = lv.gaussian_cache("levels").relevancy(lv.encode(texts))
+    _assert_same_as_full(torch.tensor(res3.chosen), res3.scale_scores, res3.relevancy, full)

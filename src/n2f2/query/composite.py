@@ -28,6 +28,10 @@ cumulative sum over blocks: ``N x D x C`` work for ``C`` directions, never ``N x
 
 from __future__ import annotations
 
+import itertools
+from typing import Callable, Optional
+
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -143,4 +147,190 @@ def premultiply(
         block = theta[start:start + chunk]
         gamma = composite_weights(block, W, canonical, step, temperature)
         out[start:start + chunk] = prefix_weights(gamma, D, step) * block
+    return out
+
+
+# ----------------------------------------------------------------------- maxima over the points
+# Explicit-mode selection in 3D needs, per scale and direction, only the maximum over the points
+# of the relevancy margin ``m = phi_d^ . t - max_c phi_d^ . c`` (the relevancy is ``sigmoid(10 m)``,
+# increasing in ``m``), and then the margins of every point at one chosen scale per direction.
+# Both use exactly the arithmetic of :func:`prefix_dot` followed by the score caches' scaling:
+# the per-block dot products of its bmm, their prefix sums accumulated in float64 and rounded
+# once (what torch's CPU ``cumsum`` does for float32), times ``1 / |phi_d|``, minus the negatives'
+# term. So the values equal those of the ``[S, C, P]`` margins bit for bit, but they are streamed
+# over the points and that tensor never exists.
+
+MARGIN_CHUNK = 16384  # points per window of the torch path
+
+
+def prefix_terms(
+    blocks: Tensor,  # [S, k, P] features in block layout
+    directions: Tensor,  # [S k, C] W^T t per direction (text)
+) -> tuple[Tensor, Tensor]:  # terms [S, R, P], weights [S, C]
+    """The per-block dot products of :func:`prefix_dot` (before its cumulative sum) as
+    ``terms[s, r, p] * weights[s, c]``, ``r = 0`` when ``R = 1``, else ``r = c``. With one dimension
+    per block they are single products, formed where they are used (``terms`` is ``blocks``).
+    Otherwise they are the bmm of :func:`prefix_dot`, one call over all points as there (BLAS can
+    round a few elements differently in a call of another shape), and the weights are ones."""
+    S, k, _ = blocks.shape
+    d = directions[: S * k].reshape(S, k, -1)  # [S, k, C]
+    if k == 1:
+        return blocks, d[:, 0, :].contiguous()
+    return torch.bmm(d.transpose(1, 2), blocks), d.new_ones(S, d.shape[2])  # [S, C, P]
+
+
+def _margin_max_kernel(terms, weights, inv, neg, best):
+    """``best[s, c] = max(best[s, c], max_p m[s, c, p])`` (see :func:`prefix_terms` for the dot
+    products). The maximum propagates NaN, as ``torch.amax`` does."""
+    S, R, P = terms.shape
+    C = weights.shape[1]
+    T = 2048  # points per tile: the float64 running sums stay in cache
+    acc = np.empty((C, T), dtype=np.float64)
+    for a in range(0, P, T):
+        n = min(T, P - a)
+        acc[:, :n] = 0.0
+        for s in range(S):
+            for c in range(C):
+                r = c if R > 1 else 0
+                w = weights[s, c]
+                m = best[s, c]
+                for i in range(n):
+                    v = acc[c, i] + terms[s, r, a + i] * w
+                    acc[c, i] = v
+                    x = np.float32(v) * inv[s, a + i] - neg[s, a + i]
+                    if x > m or np.isnan(x):
+                        m = x
+                best[s, c] = m
+
+
+def _margin_at_kernel(terms, weights, inv, neg, scales, out):
+    """``out[c, p] = m[scales[c], c, p]`` (same margins as :func:`_margin_max_kernel`)."""
+    _, R, P = terms.shape
+    C = weights.shape[1]
+    T = 2048
+    acc = np.empty(T, dtype=np.float64)
+    for a in range(0, P, T):
+        n = min(T, P - a)
+        for c in range(C):
+            r = c if R > 1 else 0
+            sc = scales[c]
+            acc[:n] = 0.0
+            for s in range(sc + 1):
+                w = weights[s, c]
+                for i in range(n):
+                    acc[i] += terms[s, r, a + i] * w
+            for i in range(n):
+                out[c, a + i] = np.float32(acc[i]) * inv[sc, a + i] - neg[sc, a + i]
+
+
+_COMPILED: Optional[tuple] = None  # (margin max, margin at) once compiled; () without numba
+
+
+def _compiled_kernels() -> Optional[tuple]:
+    """The two margin kernels compiled by numba on first use (cached on disk: a few seconds the
+    first time, about one after), or None when numba is not installed. Each runs on one thread
+    and releases the GIL."""
+    global _COMPILED
+    if _COMPILED is None:
+        try:
+            import numba
+        except ImportError:  # pragma: no cover - numba is a declared dependency
+            _COMPILED = ()
+        else:  # one signature each (any strides): compiled once, not per memory layout
+            f3, f2 = "float32[:, :, :]", "float32[:, :]"
+            _COMPILED = (
+                numba.njit(f"void({f3}, {f2}, {f2}, {f2}, {f2})", cache=True, nogil=True)(_margin_max_kernel),
+                numba.njit(f"void({f3}, {f2}, {f2}, {f2}, int64[:], {f2})", cache=True, nogil=True)(_margin_at_kernel),
+            )
+    return _COMPILED or None
+
+
+def _kernels_for(terms: Tensor, compiled: Optional[bool]) -> Optional[tuple]:
+    """The compiled kernels when they apply (CPU float32, numba importable, not refused)."""
+    if compiled is False or terms.device.type != "cpu" or terms.dtype != torch.float32:
+        return None
+    return _compiled_kernels()
+
+
+def _in_threads(job: Callable[[int, int], None], num_points: int) -> int:
+    """``job(a, b)`` over point ranges that split ``range(num_points)`` over torch's thread count
+    (at least 65536 points each), in threads when there are several; returns how many ranges."""
+    n = max(1, min(torch.get_num_threads(), num_points // 65536))
+    ranges = list(itertools.pairwise([num_points * i // n for i in range(n + 1)]))
+    if n == 1:
+        job(0, num_points)
+        return 1
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(n) as pool:
+        list(pool.map(lambda r: job(*r), ranges))
+    return n
+
+
+def _window_margins(terms: Tensor, weights: Tensor, inv_norm: Tensor, neg_max: Tensor,
+                    a: int, b: int) -> Tensor:  # [S, C, b - a]
+    """The margins of points ``a:b`` at every scale with torch ops (the arithmetic of
+    :func:`prefix_dot` and the score caches)."""
+    raw = (terms[:, :, a:b] * weights[:, :, None]).cumsum_(dim=0)  # [S, C, p]
+    return raw.mul_(inv_norm[:, :, a:b]).sub_(neg_max[:, :, a:b])
+
+
+@torch.no_grad()
+def prefix_margin_max(
+    terms: Tensor,  # [S, R, P] from :func:`prefix_terms`
+    weights: Tensor,  # [S, C]
+    inv_norm: Tensor,  # [S, 1, P] 1 / max(|phi_d|, eps)
+    neg_max: Tensor,  # [S, 1, P] max_c phi_d^ . c
+    compiled: Optional[bool] = None,  # None: the numba kernels on CPU float32 when numba imports
+) -> Tensor:  # [S, C] max over the points of the margin phi_d^ . t - max_c phi_d^ . c
+    """Per scale and direction, the largest relevancy margin over the points (see above):
+    ``O(S C P)`` work, memory ``O(S C)`` per thread (compiled) or per window (torch)."""
+    S, _, P = terms.shape
+    C = weights.shape[1]
+    kernels = _kernels_for(terms, compiled)
+    if kernels is not None:
+        t, w = terms.detach().numpy(), weights.detach().numpy()
+        inv, neg = inv_norm.detach()[:, 0].numpy(), neg_max.detach()[:, 0].numpy()
+        bests: dict[int, np.ndarray] = {}
+
+        def job(a: int, b: int) -> None:
+            best = bests.setdefault(a, np.full((S, C), -np.inf, dtype=np.float32))
+            kernels[0](t[:, :, a:b], w, inv[:, a:b], neg[:, a:b], best)
+
+        _in_threads(job, P)
+        out = np.full((S, C), -np.inf, dtype=np.float32)
+        for best in bests.values():
+            np.maximum(out, best, out=out)  # propagates NaN like the kernel
+        return torch.from_numpy(out)
+    best = terms.new_full((S, C), float("-inf"))
+    for a in range(0, P, MARGIN_CHUNK):
+        m = _window_margins(terms, weights, inv_norm, neg_max, a, a + MARGIN_CHUNK)
+        best = torch.maximum(best, m.amax(dim=-1))
+    return best
+
+
+@torch.no_grad()
+def prefix_margin_at(
+    terms: Tensor,  # [S, R, P] from :func:`prefix_terms`
+    weights: Tensor,  # [S, C]
+    inv_norm: Tensor,  # [S, 1, P]
+    neg_max: Tensor,  # [S, 1, P]
+    scales: Tensor,  # [C] int: one scale index per direction
+    compiled: Optional[bool] = None,
+) -> Tensor:  # [C, P] margin of every point at its direction's scale
+    """The margins of :func:`prefix_margin_max` at one scale per direction, for every point."""
+    P = terms.shape[2]
+    C = weights.shape[1]
+    out = terms.new_empty(C, P)
+    kernels = _kernels_for(terms, compiled)
+    if kernels is not None:
+        t, w = terms.detach().numpy(), weights.detach().numpy()
+        inv, neg = inv_norm.detach()[:, 0].numpy(), neg_max.detach()[:, 0].numpy()
+        sc, o = scales.to("cpu", torch.int64).numpy(), out.numpy()
+        _in_threads(lambda a, b: kernels[1](t[:, :, a:b], w, inv[:, a:b], neg[:, a:b], sc, o[:, a:b]), P)
+        return out
+    cols = torch.arange(C, device=terms.device)
+    scales = scales.to(terms.device)
+    for a in range(0, P, MARGIN_CHUNK):
+        out[:, a:a + MARGIN_CHUNK] = _window_margins(terms, weights, inv_norm, neg_max, a, a + MARGIN_CHUNK)[scales, cols]
     return out

@@ -20,6 +20,9 @@ cached features. Because the relevancy normalises features, each cache also hold
 ``[Q, D] x [D, P]`` product plus elementwise work, nothing re-rendered. Explicit mode gets all
 prefix dot products from block sums + a cumulative sum over scales (``P x D x Q``), and all prefix
 norms once per view from ``G = W^T W`` (see :func:`n2f2.query.composite.prefix_sq_norms`).
+3D queries on the Gaussians never form explicit mode's ``[S, Q, N]`` relevancy: per scale only the
+largest margin over the Gaussians is kept (streamed; compiled with numba on CPU), and the
+relevancy is computed once, at the chosen scale (:func:`select_scale`), with the same bits.
 
 Selection score of explicit / levels in 2D (``QueryConfig.selection``): ``"smoothed"`` (default)
 is the maximum of LangSplat's ``R' = 0.5 (box(R) + R)`` from :mod:`n2f2.query.maps`, the rule
@@ -32,15 +35,15 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field as dc_field
 from pathlib import Path
-from typing import Any, Callable, Optional, Protocol, Sequence, Union
+from typing import Any, Callable, Optional, Protocol, Sequence, Union, cast
 
 import numpy as np
 import torch
 from torch import Tensor
 
 from ..errors import InputError
-from .composite import (DEFAULT_CANONICAL, premultiply, prefix_dot, prefix_sq_norms, supervised_dims,
-                        to_blocks)
+from .composite import (DEFAULT_CANONICAL, premultiply, prefix_dot, prefix_margin_at, prefix_margin_max,
+                        prefix_sq_norms, prefix_terms, supervised_dims, to_blocks)
 from .maps import (LANGSPLAT_BOX_SIZE, LANGSPLAT_THRESHOLD, mask_iou, normalized_for_threshold, resolve_box_size,
                    segmentation_mask, smoothed_relevancy)
 from .relevancy import (DEFAULT_NEGATIVES, check_texts, inverse_norm, inverse_norm_from_sq,
@@ -117,11 +120,17 @@ class PrefixCache:
     labels: list[str] = dc_field(default_factory=list)
 
     def relevancy(self, texts: Tensor) -> Tensor:  # [Q, E] -> [S, Q, P]
-        S, k, _ = self.blocks.shape
-        q = (texts @ self.W[:, : S * k]).T  # [D', Q]
-        raw = prefix_dot(self.blocks, q)  # [S, Q, P]
+        raw = prefix_dot(self.blocks, self._directions(texts))  # [S, Q, P]
         raw.mul_(self.inv_norm)
         return relevancy_from_scores(raw, self.neg_max, inplace=True)
+
+    def _directions(self, texts: Tensor) -> Tensor:  # [Q, E] -> [D', Q] the texts in field space
+        S, k, _ = self.blocks.shape
+        return (texts @ self.W[:, : S * k]).T
+
+    def terms(self, texts: Tensor) -> tuple[Tensor, Tensor]:  # [Q, E] -> [S, R, P], [S, Q]
+        """The per-block dot products of the texts (:func:`n2f2.query.composite.prefix_terms`)."""
+        return prefix_terms(self.blocks, self._directions(texts))
 
 
 @dataclass
@@ -135,11 +144,14 @@ class LinearCache:
     labels: list[str] = dc_field(default_factory=list)
 
     def relevancy(self, texts: Tensor) -> Tensor:  # [Q, E] -> [S, Q, P]
+        return relevancy_from_scores(self.margins(texts), self.neg_max.new_zeros(()), inplace=True)
+
+    def margins(self, texts: Tensor) -> Tensor:  # [Q, E] -> [S, Q, P]
+        """Relevancy margins ``phi^ . t - max_c phi^ . c`` (relevancy = ``sigmoid(10 margin)``)."""
         S = self.maps.shape[0]
         q = torch.einsum("sed,qe->sqd", self.maps, texts).reshape(S * texts.shape[0], -1)  # [S Q, D]
         raw = (q @ self.features.T).view(S, texts.shape[0], -1)  # [S, Q, P]
-        raw.mul_(self.inv_norm)
-        return relevancy_from_scores(raw, self.neg_max, inplace=True)
+        return raw.mul_(self.inv_norm).sub_(self.neg_max)
 
 
 def build_composite_cache(
@@ -210,6 +222,59 @@ def build_linear_cache(
 def _points_per_block(chunk: int, width: int) -> int:
     """Points per block so that ``[width, points]`` intermediates stay near 4M floats."""
     return max(1, min(chunk, (1 << 22) // max(1, width)))
+
+
+def select_scale(
+    cache: Union[PrefixCache, LinearCache],
+    texts: Tensor,  # [Q, E] unit text embeddings
+) -> tuple[Tensor, Tensor, Tensor]:  # chosen [Q] int64, scores [Q, S], relevancy [Q, P]
+    """Per query, the scale whose highest relevancy over the points is largest (the first such
+    scale on a tie, as ``argmax`` picks), that score at every scale, and the relevancy of every
+    point at the chosen scale.
+
+    ``sigmoid`` is increasing, so the highest relevancy at a scale is the relevancy of its largest
+    margin. A prefix cache (``S = floor(D / k)`` scales) keeps only the ``[S, Q]`` largest margins,
+    streamed over the points, and computes the relevancy once, at the chosen scale: no
+    ``[S, Q, P]`` relevancy. (With ``k > 1`` the per-block dot products, ``k`` times smaller, come
+    from one bmm over all points, so that BLAS rounds them as in the full path.) The 3 levels of
+    a linear cache make the ``[S, Q, P]`` margins small: one matmul beats two passes. The scores
+    go through the sigmoid before the ``argmax`` (ties where it rounds to 1 included), so the
+    choice and the values equal those taken on ``cache.relevancy(texts)``."""
+    cols = torch.arange(texts.shape[0], device=texts.device)
+    if isinstance(cache, LinearCache):
+        margins = cache.margins(texts)  # [S, Q, P]
+        scores = _relevancy_of_margins(margins.amax(dim=-1).T.contiguous())  # [Q, S]
+        chosen = scores.argmax(dim=1)
+        return chosen, scores, _relevancy_of_margins(margins[chosen, cols])
+    terms, weights = cache.terms(texts)
+    best = prefix_margin_max(terms, weights, cache.inv_norm, cache.neg_max)  # [S, Q]
+    scores = _relevancy_of_margins(best.T.contiguous())  # [Q, S]
+    chosen = scores.argmax(dim=1)
+    at = prefix_margin_at(terms, weights, cache.inv_norm, cache.neg_max, chosen)  # [Q, P]
+    return chosen, scores, _relevancy_of_margins(at)
+
+
+_SIGMOID_BLOCK = 16384  # elements per call: one thread (torch's grain is 32768), a multiple of 64
+
+
+def _relevancy_of_margins(margins: Tensor) -> Tensor:  # [..., P] contiguous, in place -> relevancy
+    """``relevancy_from_scores(margins, 0)``. On CPU, in blocks that torch's vectorised sigmoid
+    covers whole: its scalar loop for the last few elements of a call can differ in the last bit,
+    and the few ``[Q, S]`` maxima would otherwise not take the path of the full tensor's values."""
+    flat = margins.view(-1)
+    zero = flat.new_zeros(())
+    if flat.device.type != "cpu":
+        relevancy_from_scores(flat, zero, inplace=True)
+        return margins
+    n = flat.numel()
+    body = n - n % 64
+    for a in range(0, body, _SIGMOID_BLOCK):
+        relevancy_from_scores(flat[a:min(a + _SIGMOID_BLOCK, body)], zero, inplace=True)
+    if body < n:
+        tail = flat.new_zeros(64)
+        tail[: n - body] = flat[body:]
+        flat[body:] = relevancy_from_scores(tail, zero, inplace=True)[: n - body]
+    return margins
 
 
 # ---------------------------------------------------------------------------------- results
@@ -532,13 +597,12 @@ class QueryEngine:
             raise InputError(None, "oracle mode is a 2D evaluation bound; use composite, explicit or levels in 3D")
         t0 = time.perf_counter()
         cache = self.gaussian_cache(mode)
-        rel = cache.relevancy(self.encode(texts))  # [S, Q, N]
-        if rel.shape[0] == 1 and mode == "composite":
+        emb = self.encode(texts)
+        if mode == "composite":
+            rel = cache.relevancy(emb)  # [1, Q, N]
             return QueryResult(texts, mode, rel[0], cache.labels, [None] * len(texts),
                                seconds=time.perf_counter() - t0)
-        scores = rel.amax(dim=-1).T  # [Q, S]
-        chosen = scores.argmax(dim=1)
-        out = rel[chosen, torch.arange(len(texts), device=rel.device)]  # [Q, N]
+        chosen, scores, out = select_scale(cast(Union[PrefixCache, LinearCache], cache), emb)
         return QueryResult(texts, mode, out, cache.labels, chosen.tolist(), scores,
                            time.perf_counter() - t0)
 
