@@ -163,6 +163,7 @@ def build_composite_cache(
     P = features.shape[0]
     inv = features.new_empty(P)
     neg = features.new_empty(P)
+    chunk = _points_per_block(chunk, W.shape[0])  # [p, E] intermediates near 4M floats
     for a in range(0, P, chunk):
         phi = features[a:a + chunk] @ W.T  # [p, E]
         i = inverse_norm(phi)  # [p, 1]
