@@ -242,8 +242,7 @@ class _NumbaComposite(torch.autograd.Function):
         bins.evaluated = int(stop.sum())  # pairs walked (each pixel up to its stop)
         out_t = torch.from_numpy(out).transpose(1, 2)  # [T, D, p], the torch backend's layout
         ctx.bins, ctx.cfg = bins, cfg
-        ctx.np = (kp_np, aug_np, order, basis, stop, out, log_min, log_clamp, np_dtype)
-        ctx.save_for_backward(kp, aug)
+        ctx.np = (kp_np, aug_np, order, basis, stop, out, log_min, log_clamp, np_dtype)  # what the backward walks
         return out_t
 
     @staticmethod
