@@ -20,7 +20,7 @@ from n2f2.gaussians.fit import (
     DensifyStats, FitConfig, GaussianAdam, densify_and_prune, downsample_image, fit_gaussians,
     initial_gaussians, resolution_factor,
 )
-from n2f2.gaussians.init import random_points_in_frusta
+from n2f2.gaussians.init import init_from_points, random_points_in_frusta
 from n2f2.gaussians.model import sh_to_rgb
 from n2f2.gaussians.orbit import orbit_cameras, render_views
 from n2f2.io import write_png
@@ -93,7 +93,8 @@ def test_random_init_resets_opacity_twice_inside_the_densification_window(tmp_pa
                 if s % cfg.opacity_reset_every == 0 and s < cfg.densify_until] == [700, 1400]
     # Sparse points or a trained PLY: the cpu preset's rule, no reset.
     assert FitConfig.cpu().sized_for(with_points).opacity_reset_every == 0
-    assert FitConfig.cpu().sized_for(no_points, init="ply").opacity_reset_every == 0
+    trained = init_from_points(rng.normal(size=(8, 3)), np.full((8, 3), 128, np.uint8))
+    assert FitConfig.cpu().sized_for(no_points, init=trained).opacity_reset_every == 0
 
 
 def test_resolution_factor_follows_the_schedule():

@@ -71,20 +71,19 @@ def run(args: argparse.Namespace) -> int:
     base = saved_config(args.out) if args.resume else None
     data = posed_scene_path(Path(args.data), Path(args.out) / "sfm", progress=not args.quiet)  # photos: pose them
     scene = load_scene(data, downscale=args.downscale, skip_missing=args.skip_missing)
-    if base is None:
-        base = replace(FitConfig.preset(args.preset), seed=args.seed)
-        if args.preset == "cpu":
-            init_kind = args.init if args.init in ("points", "random") else None if args.init is None else "ply"
-            base = base.sized_for(scene, steps=args.steps, init=init_kind)  # a --steps keeps the schedule's fractions
-    config = replace(base, device=args.device)
-    overrides = {k: getattr(args, k) for k in ("steps", "checkpoint_every", "max_gaussians", "depth_spread_weight")
-                 if getattr(args, k) is not None}
-    config = replace(config, **overrides)
     init = args.init
     if init is not None and init not in ("points", "random"):
         if Path(init).suffix.lower() != ".ply":
             raise InputError(None, f"--init must be points, random or a .ply file, got {init!r}")
         init = read_ply(init)
+    if base is None:
+        base = replace(FitConfig.preset(args.preset), seed=args.seed)
+        if args.preset == "cpu":  # a --steps keeps the schedule's fractions
+            base = base.sized_for(scene, steps=args.steps, init=init)
+    config = replace(base, device=args.device)
+    overrides = {k: getattr(args, k) for k in ("steps", "checkpoint_every", "max_gaussians", "depth_spread_weight")
+                 if getattr(args, k) is not None}
+    config = replace(config, **overrides)
     if args.force:  # the inputs are read: now the old results go
         remove_results(args.out, present)
     report = fit_gaussians(scene, config, args.out, resume=args.resume, init=init, progress=not args.quiet)

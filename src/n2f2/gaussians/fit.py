@@ -146,7 +146,8 @@ class FitConfig(ConfigDict):
         """The 30k-step schedule of the 3DGS paper (for GPU users)."""
         return FitConfig()
 
-    def sized_for(self, scene: Scene, steps: Optional[int] = None, init: Optional[str] = None) -> "FitConfig":
+    def sized_for(self, scene: Scene, steps: Optional[int] = None,
+                  init: Union[None, str, Gaussians] = None) -> "FitConfig":
         """This schedule with its scene-dependent constants derived from ``scene`` (the cpu
         preset's rule; the constants above give the demo scene's 1500 steps and 12k cap):
 
@@ -159,14 +160,14 @@ class FitConfig(ConfigDict):
           first ``COARSE_FRACTION`` of the steps (a step's cost scales with its pixels);
         * the background is learned only for a backdrop without sparse points
           (``BACKDROP_UNCOVERED``); otherwise it is black, as 3DGS;
-        * a random initialisation (``init="random"``, or ``None`` on a scene without sparse
-          points) resets opacities every ``RANDOM_INIT_RESET_FRACTION`` of the steps, as 3DGS
+        * a random initialisation (``init`` as :func:`fit_gaussians` takes it: ``"random"``, or
+          ``None`` on a scene without sparse points) resets opacities every ``RANDOM_INIT_RESET_FRACTION`` of the steps, as 3DGS
           does on every scene: random Gaussians that only some training views constrain become
           floaters in front of the others, and only a reset clears them (initialised from
           sparse points, the short schedule does better without it; see :meth:`cpu`)."""
         train, _ = split_views(scene, self.test_every)
         cams = [scene.cameras[i] for i in train]
-        if scene.points is not None and len(scene.points):
+        if _has_points(scene):
             uncovered = float(np.mean([uncovered_cells(scene.points, c).mean() for c in cams]))
         else:
             uncovered = 1.0
@@ -176,8 +177,7 @@ class FitConfig(ConfigDict):
             steps = int(np.clip(round(EPOCHS * len(train), -2), MIN_STEPS, MAX_STEPS))
         ref = FitConfig.cpu()  # the fractions of the 1500-step schedule
         frac = steps / ref.steps
-        has_points = scene.points is not None and len(scene.points) > 0
-        random_init = init == "random" or (init is None and not has_points)
+        random_init = init_kind(scene, init) == "random"
         reset = int(round(RANDOM_INIT_RESET_FRACTION * steps, -2)) if random_init else self.opacity_reset_every
         coarse = math.sqrt(pixels / COARSE_PIXELS)
         return replace(
@@ -565,8 +565,20 @@ def initial_gaussians(scene: Scene, config: FitConfig, init: Union[None, str, Ga
     return g
 
 
+def _has_points(scene: Scene) -> bool:
+    return scene.points is not None and len(scene.points) > 0
+
+
+def init_kind(scene: Scene, init: Union[None, str, Gaussians]) -> str:
+    """What :func:`fit_gaussians` starts from for ``init``: ``"points"``, ``"random"`` or
+    ``"ply"`` (Gaussians given); ``None`` means the sparse points when the scene has them."""
+    if isinstance(init, Gaussians):
+        return "ply"
+    return init or ("points" if _has_points(scene) else "random")
+
+
 def _initial_gaussians(scene: Scene, config: FitConfig, init: Union[None, str]) -> Gaussians:
-    kind = init or ("points" if scene.points is not None and len(scene.points) else "random")
+    kind = init_kind(scene, init)
     train, _ = split_views(scene, config.test_every)
     cameras = [scene.cameras[i] for i in train]
 
