@@ -351,7 +351,7 @@ class Viewer:
     def _results(self, view_cache: Any, texts: list[str], result: Any) -> list[dict]:
         from matplotlib import colormaps
 
-        from ..eval.protocol import box_filter, max_locations, resolve_box_size, segmentation_mask
+        from ..query.maps import box_filter, max_locations, resolve_box_size, segmentation_mask
 
         rel = result.relevancy.float().cpu().numpy()  # [Q, H, W]
         rgb = view_cache.rgb.float().cpu().numpy()

@@ -153,7 +153,7 @@ def selection_scores(relevancy: np.ndarray,  # [Q, N]
                      ) -> np.ndarray:  # [N] float32 in [0, 1]
     """Per Gaussian, the largest over queries of the protocol's normalised relevancy
     (:func:`n2f2.eval.protocol.normalized_for_threshold`): selected = score > threshold."""
-    from ..eval.protocol import normalized_for_threshold
+    from ..query.maps import normalized_for_threshold
 
     rel = np.asarray(relevancy, dtype=np.float32)
     out = np.zeros(rel.shape[1], np.float32)  # the protocol's values are >= 0
@@ -512,7 +512,7 @@ class SplatViewer:
     def render_view(self, client: Any = None) -> Optional[np.ndarray]:
         """Render the client's camera on the server; show per query [heatmap | mask + cross] and
         the numbers. Returns the image shown ([H, W, 3] uint8), None without a client."""
-        from ..eval.protocol import resolve_box_size
+        from ..query.maps import resolve_box_size
         from ..query.outputs import heatmap_overlay, localize, mask_overlay, segment
 
         if client is None:
