@@ -12,13 +12,11 @@ import sys
 # OpenMP reads its wait policy once, when torch loads, so it is chosen before any stage module
 # is imported. Batch commands (fit, train, demo, run, ...) let torch's idle OpenMP threads spin
 # for GOMP_SPINCOUNT iterations before they sleep: with OpenMP's own, much longer default they
-# kept spinning while the CPU rasterizer's compiled kernels ran on their own threads, and a
-# render took 25x longer; PASSIVE (sleep at once) made field training 1.6x slower. With the
-# count below, on an idle 2-core machine: a 300-step demo fit 24 s (default 44 s, PASSIVE
-# 31 s), 400 training steps 88 ms each (default 92, PASSIVE 150). The viewer computes while
-# other request threads run, so it waits passively. Setting OMP_WAIT_POLICY or GOMP_SPINCOUNT
-# yourself overrides both; when several jobs share 2 cores, OMP_WAIT_POLICY=PASSIVE or
-# OMP_NUM_THREADS=1 avoids the spin-wait slowdown.
+# spin while the CPU rasterizer's compiled kernels run on their own threads, and sleeping at
+# once (PASSIVE) slows field training (docs/measurements.md, "OpenMP spin-wait"). The viewer
+# computes while other request threads run, so it waits passively. Setting OMP_WAIT_POLICY or
+# GOMP_SPINCOUNT yourself overrides both; when several jobs share 2 cores,
+# OMP_WAIT_POLICY=PASSIVE or OMP_NUM_THREADS=1 avoids the spin-wait slowdown.
 PASSIVE_WAIT_COMMANDS = ("view",)
 BATCH_SPIN_COUNT = "100000"
 
