@@ -155,6 +155,31 @@ def test_extra_random_points_and_scale_clamp(tmp_path):
     np.testing.assert_allclose(np.linalg.norm(extra - centroid, axis=1), radius, rtol=1e-4)
 
 
+def test_extra_seen_points_lie_where_the_training_views_overlap(tmp_path):
+    # 3 sparse points, plus 40 random Gaussians each inside at least half of the 7 training
+    # views (view 0 is held out) and no nearer than 0.2 x extent to a camera that sees it,
+    # coloured by the views (all one colour here).
+    points = [[0.0, 0.0, 0.0], [0.3, 0.0, 0.0], [0.0, 0.3, 0.0]]
+    scene = _scene(tmp_path, 8, 16, 12, colors=[(0.2, 0.4, 0.6)] * 8, points=points)
+    cfg = replace(FitConfig(), sh_degree=0, init_extra_seen=40, random_init_min_seen=0.5)
+    g = initial_gaussians(scene, cfg, None)
+    assert g.num == 3 + 40
+    torch.testing.assert_close(g.means[:3].detach(), torch.tensor(points))
+    extra = g.means[3:].detach().double().numpy()
+    seen = np.zeros(40)
+    for cam in scene.cameras[1:]:
+        # pinhole projection written out: x_cam = R x + t, u = fx x/z + cx
+        xc = extra @ cam.R.T + cam.t
+        u = cam.fx * xc[:, 0] / xc[:, 2] + cam.cx
+        v = cam.fy * xc[:, 1] / xc[:, 2] + cam.cy
+        inside = (xc[:, 2] > 0) & (u >= 0) & (u <= cam.width) & (v >= 0) & (v <= cam.height)
+        assert not np.any(inside & (xc[:, 2] < 0.2 * scene.extent()))
+        seen += inside
+    assert np.all(seen >= 0.5 * 7)
+    rgb = sh_to_rgb(g.sh[3:, 0].detach())
+    torch.testing.assert_close(rgb, torch.tensor([[0.2, 0.4, 0.6]]).expand(40, 3), atol=3e-3, rtol=0)
+
+
 def test_clear_of_cameras_by_hand():
     R, t = look_at(np.array([0.0, 0.0, 0.0]), np.array([0.0, 0.0, 1.0]), up=(0.0, -1.0, 0.0))
     cam = Camera(10.0, 10.0, 5.0, 5.0, 10, 10, R=R, t=t)  # at the origin, looking down +z

@@ -118,6 +118,12 @@ def test_byte_lru_evicts_least_recently_used_by_bytes():
     assert lru.keys() == ["c", "d"] and lru.nbytes == 70
     assert lru.put("c", "c")  # re-put: counted once, now the most recent
     assert lru.keys() == ["d", "c"] and lru.nbytes == 70
+    lru.reserve(30)  # 70 + 30 fits: nothing evicted
+    assert lru.keys() == ["d", "c"]
+    lru.reserve(31)  # room for 31 more: the least recent (d, 20) goes
+    assert lru.keys() == ["c"] and lru.nbytes == 50
+    lru.reserve(1000)  # more than the bound: everything goes
+    assert lru.keys() == [] and lru.nbytes == 0
 
 
 @pytest.fixture(scope="module")
@@ -135,22 +141,32 @@ def test_a_cached_view_costs_its_own_tensors(engine):
     compact_tensors(composite, shared)
     # Theta~ [HW, D], 1/|phi| and the negatives' term [HW] each, alpha [H, W], RGB [H, W, 3]; float32.
     assert tensor_bytes(composite, exclude=shared) == 4 * H * W * (D + 2 + 1 + 3)
+    assert engine.view_cache_bytes(0, ["composite"]) == 4 * H * W * (D + 2 + 1 + 3)  # known before rendering
     explicit = engine.render_view(0, modes=["explicit"], rgb=True)
     compact_tensors(explicit, shared)
     S = len(engine.scale_dims)  # k = 1: blocks [S, 1, HW], inverse norms and negatives [S, 1, HW]
     assert tensor_bytes(explicit, exclude=shared) == 4 * H * W * (S + 2 * S + 1 + 3)
+    assert engine.view_cache_bytes(0, ["explicit"]) == 4 * H * W * (S + 2 * S + 1 + 3)
 
 
 def test_the_viewer_cache_stays_under_its_byte_bound(engine):
     cam = engine.scene.cameras[0]
     per_view = 4 * cam.height * cam.width * (engine.dim + 6)  # one composite view, as above
-    viewer = Viewer(engine, ViewerLimits(render_cache_bytes=2 * per_view + per_view // 2))
+    viewer = Viewer(engine, ViewerLimits(render_cache_bytes=2 * per_view + per_view // 2, render_transient_bytes=0))
     for i in range(4):
         viewer.render(f"view:{i}", i)
         assert viewer._renders.nbytes <= viewer.limits.render_cache_bytes
     assert viewer._renders.keys() == ["view:2|composite", "view:3|composite"]
     _, cached = viewer.render("view:3", 3)
     assert cached
+    # The render in flight counts: with half a view of working memory a new view needs 1.5
+    # views of room, so under a bound of 2.5 views no older view stays cached beside it.
+    viewer = Viewer(engine, ViewerLimits(render_cache_bytes=2 * per_view + per_view // 2,
+                                         render_transient_bytes=per_view // 2 + 1))
+    for i in range(3):
+        viewer.render(f"view:{i}", i)
+        assert viewer._renders.nbytes <= viewer.limits.render_cache_bytes
+    assert viewer._renders.keys() == ["view:2|composite"]
 
 
 # ----------------------------------------------------------------------------- JSON API safety

@@ -162,6 +162,13 @@ class Camera:
         """The camera for images downscaled by ``factor`` (as 3DGS ``-r``: round(W / factor))."""
         return self.scaled(downscaled_size(self.width, factor), downscaled_size(self.height, factor))
 
+    def rows(self, y0: int, y1: int) -> "Camera":
+        """The camera of image rows ``[y0, y1)``: the same rays, the principal point moved up by
+        ``y0`` (row ``y0`` becomes row 0; pixel centres stay at +0.5)."""
+        if not 0 <= y0 < y1 <= self.height:
+            raise ValueError(f"rows [{y0}, {y1}) are not inside an image of height {self.height}")
+        return replace(self, cy=self.cy - y0, height=int(y1 - y0))
+
     # ----------------------------------------------------------------------------- torch
     def to_torch(self, device=None, dtype=None) -> dict:
         """Tensors for renderers: viewmat [4, 4] world-to-camera and K [3, 3]."""

@@ -34,7 +34,7 @@ from ..errors import InputError
 from ..io import load_torch, save_torch, write_json
 from ..validate import MAX_BAD_STEPS, NonFiniteError
 from .init import (background_shell, init_from_points, init_random_in_frusta, random_points_in_frusta,
-                   uncovered_cells)
+                   random_points_seen, uncovered_cells)
 from .model import Gaussians, inverse_sigmoid, quat_to_rotmat, rgb_to_sh
 from .ply import write_ply
 
@@ -119,6 +119,11 @@ class FitConfig(ConfigDict):
     # them) onto a sphere behind every camera (init.background_shell). Generated scenes, whose
     # points cover every surface, get almost none. 0: points only, as 3DGS.
     init_extra_random: float = 0.0
+    # With sparse points, also start this many random Gaussians inside the views'
+    # overlap (drawn as for a random initialisation: ``random_init_depth``,
+    # ``random_init_min_seen``, pixel colours): SfM triangulates no point on textureless
+    # surfaces near the object (a mat, a tabletop), and nothing else would grow there. 0: points only.
+    init_extra_seen: int = 0
     # Without sparse points: the fraction of the random Gaussians put on that sphere, and the
     # fraction of the training views each of the others must be seen in (0: anywhere in a frustum).
     random_init_shell: float = 0.0
@@ -599,6 +604,11 @@ def _initial_gaussians(scene: Scene, config: FitConfig, init: Union[None, str]) 
                                                               images=image, cells=cells,
                                                               shell=background_shell(cameras, points))
                 points, colors = np.concatenate([points, extra]), np.concatenate([colors, extra_colors])
+        if config.init_extra_seen > 0:
+            near, far = (d * scene.extent() for d in config.random_init_depth)
+            extra, extra_colors = random_points_seen(cameras, config.init_extra_seen, near, far, seed=config.seed,
+                                                     images=image, min_seen=config.random_init_min_seen)
+            points, colors = np.concatenate([points, extra]), np.concatenate([colors, extra_colors])
         return init_from_points(points, colors, sh_degree=config.sh_degree, device=config.device)
     if kind == "random":
         ext = scene.extent()

@@ -174,6 +174,30 @@ def clear_of_cameras(points: np.ndarray,  # [P, 3]
     return ok & (seen >= min_seen * len(cameras))
 
 
+def random_points_seen(
+    cameras: Sequence[Camera],
+    n: int,  # number of points
+    near: float,  # z-depth range the points are drawn from, in world units
+    far: float,
+    seed: int = 0,
+    images: Optional[Callable[[int], np.ndarray]] = None,  # view index -> float [H, W, 3] in [0, 1]
+    min_seen: float = 0.0,  # keep points inside at least this fraction of the views
+) -> tuple[np.ndarray, np.ndarray]:
+    """Up to ``n`` points of :func:`random_points_in_frusta` (and their colours), none closer
+    than ``near`` to any camera that sees it and each seen by at least ``min_seen`` of the
+    cameras: redrawn up to 16 times until enough are kept."""
+    parts, colors, drawn = [], [], 0
+    for attempt in range(16):  # draw, drop points near a camera or seen by few, repeat
+        pts, cols = random_points_in_frusta(cameras, 4 * n, near, far, seed=seed + attempt, images=images)
+        keep = clear_of_cameras(pts, cameras, near, min_seen)
+        parts.append(pts[keep])
+        colors.append(cols[keep])
+        drawn += int(keep.sum())
+        if drawn >= n:
+            break
+    return np.concatenate(parts)[:n], np.concatenate(colors)[:n]
+
+
 def init_random_in_frusta(
     cameras: Sequence[Camera],
     n: int,  # number of Gaussians
@@ -186,25 +210,15 @@ def init_random_in_frusta(
     shell_fraction: float = 0.0,  # this fraction goes on the background_shell
     min_seen: float = 0.0,  # keep points inside at least this fraction of the views
 ) -> Gaussians:
-    """``n`` Gaussians at :func:`random_points_in_frusta` (pixel colours when ``images`` is
-    given, else random ones), none closer than ``near`` to any camera that sees it and each
-    seen by at least ``min_seen`` of the cameras, and ``shell_fraction`` of them on the
-    :func:`background_shell`; scales and opacities as :func:`init_from_points`.
+    """``n`` Gaussians at :func:`random_points_seen` (pixel colours when ``images`` is
+    given, else random ones), and ``shell_fraction`` of them on the :func:`background_shell`;
+    scales and opacities as :func:`init_from_points`.
 
     ``min_seen`` keeps the draw where the views overlap (the middle of an orbit): points along
     one view's rays that few others see became a fog in front of the object on a real orbit
     capture (15.7 dB held-out after 1000 steps)."""
     n_shell = int(round(shell_fraction * n))
-    parts, colors, drawn = [], [], 0
-    for attempt in range(16):  # draw, drop points near a camera or seen by few, repeat
-        pts, cols = random_points_in_frusta(cameras, 4 * (n - n_shell), near, far, seed=seed + attempt, images=images)
-        keep = clear_of_cameras(pts, cameras, near, min_seen)
-        parts.append(pts[keep])
-        colors.append(cols[keep])
-        drawn += int(keep.sum())
-        if drawn >= n - n_shell:
-            break
-    points, cols = np.concatenate(parts)[: n - n_shell], np.concatenate(colors)[: n - n_shell]
+    points, cols = random_points_seen(cameras, n - n_shell, near, far, seed=seed, images=images, min_seen=min_seen)
     if n_shell:
         shell_pts, shell_cols = random_points_in_frusta(cameras, n_shell, near, far, seed=seed, images=images,
                                                         shell=background_shell(cameras))

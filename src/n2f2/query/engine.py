@@ -495,7 +495,7 @@ class QueryEngine:
         """Render what ``modes`` need for ``view`` (an index or a Camera) once, and cache it.
 
         Θ~ and Θ are rasterized in one pass when both are needed (rendering is linear)."""
-        from ..render import rasterize, render_rgb
+        from ..render import rasterize_in_bands, view_colors
 
         for m in modes:
             self._check_mode(m)
@@ -504,14 +504,18 @@ class QueryEngine:
         # Composite needs Theta~, the other kinds raw Theta: one rasterization of both.
         parts = (["tilde"] if "composite" in kinds else []) + \
                 (["theta"] if any(k != "composite" for k in kinds) else [])
-        stacked = torch.cat([self.theta_tilde if p == "tilde" else self.theta for p in parts], dim=1)
+        tensors = [self.theta_tilde if p == "tilde" else self.theta for p in parts]
+        stacked = tensors[0] if len(tensors) == 1 else torch.cat(tensors, dim=1)
         self.encode(self.config.negatives)  # loads the encoder on first use: not render time
         g = self.gaussians
+        H, W_ = cam.height, cam.width
         t0 = time.perf_counter()
-        out = rasterize(g.means, g.normalized_quats, g.scales, g.opacities, stacked, cam)
+        # Rendered in bands straight into the buffer the score cache keeps (one kind: no copy),
+        # so a view's transient memory is a band's, not a few copies of the whole [H, W, C].
+        flat = stacked.new_empty(H * W_, stacked.shape[1])
+        out = rasterize_in_bands(g.means, g.normalized_quats, g.scales, g.opacities, stacked, cam,
+                                 out=flat.view(H, W_, -1))
         t1 = time.perf_counter()
-        H, W_ = out.features.shape[:2]
-        flat = out.features.reshape(H * W_, -1)
         D = self.dim
         caches = {}
         for k in kinds:
@@ -520,9 +524,27 @@ class QueryEngine:
         t2 = time.perf_counter()
         image = None
         if rgb:
-            image = render_rgb(g, cam).features.clamp(0.0, 1.0)
+            image = rasterize_in_bands(g.means, g.normalized_quats, g.scales, g.opacities, view_colors(g, cam), cam,
+                                       background=(0.0, 0.0, 0.0)).features.clamp_(0.0, 1.0)
         return ViewCache(cam, index, name, caches, out.alpha.reshape(H, W_), image,
                          {"render": t1 - t0, "cache": t2 - t1})
+
+    def view_cache_bytes(self, view: Any, modes: Sequence[str] = ("composite",), rgb: bool = True) -> int:
+        """Bytes of what :meth:`render_view` keeps for ``view`` (an index or a Camera): per cache
+        kind the ``[P, D]`` features (prefix: ``[S, k, P]`` blocks) and ``[S, P]`` norms and
+        negatives, the alpha map and the colour image (``P`` = pixels; the shared ``W`` aside)."""
+        cam, _, _ = self.camera(view)
+        P = cam.width * cam.height
+        item = self.theta.element_size()
+        floats = P * (1 + (3 if rgb else 0))
+        for k in dict.fromkeys(self._cache_kind(m) for m in modes):
+            if k == "prefix":
+                S = len(self.scale_dims)
+                floats += P * (S * self.step + 2 * S)
+            else:
+                S = 1 if k == "composite" else 3
+                floats += P * (self.dim + 2 * S)
+        return floats * item
 
     @torch.no_grad()
     def query(self, view: ViewCache, texts: Sequence[str], mode: str = "composite",

@@ -25,7 +25,7 @@ from n2f2.cameras import Camera
 from n2f2.errors import N2F2Error
 from n2f2.render.sh import eval_sh, num_sh_bases
 
-__all__ = ["RenderOutput", "rasterize", "render_rgb", "view_colors", "eval_sh", "num_sh_bases"]
+__all__ = ["RenderOutput", "rasterize", "rasterize_in_bands", "render_rgb", "view_colors", "eval_sh", "num_sh_bases"]
 
 BACKENDS = ("auto", "torch", "numba", "gsplat")
 
@@ -73,6 +73,7 @@ def rasterize(
     transmittance_min: float = 1e-4,  # early termination threshold
     tile_size: int = 8,  # torch backend only
     background: Tensor | Sequence[float] | None = None,  # [C]
+    rows: tuple[int, int] | None = None,  # only image rows [y0, y1), y0 a multiple of tile_size (CPU backends)
 ) -> RenderOutput | list[RenderOutput]:
     """Render Gaussians carrying ``features`` from ``camera`` (a list of cameras -> a list).
 
@@ -82,7 +83,8 @@ def rasterize(
     if not isinstance(camera, Camera):
         return [rasterize(means, quats, scales, opacities, features, cam, backend=backend, near=near, far=far,
                           eps2d=eps2d, alpha_clamp=alpha_clamp, alpha_min=alpha_min,
-                          transmittance_min=transmittance_min, tile_size=tile_size, background=background)
+                          transmittance_min=transmittance_min, tile_size=tile_size, background=background,
+                          rows=rows)
                 for cam in camera]
     if backend not in BACKENDS:
         raise N2F2Error(f"unknown render backend {backend!r}; choose one of {', '.join(BACKENDS)}")
@@ -106,6 +108,9 @@ def rasterize(
     if backend == "gsplat":
         from n2f2.render.gsplat_backend import rasterize_gsplat
 
+        if rows is not None:
+            raise ValueError("rasterize: rows (a band of the image) needs a CPU backend")
+
         raw = rasterize_gsplat(means, quats, scales, opacities, features, cam["viewmat"], cam["K"],
                                camera.width, camera.height, near=near, far=far, eps2d=eps2d)
     else:
@@ -117,7 +122,7 @@ def rasterize(
         raw = rasterize_cpu(means, quats, scales, opacities, features, cam["viewmat"], cam["K"],
                             camera.width, camera.height, near=near, far=far, eps2d=eps2d,
                             alpha_clamp=alpha_clamp, alpha_min=alpha_min,
-                            transmittance_min=transmittance_min, tile_size=tile_size)
+                            transmittance_min=transmittance_min, tile_size=tile_size, rows=rows)
     alpha = raw["alpha"]
     dsum = raw["depth_sum"]
     # Expected depth; where nothing was blended alpha is exactly 0 and so is the depth sum.
@@ -128,6 +133,57 @@ def rasterize(
         feats = feats + bg * (1.0 - alpha)
     return RenderOutput(features=feats, alpha=alpha, depth=depth, means2d=raw["means2d"],
                         radii=raw["radii"], n_pairs=raw.get("n_pairs"))
+
+
+@torch.no_grad()
+def rasterize_in_bands(
+    means: Tensor,  # [N, 3]
+    quats: Tensor,  # [N, 4] wxyz
+    scales: Tensor,  # [N, 3]
+    opacities: Tensor,  # [N]
+    features: Tensor,  # [N, C]
+    camera: Camera,
+    *,
+    max_band_bytes: int = 16 * 2**20,
+    out: Tensor | None = None,  # [H, W, C], written in place; allocated when None
+    **kw: Any,  # rasterize()'s options
+) -> RenderOutput:
+    """:func:`rasterize` for inference, with working memory bounded by a band, not the image.
+
+    On CPU the image is rendered in bands of whole tile rows (``rasterize(rows=...)``), each
+    band's features written into ``out``: a render's transient memory (the compositing's tiled
+    output and its untiled copy, about three ``[h, W, C + 2]`` arrays) then stays near
+    ``max_band_bytes`` whatever the image size, and the result is the one-pass image (same
+    projection, same tiles; the torch backend's batches of tiles may round sums differently). ``radii`` are the largest over the bands (0: touches no
+    pixel). On CUDA (gsplat) it renders in one pass into ``out``. No gradients."""
+    H, W, C = camera.height, camera.width, features.shape[1]
+    if out is None:
+        out = features.new_empty(H, W, C)
+    elif tuple(out.shape) != (H, W, C) or out.dtype != features.dtype or out.device != features.device:
+        raise ValueError(f"out must be a {features.dtype} tensor of shape {(H, W, C)} on {features.device}, "
+                         f"got {out.dtype} {tuple(out.shape)} on {out.device}")
+    if means.device.type != "cpu":
+        one = rasterize(means, quats, scales, opacities, features, camera, **kw)
+        out.copy_(one.features)
+        return RenderOutput(out, one.alpha, one.depth, one.means2d, one.radii, one.n_pairs)
+    tile = int(kw.get("tile_size", 8))
+    per_row = 3 * W * (C + 2) * features.element_size()
+    rows = max(tile, (max_band_bytes // max(per_row, 1)) // tile * tile)
+    alpha = features.new_empty(H, W, 1)
+    depth = features.new_empty(H, W, 1)
+    means2d, radii, pairs = None, None, 0
+    for y0 in range(0, H, rows):
+        y1 = min(H, y0 + rows)
+        band = rasterize(means, quats, scales, opacities, features, camera, rows=(y0, y1), **kw)
+        out[y0:y1] = band.features
+        alpha[y0:y1] = band.alpha
+        depth[y0:y1] = band.depth
+        radii = band.radii if radii is None else torch.maximum(radii, band.radii)
+        means2d = band.means2d
+        pairs += band.n_pairs or 0
+        del band
+    return RenderOutput(features=out, alpha=alpha, depth=depth, means2d=means2d, radii=radii,
+                        n_pairs=pairs)
 
 
 def view_colors(

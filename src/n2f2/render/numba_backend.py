@@ -270,7 +270,7 @@ def rasterize_numba(
     K: Tensor,  # [3, 3]
     width: int,
     height: int,
-    **kw,  # near, far, eps2d, alpha_clamp, alpha_min, transmittance_min, tile_size
+    **kw,  # near, far, eps2d, alpha_clamp, alpha_min, transmittance_min, tile_size, rows
 ) -> dict:
     """:func:`~n2f2.render.torch_backend.rasterize_torch` with the compiled compositing; the
     same dict (``n_pairs`` counts the pairs the pixels walked, without padding)."""

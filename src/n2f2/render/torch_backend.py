@@ -143,6 +143,7 @@ class Bins:
     tile_size: int
     radii: Tensor  # [N] int32, ceil of the larger half-extent, 0 if the Gaussian touches no tile
     evaluated: int = 0  # pixel-Gaussian pairs the last forward composited (padding included)
+    row0: int = 0  # image row of the tiles' first row (a band of a larger image; a multiple of tile_size)
 
 
 @torch.no_grad()
@@ -154,19 +155,22 @@ def bin_gaussians(
     width: int,
     height: int,
     tile_size: int = 8,
+    row0: int = 0,  # bin only image rows [row0, row0 + height): one band of a taller image
 ) -> Bins:
     """Assign depth-sorted Gaussians to the tiles whose pixel centres their box covers."""
     device = means2d.device
+    if row0 % tile_size:
+        raise ValueError(f"a band must start on a tile row: row0 = {row0}, tile size {tile_size}")
     tiles_x = -(-width // tile_size)
     tiles_y = -(-height // tile_size)
     ok = valid.clone()
     lo, hi = [], []
-    for axis, size in ((0, width), (1, height)):
+    for axis, start, size in ((0, 0, width), (1, row0, height)):
         m = means2d[:, axis].detach()
         h = half_extent[axis] + 1e-3  # margin: float rounding never drops a pixel the reference keeps
         # Pixel index i has its centre at i + 0.5; covered: ceil(m - h - .5) .. floor(m + h - .5).
-        a = torch.ceil(m - h - 0.5).clamp_(min=0.0)
-        b = torch.floor(m + h - 0.5).clamp_(max=size - 1.0)
+        a = torch.ceil(m - h - 0.5).clamp_(min=float(start)) - start
+        b = torch.floor(m + h - 0.5).clamp_(max=start + size - 1.0) - start
         ok &= a <= b
         lo.append(a)
         hi.append(b)
@@ -197,7 +201,7 @@ def bin_gaussians(
     tile_len = torch.bincount(tile, minlength=n_tiles)
     tile_start = torch.cumsum(tile_len, 0) - tile_len
     radii = torch.where(ok, torch.ceil(half_extent.amax(0)), 0.0).to(torch.int32)
-    return Bins(gid, tile, tile_start, tile_len, tiles_x, tiles_y, tile_size, radii)
+    return Bins(gid, tile, tile_start, tile_len, tiles_x, tiles_y, tile_size, radii, row0=row0)
 
 
 def pair_coefficients(
@@ -216,7 +220,7 @@ def pair_coefficients(
     table = torch.cat([torch.log(opacities.clamp_min(1e-30))[None], means2d.T, conics], dim=0)  # [6, N]
     logo, mx, my, a, b, c = table.index_select(1, bins.pair_gid)  # [M] each
     dx = (bins.pair_tile % bins.tiles_x).to(mx.dtype).mul_(ts).add_(0.5 * ts) - mx
-    dy = (bins.pair_tile // bins.tiles_x).to(my.dtype).mul_(ts).add_(0.5 * ts) - my
+    dy = (bins.pair_tile // bins.tiles_x).to(my.dtype).mul_(ts).add_(0.5 * ts + bins.row0) - my
     adx = a * dx
     cdy = c * dy
     bdy = b * dy
@@ -466,6 +470,7 @@ def rasterize_torch(
     chunk: int = 128,
     batch_elements: int = 1 << 17,
     composite=None,  # the compositing autograd Function's apply; default: this module's
+    rows: tuple[int, int] | None = None,  # render only image rows [y0, y1) (y0 on a tile row)
 ) -> dict:
     """Rasterize with the pure-PyTorch backend.
 
@@ -476,10 +481,19 @@ def rasterize_torch(
 
     Returns a dict: features [H, W, C], alpha [H, W, 1], depth_sum [H, W, 1] (sum w_i z_i,
     not normalised), means2d [N, 2], radii [N] int32, n_pairs (int, pixel-Gaussian pairs the
-    forward compositing evaluated, padding included, early-stopped tiles not; for benchmarks)."""
+    forward compositing evaluated, padding included, early-stopped tiles not; for benchmarks).
+
+    ``rows``: the features, alpha and depth of those rows only ([y1 - y0, W, ...]), exactly as
+    in the whole image: the projection is the whole image's (3DGS's Jacobian clamp depends on
+    the image bounds), and the tiles and their centres are the whole image's tiles."""
     proj = project_gaussians(means, quats, scales, opacities, viewmat, K, width, height,
                              near=near, far=far, eps2d=eps2d, alpha_min=alpha_min)
-    bins = bin_gaussians(proj.means2d, proj.half_extent, proj.depths, proj.valid, width, height, tile_size)
+    y0, y1 = rows if rows is not None else (0, height)
+    if not 0 <= y0 < y1 <= height:
+        raise ValueError(f"rows [{y0}, {y1}) are not inside an image of height {height}")
+    height = y1 - y0
+    bins = bin_gaussians(proj.means2d, proj.half_extent, proj.depths, proj.valid, width, height, tile_size,
+                         row0=y0)
     kp = pair_coefficients(proj.means2d, proj.conics, opacities, bins)
     cfg = CompositeConfig(alpha_clamp=alpha_clamp, alpha_min=alpha_min,
                           transmittance_min=transmittance_min, chunk=chunk,

@@ -55,9 +55,16 @@ class ViewerLimits:
     max_body_bytes: int = 16 * 1024
     max_queries: int = 8
     max_query_chars: int = 200
-    # Bytes of cached renders (LRU). One 640x480 view of a D = 128 field holds ~160 MB in
-    # composite mode and ~470 MB in explicit mode; a render larger than the bound is not cached.
+    # Bytes of cached renders (LRU), the render in flight included: before a view is rendered,
+    # old entries make room for what it will keep plus ``render_transient_bytes``. One 640x480
+    # view of a D = 128 field keeps ~160 MB in composite mode and ~470 MB in explicit mode; a
+    # render larger than the bound is not cached.
     render_cache_bytes: int = 512 * 2**20
+    # Working memory of one render and its answer beyond what the view keeps: the rasterizer's
+    # bands (``rasterize_in_bands``, ~16 MB), the score cache's blocks (~32 MB) and the
+    # per-query maps and PNGs (measured on a 640x480 view, D = 128: ~60 MB rendering, ~30 MB
+    # answering one query; see docs/measurements.md).
+    render_transient_bytes: int = 96 * 2**20
 
 
 class ApiError(Exception):
@@ -216,6 +223,13 @@ class ByteLRU:
         self._items.move_to_end(key)
         return item[0]
 
+    def reserve(self, nbytes: int) -> None:
+        """Evict least-recently-used entries until ``nbytes`` more fit under the bound (or the
+        cache is empty): room for a value being made, before it takes memory."""
+        while self._items and self.nbytes + nbytes > self.max_bytes:
+            _, (_, evicted) = self._items.popitem(last=False)
+            self.nbytes -= evicted
+
     def put(self, key: str, value: Any) -> bool:
         """Store ``value``, evicting least-recently-used entries until it fits; False when it is
         larger than the bound (then nothing is evicted and it is not stored)."""
@@ -328,6 +342,10 @@ class Viewer:
         cache = self._renders.get(key)
         if cache is not None:
             return cache, True
+        # Room for the render in flight first, so that the cache and the request together stay
+        # within the bound (the evicted renders are freed before the new one allocates).
+        self._renders.reserve(self.engine.view_cache_bytes(view, [mode], rgb=True)
+                              + self.limits.render_transient_bytes)
         cache = self.engine.render_view(view, modes=[mode], rgb=True)
         compact_tensors(cache, self._shared)
         self._renders.put(key, cache)
@@ -365,9 +383,9 @@ class Viewer:
             col, row = max_locations(box_filter(r, box))[0]
             lo, hi = float(r.min()), float(r.max())
             norm = (r - lo) / (hi - lo) if hi > lo else np.zeros_like(r)
-            heat = cmap(norm)[..., :3]
+            heat = cmap(norm, bytes=True)[..., :3]  # uint8: a float64 [H, W, 4] per query otherwise
             weight = 0.65 * norm[..., None]
-            overlay = rgb * (1 - weight) + heat * weight
+            overlay = rgb * (1 - weight) + heat.astype(np.float32) * (weight / 255.0)
             mask_rgba = np.zeros(mask.shape + (4,), np.uint8)
             mask_rgba[mask] = (255, 255, 255, 255)
             out.append({
@@ -539,10 +557,30 @@ def json_error_protocol() -> type:
     return JsonErrorH11Protocol
 
 
+def return_freed_buffers(threshold: int = 1 << 20) -> bool:
+    """Ask glibc to serve every allocation of ``threshold`` bytes or more with its own mapping,
+    returned to the system when freed, and to trim free heap above ``threshold``. By default
+    glibc raises both thresholds up to 32 / 64 MB as large blocks are freed, and a render's
+    freed bands and blocks then stayed in the heap: the server's resident memory settled ~66 MB
+    above its cache (~15 MB with this). False where glibc is not the C library."""
+    import ctypes
+    import ctypes.util
+
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        # -1: M_TRIM_THRESHOLD (free memory kept at the heap's top), -3: M_MMAP_THRESHOLD. Both
+        # fixed, as the loading of a run has already raised glibc's dynamic values.
+        return bool(libc.mallopt(-1, int(threshold))) and bool(libc.mallopt(-3, int(threshold)))
+    except (OSError, AttributeError):
+        return False
+
+
 def api_server(viewer: Viewer, host: str = "127.0.0.1", port: int = 7008) -> Any:
     """A ``uvicorn.Server`` for the JSON API (and the 2D page) of ``viewer``; ``server.run()``
     blocks, so callers run it in a thread beside the 3D viewer."""
     import uvicorn
+
+    return_freed_buffers()
 
     config = uvicorn.Config(create_app(viewer), host=host, port=port, log_level="warning",
                             http=json_error_protocol())
