@@ -91,10 +91,18 @@ def test_random_init_resets_opacity_twice_inside_the_densification_window(tmp_pa
         assert cfg.opacity_reset_every == 700
         assert [s for s in range(1, cfg.steps + 1)
                 if s % cfg.opacity_reset_every == 0 and s < cfg.densify_until] == [700, 1400]
-    # Sparse points or a trained PLY: the cpu preset's rule, no reset.
-    assert FitConfig.cpu().sized_for(with_points).opacity_reset_every == 0
+    # Points in a small cluster leave most of every view's cells empty (a backdrop): 2 x 5000
+    # random Gaussians join them where the views overlap, and the same resets.
+    clustered = FitConfig.cpu().sized_for(with_points)
+    assert clustered.background_sh_degree == 2  # the backdrop rule's own sign
+    assert (clustered.opacity_reset_every, clustered.init_extra_seen) == (700, 10_000)
+    # Points covering every view (a sphere around the ring) or a trained PLY: no reset, no extra.
+    d = rng.normal(size=(40_000, 3))
+    covering = _scene(tmp_path / "s", 80, 320, 240, points=20.0 * d / np.linalg.norm(d, axis=1, keepdims=True))
+    assert (FitConfig.cpu().sized_for(covering).opacity_reset_every, FitConfig.cpu().sized_for(covering).init_extra_seen) == (0, 0)
     trained = init_from_points(rng.normal(size=(8, 3)), np.full((8, 3), 128, np.uint8))
     assert FitConfig.cpu().sized_for(no_points, init=trained).opacity_reset_every == 0
+    assert FitConfig.cpu().sized_for(no_points, init=trained).init_extra_seen == 0
 
 
 def test_resolution_factor_follows_the_schedule():

@@ -166,10 +166,13 @@ class FitConfig(ConfigDict):
         * the background is learned only for a backdrop without sparse points
           (``BACKDROP_UNCOVERED``); otherwise it is black, as 3DGS;
         * a random initialisation (``init`` as :func:`fit_gaussians` takes it: ``"random"``, or
-          ``None`` on a scene without sparse points) resets opacities every ``RANDOM_INIT_RESET_FRACTION`` of the steps, as 3DGS
-          does on every scene: random Gaussians that only some training views constrain become
-          floaters in front of the others, and only a reset clears them (initialised from
-          sparse points, the short schedule does better without it; see :meth:`cpu`)."""
+          ``None`` on a scene without sparse points) resets opacities every
+          ``RANDOM_INIT_RESET_FRACTION`` of the steps, as 3DGS does on every scene: random
+          Gaussians that only some training views constrain become floaters in front of the
+          others, and only a reset clears them;
+        * sparse points that leave a backdrop uncovered get ``BACKDROP_EXTRA_SEEN`` x
+          ``random_init_count`` random Gaussians where the views overlap, and the same resets
+          (points alone, on generated scenes, do better without resets; see :meth:`cpu`)."""
         train, _ = split_views(scene, self.test_every)
         cams = [scene.cameras[i] for i in train]
         if _has_points(scene):
@@ -182,8 +185,11 @@ class FitConfig(ConfigDict):
             steps = int(np.clip(round(EPOCHS * len(train), -2), MIN_STEPS, MAX_STEPS))
         ref = FitConfig.cpu()  # the fractions of the 1500-step schedule
         frac = steps / ref.steps
-        random_init = init_kind(scene, init) == "random"
-        reset = int(round(RANDOM_INIT_RESET_FRACTION * steps, -2)) if random_init else self.opacity_reset_every
+        kind = init_kind(scene, init)
+        # Random Gaussians (all of them, or beside points that miss a backdrop) need resets.
+        extra_seen = round(BACKDROP_EXTRA_SEEN * self.random_init_count) if backdrop and kind == "points" else 0
+        random_part = kind == "random" or extra_seen > 0
+        reset = int(round(RANDOM_INIT_RESET_FRACTION * steps, -2)) if random_part else self.opacity_reset_every
         coarse = math.sqrt(pixels / COARSE_PIXELS)
         return replace(
             self,
@@ -198,6 +204,7 @@ class FitConfig(ConfigDict):
             background_from_images=self.background_from_images and backdrop,
             background_sh_degree=self.background_sh_degree if backdrop else -1,
             opacity_reset_every=reset,
+            init_extra_seen=extra_seen or self.init_extra_seen,
         )
 
     @staticmethod
@@ -268,6 +275,12 @@ BACKDROP_UNCOVERED = 0.1
 # densification window (which ends at 73 % of the run), the second leaving 30 % of the run to
 # recover (3DGS's last reset, at 12k of 30k steps, leaves 60 %).
 RANDOM_INIT_RESET_FRACTION = 0.35
+# Sparse points that leave a backdrop uncovered (a real object capture: SfM triangulates nothing
+# on the plain mat or table around the object) are joined by this many times
+# ``random_init_count`` random Gaussians inside the views' overlap (``init_extra_seen``), and the
+# fit then resets opacities as a random initialisation does (docs/measurements.md, "Sparse
+# points and random Gaussians").
+BACKDROP_EXTRA_SEEN = 2.0
 
 
 @dataclass
