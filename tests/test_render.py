@@ -368,3 +368,19 @@ def test_render_rgb_duck_typed():
     colors0 = (SH_C0 * sh[:, 0] + 0.5).clamp_min(0)
     plain0 = rasterize(means, quats, scales, opac, colors0, camera, backend="torch", background=(1.0, 1.0, 1.0))
     torch.testing.assert_close(out0.features, plain0.features)
+
+
+def test_numba_many_channels_long_lists_and_termination():
+    # C = 64 as the semantic features: the numba kernels' channel loops in groups of four
+    # pixels, tile lists walked past one gathered step of Gaussians, clamped alphas (opacity
+    # up to 0.999) and early termination, all against the brute-force reference in float64.
+    from n2f2.render.numba_backend import _CHUNK
+
+    camera = _camera()
+    params = _scene(250, 64, opacity=(0.05, 0.999), scale=(0.1, 0.4), seed=11)
+    out, _ = _compare(params, camera, rtol=1e-10, atol=1e-10, grad_rtol=1e-8, grad_atol=1e-9, backend="numba")
+    assert out.n_pairs > _CHUNK * camera.width * camera.height  # some pixels walked more than one step
+    # A limit no pixel reaches (0.01^100 > 1e-300): every pixel walks its whole list.
+    endless, _ = _compare(params, camera, rtol=1e-10, atol=1e-10, grad_rtol=1e-8, grad_atol=1e-9, backend="numba",
+                          transmittance_min=1e-300)
+    assert out.n_pairs < endless.n_pairs  # with the default limit, pixels stopped early
