@@ -88,7 +88,7 @@ def child(args: argparse.Namespace) -> int:
     import torch
 
     from n2f2.cli import main
-    from n2f2.segments import commands
+    from n2f2.segments import setup
     from n2f2.segments.bank import SegmentAndEncode
 
     wall0 = time.perf_counter()
@@ -96,7 +96,7 @@ def child(args: argparse.Namespace) -> int:
     depth_s: dict[int, float] = {}
     marks: list[tuple[float, float]] = []  # (start, end) of each image's extraction
     original = SegmentAndEncode.extract
-    original_depth = commands._depth_provider
+    original_depth = setup.depth_provider
     state = {"models_loaded_at": None}
 
     def depth_provider(*a, **k):
@@ -131,7 +131,7 @@ def child(args: argparse.Namespace) -> int:
         return segs, emb
 
     SegmentAndEncode.extract = extract
-    commands._depth_provider = depth_provider
+    setup.depth_provider = depth_provider
     if args.device.startswith("cuda"):
         torch.cuda.reset_peak_memory_stats()
     argv = ["segments", str(args.scene), "--gaussians", str(args.scene / "gaussians.ply"), "--segmenter", "sam",

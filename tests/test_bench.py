@@ -11,8 +11,19 @@ import numpy as np
 import pytest
 import torch
 
-from n2f2.eval.bench import (ActivationMeter, BenchConfig, VARIANTS, convergence, main, paired_difference,
-                             run_bench, run_name, scaled_step)
+from n2f2.cli import main as cli_main
+from n2f2.experiments.bench import BenchConfig, run_bench
+from n2f2.experiments.claims import convergence, paired_difference
+from n2f2.experiments.memory import ActivationMeter
+from n2f2.experiments.variants import VARIANTS, run_name, scaled_step
+
+
+def main(argv: list[str]) -> int:
+    """``n2f2 bench ARGV``'s exit status (a refused option exits inside argparse)."""
+    try:
+        return cli_main(["bench", *argv])
+    except SystemExit as e:
+        return int(e.code or 0)
 
 
 @pytest.fixture(scope="module")
@@ -159,7 +170,8 @@ def test_a_longer_bench_continues_a_shorter_run_exactly(tiny, tmp_path):
     """4 steps then 2 more (the bench continues the checkpoint) = 6 steps at once."""
     from dataclasses import replace
 
-    from n2f2.eval.bench import BenchData, train_variant
+    from n2f2.experiments.bench import BenchData
+    from n2f2.experiments.training import train_variant
     from n2f2.field import load_field
 
     out, root = tiny["out"], tiny["root"]
@@ -184,7 +196,8 @@ def test_an_interrupted_extension_is_finished_not_reused(tiny, tmp_path):
     import shutil
     from dataclasses import replace
 
-    from n2f2.eval.bench import BenchData, train_variant
+    from n2f2.experiments.bench import BenchData
+    from n2f2.experiments.training import train_variant
 
     out, root = tiny["out"], tiny["root"]
     data = BenchData(tiny["scene"], root / "gaussians.ply", out / "data" / "bank", tiny["scene"] / "label")

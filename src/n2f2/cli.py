@@ -5,7 +5,6 @@ one clear line and a non-zero exit, without a traceback."""
 from __future__ import annotations
 
 import argparse
-import importlib
 import os
 import sys
 
@@ -24,18 +23,22 @@ from . import __version__
 from .errors import N2F2Error
 from .validate import OneLineArgumentParser
 
-# In data-flow order; a stage whose commands module does not exist yet is skipped.
-COMMAND_MODULES = (
-    "n2f2.data.commands",
-    "n2f2.gaussians.commands",
-    "n2f2.segments.commands",
-    "n2f2.train.commands",
-    "n2f2.query.commands",
-    "n2f2.eval.commands",
-    "n2f2.eval.bench",
-    "n2f2.viewer.commands",
-    "n2f2.pipeline",
-)
+
+def command_modules() -> tuple:
+    """Each stage's ``commands`` module, in data-flow order. Imported here, not at the top of
+    this file: they import torch, which must load after the OpenMP wait policy is chosen."""
+    from .data import commands as data_commands
+    from .eval import commands as eval_commands
+    from .experiments import commands as experiments_commands
+    from .gaussians import commands as gaussians_commands
+    from .pipeline import commands as pipeline_commands
+    from .query import commands as query_commands
+    from .segments import commands as segments_commands
+    from .train import commands as train_commands
+    from .viewer import commands as viewer_commands
+
+    return (data_commands, gaussians_commands, segments_commands, train_commands, query_commands,
+            eval_commands, pipeline_commands, experiments_commands, viewer_commands)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -45,13 +48,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"n2f2 {__version__}")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name in COMMAND_MODULES:
-        try:
-            module = importlib.import_module(name)
-        except ModuleNotFoundError as e:
-            if e.name and name.startswith(e.name):  # the stage is not there yet
-                continue
-            raise
+    for module in command_modules():
         module.register(subparsers)
     return parser
 

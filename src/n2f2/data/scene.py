@@ -153,6 +153,26 @@ class GroundTruth:
         return _read_json(self.root / "queries.json")["queries"]
 
 
+SCENE_META_NAME = "scene.json"
+
+
+def read_scene_meta(root: str | Path) -> dict:
+    """``ROOT/scene.json`` (the demo generator's record: layout, seed, sizes, held-out and
+    labelled views), or ``{}`` when the scene has none. Not a JSON object: InputError."""
+    import json
+
+    path = Path(root) / SCENE_META_NAME
+    if not path.is_file():
+        return {}
+    try:
+        meta = json.loads(path.read_text())
+    except (OSError, ValueError):
+        raise InputError(path, "not a valid JSON object") from None
+    if not isinstance(meta, dict):
+        raise InputError(path, "not a valid JSON object")
+    return meta
+
+
 def _read_json(path: Path) -> dict:
     # Keyed on the modification time too, so a scene regenerated in place is read again.
     return _read_json_cached(str(path), path.stat().st_mtime_ns)

@@ -1240,21 +1240,21 @@ _OUTPUT_FILES = ("transforms.json", "sparse_pc.ply", "regions.json", "queries.js
 def _prepare_output_dir(out: Path) -> None:
     """Refuse a non-empty folder that is not a demo scene; clear an old demo scene's outputs.
     ``scene.json`` is written last, so a folder without it is an interrupted generation."""
-    import json
     import shutil
 
     from ..errors import InputError
+    from .scene import SCENE_META_NAME, read_scene_meta
 
     if out.exists() and not out.is_dir():
         raise InputError(out, "output path exists and is not a folder")
     if not out.exists() or not any(out.iterdir()):
         return
-    meta_path = out / "scene.json"
+    meta_path = out / SCENE_META_NAME
     is_demo = False
     if meta_path.is_file():
         try:
-            is_demo = json.loads(meta_path.read_text()).get("generator") == GENERATOR
-        except (OSError, ValueError, AttributeError):
+            is_demo = read_scene_meta(out).get("generator") == GENERATOR
+        except InputError:
             is_demo = False
     else:  # an interrupted generation: only our own names inside
         names = {p.name for p in out.iterdir()}
@@ -1318,6 +1318,7 @@ def write_contact_sheet(scene_dir: str | Path, out_png: str | Path, max_views: i
     from matplotlib.patches import Patch
 
     from ..errors import InputError
+    from .scene import read_scene_meta
 
     scene_dir = Path(scene_dir)
     try:
@@ -1358,8 +1359,8 @@ def write_contact_sheet(scene_dir: str | Path, out_png: str | Path, max_views: i
         axes[lv + 1, -1].legend(handles=handles, loc="center left", fontsize=5, frameon=False,
                                 ncol=1 + len(handles) // 8, handlelength=1.0, borderaxespad=0)
     try:
-        layout = json.loads((scene_dir / "scene.json").read_text()).get("layout", "tabletop")
-    except (OSError, ValueError, AttributeError):
+        layout = read_scene_meta(scene_dir).get("layout", "tabletop")
+    except InputError:
         layout = "?"
     axes[0, -1].text(0.0, 0.5, f"{scene_dir.name} ({layout})\n{len(images)} views\nblack = no region",
                      fontsize=7, va="center")

@@ -5,6 +5,8 @@ from .._lazy import lazy_exports
 
 __getattr__, __all__ = lazy_exports(__name__, {
     "QueryDeltas": "metrics",
+    "average_precision": "metrics",
+    "loss_budget": "budget",
     "RetrievalScores": "metrics",
     "per_query_scores": "metrics",
     "query_deltas": "metrics",

@@ -1,5 +1,6 @@
 """``n2f2 eval``: score a trained run on LangSplat-format labels (LERF-OVS protocol, both box
-sizes, simple vs compound, R@K retrieval, per-query deltas against another run)."""
+sizes, mAP, simple vs compound and part / object / group splits, R@K retrieval, per-query deltas
+against another run, and with ``--budget`` the loss budget from the teacher to the answers)."""
 
 from __future__ import annotations
 
@@ -13,10 +14,11 @@ def register(subparsers) -> None:
 
     p = subparsers.add_parser(
         "eval",
-        help="evaluate a trained run on LangSplat-format labels (loc. accuracy, mIoU, R@K, deltas)",
+        help="evaluate a trained run on LangSplat-format labels (loc. accuracy, mIoU, mAP, R@K, deltas)",
         description="Render every labelled view once, answer all of its label categories in one batch per "
                     "mode, and score them with LangSplat's LERF-OVS protocol, under LangSplat's exact 30 px "
-                    "box and under the box scaled to the image width (both are always reported). Writes "
+                    "box and under the box scaled to the image width (both are always reported), with the "
+                    "threshold-free AP of each map against the exact mask (else the label polygons). Writes "
                     "OUT/eval.json (every number), OUT/eval.md (tables), OUT/*.png (plots) and float32 "
                     "relevancy maps OUT/relevancy/<view>/<query>.npy of the composite mode (for rescoring "
                     "with other evaluators; the three level maps [3, H, W] for a 3-level field).")
@@ -42,25 +44,16 @@ def register(subparsers) -> None:
     p.add_argument("--temperature", type=positive_float, default=1.0,
                    help="composite gamma = softmax(score / T); 1 = paper (default)")
     p.add_argument("--no-relevancy", action="store_true", help="do not write the relevancy .npy files")
+    p.add_argument("--budget", action="store_true",
+                   help="also write the loss budget: the same labels scored on the teacher's own per-view features "
+                        "(the segment bank at 3 levels), on the teacher lifted onto the Gaussians and rendered back "
+                        "(`lift`, no network), and on the field (oracle scale, composite, explicit); one table of "
+                        "mIoU, loc., mAP and the part / object / group split in eval.json and eval.md")
     p.add_argument("--force", action="store_true",
                    help="replace the evaluation already in OUT (eval.json, eval.md, the plots, relevancy/)")
     p.add_argument("--device", default="cpu", help="torch device (default cpu)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
-
-
-# What `n2f2 eval` writes into OUT (n2f2.eval.runner.write_eval_outputs), plots by pattern.
-RESULT_NAMES = ("eval.json", "eval.md", "relevancy", "scores.png", "simple_compound.png", "recall_at_k.png")
-RESULT_PATTERNS = ("scales_*.png", "delta_*.png")
-
-
-def eval_results(out) -> list[str]:
-    """The names of a previous evaluation's files that ``out`` may hold."""
-    from pathlib import Path
-
-    out = Path(out)
-    found = sorted(p.name for pattern in RESULT_PATTERNS for p in out.glob(pattern)) if out.is_dir() else []
-    return [*RESULT_NAMES, *found]
 
 
 def run(args: argparse.Namespace) -> int:
@@ -69,6 +62,7 @@ def run(args: argparse.Namespace) -> int:
     from ..errors import InputError
     from ..io import claim_out_dir, remove_results
     from ..query.engine import QueryConfig
+    from .reports import eval_results
     from .runner import EvalConfig, evaluate_run, load_eval, write_eval_outputs
 
     if not args.temperature > 0:
@@ -83,16 +77,36 @@ def run(args: argparse.Namespace) -> int:
     config = EvalConfig(modes=tuple(args.mode) if args.mode else None,
                         missing_frames="skip" if args.skip_missing_frames else "error",
                         rescale_labels=args.rescale_labels, progress=not args.quiet)
+    query_config = QueryConfig(temperature=args.temperature)
+    engine = None
+    if args.budget:  # one engine (and text encoder) for the evaluation and the budget
+        from ..query.engine import QueryEngine
+
+        engine = QueryEngine.from_run(args.run_dir, device=args.device, scene=args.scene, config=query_config)
+        bank = args.bank or engine.meta.get("bank")
+        if not bank or not Path(bank).is_dir():  # before any work: the teacher is the segment bank
+            raise InputError(Path(bank) if bank else Path(args.run_dir),
+                             "--budget needs the run's segment bank (the teacher): pass --bank DIR")
     result = evaluate_run(args.run_dir, args.labels, scene=args.scene, bank=args.bank,
-                          query_types=args.query_types, config=config,
-                          query_config=QueryConfig(temperature=args.temperature), device=args.device,
+                          query_types=args.query_types, config=config, query_config=query_config, device=args.device,
                           relevancy_dir=None if args.no_relevancy else out / "relevancy",
-                          on_ready=lambda: remove_results(out, present))  # --force: the inputs are checked
+                          on_ready=lambda: remove_results(out, present),  # --force: the inputs are checked
+                          engine=engine)
+    if args.budget:
+        from .budget import loss_budget
+
+        result.budget = loss_budget(args.run_dir, args.labels, scene=args.scene, bank=args.bank,
+                                    query_types=args.query_types, config=config, query_config=query_config,
+                                    device=args.device, field_result=result, engine=engine)
     write_eval_outputs(result, out, compare=args.compare)
     for m in result.modes:
-        parts = [f"{b}: loc {100 * s.loc_accuracy:.1f}% mIoU {100 * s.miou:.1f}% (box {','.join(map(str, s.box_sizes))} px)"
-                 for b, s in result.scores[m].items()]
+        parts = [f"{b}: loc {100 * s.loc_accuracy:.1f}% mIoU {100 * s.miou:.1f}% mAP {100 * result.ap[m][b]['map']:.1f}% "
+                 f"(box {','.join(map(str, s.box_sizes))} px)" for b, s in result.scores[m].items()]
         print(f"eval {m}: " + "; ".join(parts))
+    if result.budget:
+        from .budget import budget_table
+
+        print("loss budget:\n" + budget_table(result.budget))
     for note in result.notes:
         print(f"note: {note}")
     print(f"eval: {result.scores[result.modes[0]]['exact'].num_pairs} pairs in {result.seconds:.1f} s -> {out}")

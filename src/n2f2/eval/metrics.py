@@ -15,6 +15,15 @@
   To pool segments over several views, score each view with :func:`segment_mean_relevancy`
   and concatenate the columns (ids then index the concatenation).
 
+* **Average precision (AP) of a relevancy map.** The pixels of a frame are ranked by relevancy
+  against a ground-truth mask (threshold-free: it separates ranking the right pixels first from
+  the protocol's min-max threshold). Defined as scikit-learn's ``average_precision_score``:
+  ``AP = sum_n (R_n - R_{n-1}) P_n`` over the distinct scores taken as thresholds, highest
+  first (``P_n``, ``R_n``: precision and recall of the pixels scoring at least the n-th
+  threshold, ``R_0 = 0``). Tied scores form one threshold, so pixels of equal relevancy are
+  counted together, whatever their order. A map constant over the image scores the mask's
+  share of the pixels.
+
 * **Per-query deltas between two runs** (e.g. N2F2 against a baseline): ``delta = b - a`` for
   every query both runs scored, sorted, with the top and bottom ``n``.
 """
@@ -136,6 +145,31 @@ def recall_at_k(
     first = float(np.mean([p.first_rank for p in per_query])) if per_query else math.nan
     pool = int((~np.isnan(sc)).any(axis=0).sum())
     return RetrievalScores(ks, mean, first, per_query, skipped, pool)
+
+
+# ------------------------------------------------------------------------------ AP
+def average_precision(
+    scores: np.ndarray,  # [...] relevancy (or any score), higher = more likely positive
+    positives: np.ndarray,  # [...] bool ground truth, same shape, at least one True
+) -> float:
+    """Average precision of ranking ``scores`` against ``positives`` (see module docstring;
+    equal to scikit-learn's ``average_precision_score``, ties as one threshold)."""
+    s = np.asarray(scores, dtype=np.float64).reshape(-1)
+    y = np.asarray(positives).reshape(-1) != 0
+    if np.shape(scores) != np.shape(positives):
+        raise ValueError(f"scores {np.shape(scores)} and positives {np.shape(positives)} differ in shape")
+    if not np.isfinite(s).all():
+        raise ValueError("scores contain NaN or infinite values")
+    total = int(y.sum())
+    if total == 0:
+        raise ValueError("average precision needs at least one positive")
+    order = np.argsort(-s, kind="stable")
+    s, y = s[order], y[order]
+    last = np.r_[np.flatnonzero(s[1:] != s[:-1]), s.size - 1]  # last index of each tie group
+    tp = np.cumsum(y)[last]
+    precision = tp / (last + 1.0)
+    recall = tp / float(total)
+    return float(np.sum(np.diff(recall, prepend=0.0) * precision))
 
 
 # ------------------------------------------------------------------------------ deltas

@@ -17,6 +17,18 @@ import numpy as np
 from ..io import atomic_path
 
 
+# What `n2f2 eval` writes into OUT (n2f2.eval.runner.write_eval_outputs), plots by pattern.
+RESULT_NAMES = ("eval.json", "eval.md", "relevancy", "scores.png", "simple_compound.png", "recall_at_k.png")
+RESULT_PATTERNS = ("scales_*.png", "delta_*.png")
+
+
+def eval_results(out: Union[str, Path]) -> list[str]:
+    """The names of a previous evaluation's files that ``out`` may hold."""
+    out = Path(out)
+    found = sorted(p.name for pattern in RESULT_PATTERNS for p in out.glob(pattern)) if out.is_dir() else []
+    return [*RESULT_NAMES, *found]
+
+
 def _fmt(value: object, digits: int = 1, percent: bool = False) -> str:
     """Numbers as text: percent (x100) with ``digits`` decimals, NaN as "n/a", None as "-"."""
     if value is None:
@@ -97,12 +109,6 @@ def deltas_table(deltas: object, name_a: str = "a", name_b: str = "b", percent: 
     return markdown_table(["", "query", name_a, name_b, "delta"], rows, ["l", "l", "r", "r", "r"])
 
 
-def ovs3d_table(scores: Mapping[str, object]) -> str:  # scene -> ovs3d.Ovs3dScores
-    rows = [[scene, s.mode, _fmt(s.miou, percent=True), _fmt(s.accuracy, percent=True),
-             len(s.per_view), s.empty_unions] for scene, s in scores.items()]
-    return markdown_table(["scene", "mode", "mIoU %", "pixel acc. %", "views", "empty unions"], rows)
-
-
 def retrieval_table(results: Mapping[str, object]) -> str:  # name -> metrics.RetrievalScores
     ks = sorted({k for r in results.values() for k in r.ks})
     rows = [[name] + [_fmt(r.recall.get(k), percent=True) for k in ks]
@@ -150,6 +156,31 @@ def plot_grouped_bars(
     if len(series) > 1:
         ax.legend(fontsize="small")
     ax.grid(axis="y", alpha=0.3)
+    return _save(fig, path)
+
+
+def plot_lines(
+    path: Union[str, Path],
+    curves: Mapping[str, tuple],  # name -> (x, y)
+    xlabel: str,
+    ylabel: str,
+    title: str,
+    logy: bool = False,
+) -> Path:
+    """One line per curve, with markers on short ones; ``logy``: log-scale y axis."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(5.0, 3.4))
+    ax = fig.add_subplot(1, 1, 1)
+    for name, (x, y) in curves.items():
+        ax.plot(x, y, label=name, marker="o" if len(x) < 12 else None)
+    if logy:
+        ax.set_yscale("log")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize="small")
     return _save(fig, path)
 
 

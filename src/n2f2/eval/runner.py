@@ -43,6 +43,16 @@ What is measured, per query mode (``composite``, ``explicit``, ``levels`` for a 
   they are skipped and counted (``skipped``), not scored 0.
 * **Per-query scores** (mean IoU and localization over the frames a query is labelled in), the
   input of the per-query delta between two runs (paper Table 8; ``compare_evals``).
+* **AP** (threshold-free): per (frame, query) pair, the average precision of ranking the view's
+  pixels by the mode's segmentation map (:func:`n2f2.eval.metrics.average_precision`, ties as
+  one threshold) against the exact mask where the scene has one (a generated scene's region
+  maps and the ``region_ids`` of its ``queries.json``, at the render size), else the label's
+  polygon mask. mAP = mean over pairs; for explicit / levels / oracle it is the AP of the scale
+  each box size chose for segmentation. AP separates ranking the right pixels first from the
+  protocol's min-max threshold, which mIoU mixes.
+* **Query kinds** (part / object / group): from a query's ``"kind"`` in ``queries.json``, else
+  from the levels (``regions.json``) of its ``region_ids`` ("mixed" when they differ), else
+  "unknown". mIoU, localization and mAP are split by kind.
 
 Bad input (each an :class:`~n2f2.errors.InputError` naming the file, or a counted skip):
 an empty or missing label folder; a label whose frame is not a view of the scene (error, or
@@ -67,7 +77,7 @@ from typing import Any, Callable, Mapping, Optional, Sequence, Union
 import numpy as np
 
 from ..errors import InputError
-from .metrics import per_query_scores, query_deltas, recall_at_k, segment_mean_relevancy
+from .metrics import average_precision, per_query_scores, query_deltas, recall_at_k, segment_mean_relevancy
 from .protocol import (PairRecord, ProtocolConfig, SceneScores, box_filter, evaluate_frame_category,
                        evaluate_scene, frame_targets, max_locations, points_in_boxes,
                        resolve_box_size, resolve_majority_radius)
@@ -76,6 +86,7 @@ BOXES = ("exact", "scaled")  # LangSplat's 30 px box, and the box scaled to the 
 DEFAULT_KS = (1, 2, 3, 4, 5)
 RETRIEVAL_IOU = 0.5  # a bank segment matches a label when IoU(segment, union mask) >= this
 QUERY_TYPES = ("simple", "compound", "unknown")
+QUERY_KINDS = ("part", "object", "group", "mixed", "unknown")  # the hierarchy level a query names
 SCALE_MODES = ("explicit", "levels", "oracle")  # modes scored from the all-scale maps
 
 
@@ -132,6 +143,13 @@ class EvalResult:
     views: list[dict]  # per labelled view: index, name, held out from training?, timings
     relevancy_files: dict[str, dict[str, str]] = dc_field(default_factory=dict)  # frame -> query -> path
     relevancy_mode: Optional[str] = None
+    # mode -> box -> {"map", "pairs": [{"frame", "query", "ap", "mask"}]}: threshold-free AP
+    ap: dict[str, dict[str, dict]] = dc_field(default_factory=dict)
+    # mode -> box -> kind -> {pairs, queries, miou, loc_accuracy, map}
+    kinds: dict[str, dict[str, dict[str, dict]]] = dc_field(default_factory=dict)
+    query_kinds: dict[str, str] = dc_field(default_factory=dict)  # query -> part | object | group | ...
+    query_kinds_source: str = ""
+    budget: Optional[dict] = None  # the loss budget (n2f2.eval.budget), when asked for
     notes: list[str] = dc_field(default_factory=list)
     seconds: float = 0.0
 
@@ -169,6 +187,78 @@ def read_query_types(path: Union[str, Path]) -> dict[str, str]:
             raise InputError(path, f"query {query!r} has type {kind!r}; use one of {', '.join(QUERY_TYPES)}")
         out[str(query)] = str(kind)
     return out
+
+
+def read_query_kinds(path: Union[str, Path]) -> dict[str, str]:
+    """Query -> kind (part / object / group / mixed) from a ``queries.json``: a query's
+    ``"kind"``, else the level names (``regions.json`` beside it) of its ``region_ids``. Queries
+    with neither are left out (their kind is "unknown"); a file without that information gives
+    an empty mapping."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError):
+        return {}
+    if not isinstance(data, dict) or not isinstance(data.get("queries"), list):
+        return {}
+    levels: dict[int, str] = {}
+    regions_path = path.parent / "regions.json"
+    if regions_path.is_file():
+        try:
+            regions = json.loads(regions_path.read_text())
+            names = list(regions.get("levels", ["part", "object", "group"]))
+            levels = {int(r["id"]): (names[int(r["level"])] if int(r["level"]) < len(names) else "unknown")
+                      for r in regions.get("regions", [])}
+        except (OSError, json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
+            raise InputError(regions_path, f"cannot read the region levels ({e})") from None
+    out = {}
+    for q in data["queries"]:
+        if not isinstance(q, dict) or not isinstance(q.get("query"), str):
+            continue
+        if isinstance(q.get("kind"), str):
+            kind = q["kind"]
+        else:
+            found = {levels.get(int(r), "unknown") for r in q.get("region_ids") or [] if isinstance(r, int)}
+            if not found:
+                continue
+            kind = found.pop() if len(found) == 1 else "mixed"
+        if kind not in QUERY_KINDS:
+            raise InputError(path, f"query {q['query']!r} has kind {kind!r}; use one of {', '.join(QUERY_KINDS)}")
+        out[q["query"]] = kind
+    return out
+
+
+class ExactMasks:
+    """Exact per-query masks of a generated scene's views (region maps + ``queries.json``
+    region ids); empty for a scene without them or a render of another size."""
+
+    def __init__(self, scene: Any) -> None:
+        self.gt = getattr(scene, "ground_truth", None)
+        self.region_ids: dict[str, list[int]] = {}
+        self.regions: list = []
+        if self.gt is None:
+            return
+        try:
+            self.region_ids = {q["query"]: [int(r) for r in q["region_ids"]] for q in self.gt.queries
+                               if isinstance(q, dict) and q.get("region_ids")}
+            self.regions = list(self.gt.regions["regions"])
+        except (OSError, json.JSONDecodeError, KeyError, TypeError, ValueError):
+            self.region_ids, self.regions = {}, []
+
+    def masks(self, view_index: int, queries: Sequence[str],
+              shape: tuple[int, int]) -> dict[str, np.ndarray]:  # query -> [H, W] bool
+        wanted = [q for q in queries if q in self.region_ids]
+        if not wanted or self.gt is None:
+            return {}
+        from ..data.synthetic import query_mask
+
+        try:
+            reg = np.asarray(self.gt.region_ids(view_index))  # [3, H, W]
+        except OSError:
+            return {}
+        if reg.shape[1:] != tuple(shape):
+            return {}
+        return {q: query_mask(reg, self.regions, self.region_ids[q]) for q in wanted}
 
 
 def check_label_frames(labels: Sequence[Any], num_views: int, label_dir: Path,
@@ -325,13 +415,18 @@ def split_scores(pairs: Sequence[PairRecord], types: Mapping[str, str]) -> dict[
     return out
 
 
-def _per_query(pairs: Sequence[PairRecord], types: Mapping[str, str]) -> dict[str, dict]:
+def _per_query(pairs: Sequence[PairRecord], types: Mapping[str, str],
+               ap_pairs: Sequence[Mapping] = ()) -> dict[str, dict]:
     iou = per_query_scores(pairs, "iou")
     hit = per_query_scores(pairs, "hit")
     frames: dict[str, int] = {}
     for p in pairs:
         frames[p.category] = frames.get(p.category, 0) + 1
-    return {q: {"iou": iou[q], "hit": hit[q], "frames": frames[q], "type": types.get(q, "unknown")}
+    aps: dict[str, list[float]] = {}
+    for p in ap_pairs:
+        aps.setdefault(p["query"], []).append(p["ap"])
+    return {q: {"iou": iou[q], "hit": hit[q], "frames": frames[q], "type": types.get(q, "unknown"),
+                "ap": float(np.mean(aps[q])) if q in aps else math.nan}
             for q in iou}
 
 
@@ -349,10 +444,12 @@ def evaluate_run(
     encoder: Any = None,  # text encoder override (tests); default: the one the field was trained with
     relevancy_dir: Optional[Union[str, Path]] = None,  # write raw float32 maps here (see module doc)
     on_ready: Optional[Callable[[], None]] = None,  # called once every input is checked, before any write
+    engine: Any = None,  # a ready query engine (the lift, the teacher's features) instead of the run's field
 ) -> EvalResult:
     """Evaluate a trained run on LangSplat-format labels (see the module docstring).
     ``on_ready`` runs once every input is read and checked, before the first file is written
-    (``n2f2 eval --force`` removes the previous results there)."""
+    (``n2f2 eval --force`` removes the previous results there). ``engine`` scores another
+    source of features (:mod:`n2f2.eval.budget`) with exactly the same code."""
     from tqdm import tqdm
 
     from ..data.labels import read_label_dir
@@ -365,7 +462,8 @@ def evaluate_run(
         raise ValueError(f"missing_frames must be 'error' or 'skip', got {config.missing_frames!r}")
     run_dir, label_dir = Path(run_dir), Path(label_dir)
     labels = read_label_dir(label_dir)  # InputError on a missing folder or one with no frame_*.json
-    engine = QueryEngine.from_run(run_dir, device=device, scene=scene, config=query_config, encoder=encoder)
+    if engine is None:
+        engine = QueryEngine.from_run(run_dir, device=device, scene=scene, config=query_config, encoder=encoder)
     if engine.scene is None:
         raise InputError(run_dir, "the run does not record its scene folder: pass --scene DIR")
     scene_obj = engine.scene
@@ -392,6 +490,17 @@ def evaluate_run(
     elif (Path(scene_obj.root) / "queries.json").is_file():
         types = read_query_types(Path(scene_obj.root) / "queries.json")
         types_source = str(Path(scene_obj.root) / "queries.json")
+    # Query kinds (part / object / group): the same file's "kind" or region levels.
+    kinds: dict[str, str] = {}
+    kinds_source = "none (all queries 'unknown')"
+    for candidate in ([query_types] if isinstance(query_types, (str, Path)) else []) + \
+            [Path(scene_obj.root) / "queries.json"]:
+        if Path(candidate).is_file():
+            kinds = read_query_kinds(candidate)
+            if kinds:
+                kinds_source = str(candidate)
+                break
+    exact = ExactMasks(scene_obj)
 
     # Segment bank for R@K: given, or the run's; none -> R@K skipped with a note (not zeros).
     bank_obj, bank_path = None, None
@@ -417,6 +526,7 @@ def evaluate_run(
 
     per_view: dict[int, _ViewMaps] = {}
     retrieval = {m: {b: _RetrievalAcc() for b in protocols} for m in modes}
+    ap_pairs: dict[str, dict[str, list[dict]]] = {m: {b: [] for b in protocols} for m in modes}
     view_info: list[dict] = []
     relevancy_files: dict[str, dict[str, str]] = {}
     # Ground truth of every frame before any rendering, so a label of the wrong size fails fast.
@@ -453,6 +563,22 @@ def evaluate_run(
             maps.update(smaps)
         t2 = time.perf_counter()
         per_view[idx] = _ViewMaps(frame.frame_name, categories, maps, choices)
+
+        # AP of each scored pair against the exact mask (else the polygon mask).
+        exact_masks = exact.masks(idx, [c for c in categories if c in targets], (view.height, view.width))
+        for k, c in enumerate(categories):
+            if c not in targets:
+                continue
+            mask, kind = (exact_masks[c], "exact") if c in exact_masks and exact_masks[c].any() \
+                else (targets[c].mask, "polygon")
+            for m in modes:
+                done: dict[int, float] = {}  # the same map under both boxes is ranked once
+                for b in protocols:
+                    seg = maps[m][b]["seg"]
+                    key = id(seg)
+                    if key not in done:
+                        done[key] = average_precision(seg[k], mask)
+                    ap_pairs[m][b].append({"frame": frame.frame_name, "query": c, "ap": done[key], "mask": kind})
 
         if relevancy_dir is not None and npy_mode is not None:
             files = relevancy_files.setdefault(view.name, {})
@@ -524,12 +650,40 @@ def evaluate_run(
         split={m: {b: split_scores(s.pairs, types) for b, s in by.items()} for m, by in scores.items()},
         retrieval=({m: {b: acc.summary(config.ks, config.retrieval_iou) for b, acc in by.items()}
                     for m, by in retrieval.items()} if bank_obj is not None else {}),
-        per_query={m: {b: _per_query(s.pairs, types) for b, s in by.items()} for m, by in scores.items()},
+        per_query={m: {b: _per_query(s.pairs, types, ap_pairs[m][b]) for b, s in by.items()}
+                   for m, by in scores.items()},
         query_types={c: types.get(c, "unknown") for c in all_categories}, query_types_source=types_source,
         views=view_info, relevancy_files=relevancy_files,
         relevancy_mode=npy_mode if relevancy_dir is not None else None,
+        ap={m: {b: ap_summary(v) for b, v in by.items()} for m, by in ap_pairs.items()},
+        kinds={m: {b: kind_scores(s.pairs, ap_pairs[m][b], kinds) for b, s in by.items()}
+               for m, by in scores.items()},
+        query_kinds={c: kinds.get(c, "unknown") for c in all_categories}, query_kinds_source=kinds_source,
         notes=notes, seconds=time.perf_counter() - t_start)
     return result
+
+
+def ap_summary(pairs: Sequence[Mapping]) -> dict:
+    """mAP over pairs, how many used the exact mask, and the per-pair records."""
+    return {"map": float(np.mean([p["ap"] for p in pairs])) if pairs else math.nan,
+            "exact_masks": sum(p["mask"] == "exact" for p in pairs), "num_pairs": len(pairs),
+            "pairs": list(pairs)}
+
+
+def kind_scores(pairs: Sequence[PairRecord], ap_pairs: Sequence[Mapping],
+                kinds: Mapping[str, str]) -> dict[str, dict]:
+    """mIoU, localization accuracy and mAP per query kind (part / object / group / ...); kinds
+    with no pair are listed with ``pairs: 0`` and NaN scores."""
+    ap = {(p["frame"], p["query"]): p["ap"] for p in ap_pairs}
+    out = {}
+    for kind in QUERY_KINDS:
+        sel = [p for p in pairs if kinds.get(p.category, "unknown") == kind]
+        aps = [ap[(p.frame, p.category)] for p in sel if (p.frame, p.category) in ap]
+        out[kind] = {"pairs": len(sel), "queries": sorted({p.category for p in sel}),
+                     "miou": float(np.mean([p.iou for p in sel])) if sel else math.nan,
+                     "loc_accuracy": float(np.mean([p.hit for p in sel])) if sel else math.nan,
+                     "map": float(np.mean(aps)) if aps else math.nan}
+    return out
 
 
 def _scale_labels(engine: Any) -> list[str]:
@@ -620,15 +774,23 @@ def markdown_report(result: Mapping, deltas: Optional[Mapping] = None, reference
     for note in result.get("notes", []):
         out.append(f"- note: {note}\n")
 
-    out.append("\n## Localization and segmentation\n\n")
+    out.append("\n## Localization and segmentation, and mAP\n\n")
     first = result["scores"][modes[0]]
+    ap = result.get("ap") or {}
     rows = []
     for m in modes:
         s = result["scores"][m]
         rows.append([m] + [_pct(s[b]["loc_accuracy"]) for b in boxes] + [_pct(s[b]["miou"]) for b in boxes]
-                    + [s["exact"]["num_pairs"]])
+                    + [_pct(ap[m][b]["map"]) if m in ap else "-" for b in boxes] + [s["exact"]["num_pairs"]])
     out.append(markdown_table(["mode"] + [f"loc. % ({title[b]})" for b in boxes]
-                              + [f"mIoU % ({title[b]})" for b in boxes] + ["pairs"], rows))
+                              + [f"mIoU % ({title[b]})" for b in boxes]
+                              + [f"mAP % ({title[b]} choice)" for b in boxes] + ["pairs"], rows))
+    if ap:
+        a = next(iter(next(iter(ap.values())).values()))
+        out.append(f"\nmAP: average precision of ranking each labelled view's pixels by the mode's segmentation "
+                   f"map (ties as one threshold), mean over pairs; against the exact mask in {a['exact_masks']} "
+                   f"of {a['num_pairs']} pairs, the label polygons otherwise. The box only changes which scale "
+                   "explicit / levels / oracle take.\n")
     out.append(f"\nScene {result['scene']}: {first['exact']['num_frames']} labelled frames, "
                f"{first['exact']['num_pairs']} (frame, query) pairs; skipped frames: "
                f"{len(first['exact']['skipped_frames'])}, objects outside the image: "
@@ -646,6 +808,26 @@ def markdown_report(result: Mapping, deltas: Optional[Mapping] = None, reference
     out.append(markdown_table(["mode", "box", "simple mIoU %", "compound mIoU %", "simple loc. %",
                                "compound loc. %", "simple pairs", "compound pairs", "unknown pairs"], rows,
                               ["l", "l"] + ["r"] * 7))
+
+    if result.get("kinds"):
+        out.append("\n## By query kind\n\n")
+        out.append(f"Query kinds from {result.get('query_kinds_source')}.\n\n")
+        shown = [k for k in QUERY_KINDS if any(result["kinds"][m][b][k]["pairs"] for m in modes for b in boxes)]
+        rows = []
+        for m in modes:
+            for b in boxes:
+                kd = result["kinds"][m][b]
+                rows.append([m, title[b]] + [f"{_pct(kd[k]['miou'])} / {_pct(kd[k]['loc_accuracy'])} / "
+                                             f"{_pct(kd[k]['map'])}" for k in shown])
+        counts = ", ".join(f"{k} {result['kinds'][modes[0]]['exact'][k]['pairs']}" for k in shown)
+        out.append(markdown_table(["mode", "box"] + [f"{k}: mIoU / loc. / mAP %" for k in shown], rows,
+                                  ["l", "l"] + ["r"] * len(shown)))
+        out.append(f"\nPairs per kind: {counts}.\n")
+
+    if result.get("budget"):
+        from .budget import budget_markdown
+
+        out.append(budget_markdown(result["budget"]))
 
     out.append("\n## Retrieval R@K over the segment pool\n\n")
     if result["retrieval"]:
@@ -670,7 +852,8 @@ def markdown_report(result: Mapping, deltas: Optional[Mapping] = None, reference
     else:
         out.append("Not computed (no segment bank).\n")
 
-    out.append("\n## Per query (IoU %, mean over the frames a query is labelled in)\n\n")
+    out.append("\n## Per query (IoU %, and AP % of the exact box's choice; mean over the frames a query is "
+               "labelled in)\n\n")
     queries = sorted(result["query_types"], key=lambda q: (result["query_types"][q], q))
     rows = []
     for q in queries:
@@ -681,9 +864,14 @@ def markdown_report(result: Mapping, deltas: Optional[Mapping] = None, reference
                 v = result["per_query"][m][b].get(q)
                 row.append(_pct(v["iou"]) if v else "-")
                 frames = frames or (v["frames"] if v else None)
-        rows.append(row[:2] + [frames if frames is not None else 0] + row[2:])
-    out.append(markdown_table(["query", "type", "frames"] + [f"{m} {title[b]}" for m in modes for b in boxes],
-                              rows, ["l", "l"] + ["r"] * (1 + len(modes) * len(boxes))))
+        for m in modes:  # AP of the exact box's choice
+            v = result["per_query"][m]["exact"].get(q)
+            row.append(_pct(v.get("ap", math.nan)) if v else "-")
+        kind = (result.get("query_kinds") or {}).get(q, "unknown")
+        rows.append(row[:2] + [kind, frames if frames is not None else 0] + row[2:])
+    out.append(markdown_table(["query", "type", "kind", "frames"] + [f"{m} {title[b]}" for m in modes for b in boxes]
+                              + [f"{m} AP" for m in modes],
+                              rows, ["l", "l", "l"] + ["r"] * (1 + len(modes) * (len(boxes) + 1))))
 
     if deltas:
         from .reports import deltas_table

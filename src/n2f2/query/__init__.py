@@ -23,7 +23,6 @@ __getattr__, __all__ = lazy_exports(__name__, {
     "build_composite_cache": "engine",
     "build_linear_cache": "engine",
     "build_prefix_cache": "engine",
-    "export_selection_ply": "engine",
     "DEFAULT_NEGATIVES": "relevancy",
     "normalize_features": "relevancy",
     "relevancy": "relevancy",

@@ -665,17 +665,6 @@ class QueryEngine:
         return n
 
 
-def export_selection_ply(gaussians: Any, mask: Tensor, path: Union[str, Path]) -> int:
-    """Functional form: write ``gaussians.subset(mask)`` ([N] bool) as an INRIA PLY."""
-    from ..gaussians import write_ply
-
-    n = int(mask.sum())
-    if n == 0:
-        raise InputError(path, "the selection is empty: nothing to export (lower the threshold)")
-    write_ply(path, gaussians.subset(mask.to(gaussians.device)))
-    return n
-
-
 def _oracle_scores(rel: Tensor, qi: int, gt_masks: Any, scorer: Optional[OracleScorer],
                    config: QueryConfig) -> Tensor:  # rel [S, H, W] -> [S]
     if scorer is not None:

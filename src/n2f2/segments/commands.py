@@ -9,13 +9,12 @@ and argparse cannot tell a folder name from a sub-action name.
 from __future__ import annotations
 
 import argparse
-from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Optional
 
 from ..distributed import add_executor_options
 from ..validate import positive_float
-from .lifting import SCALE_MEASURES
+from .lifting import SCALE_MEASURES, LiftSettings
+from .setup import SegmentsSetup
 
 
 def _common(p: argparse.ArgumentParser) -> None:
@@ -30,10 +29,10 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--depth-source", choices=["render", "gt"], default="render",
                    help="render: expected depth of --gaussians (paper, default); gt: the demo scene's "
                         "exact depth maps")
-    p.add_argument("--scale-measure", choices=list(SCALE_MEASURES), default="eigenvalue",
+    p.add_argument("--scale-measure", choices=list(SCALE_MEASURES), default=LiftSettings.scale_measure,
                    help="segment scale from its 3D points: eigenvalue = largest eigenvalue of their "
-                        "covariance (paper, default); extent = squared diagonal of their robust oriented "
-                        "box (2nd-98th percentile along each principal axis; not in the paper)")
+                        "covariance (paper); extent = squared diagonal of their robust oriented box "
+                        "(2nd-98th percentile along each principal axis; not in the paper). Default: %(default)s")
     p.add_argument("--downscale", type=positive_float, default=1.0, help="image downscale factor, as 3DGS -r (default 1)")
     p.add_argument("--skip-missing", action="store_true",
                    help="drop views whose image file is missing (default: a missing image is an error)")
@@ -99,38 +98,6 @@ def register(subparsers) -> None:
     x.set_defaults(func=run_export_langsplat)
 
 
-def _depth_provider(args, scene):
-    from ..errors import InputError
-    from .lifting import LiftSettings, gt_depth_provider, render_depth_provider
-
-    if args.depth_source == "gt":
-        return gt_depth_provider(scene)
-    if not args.gaussians:
-        raise InputError(None, "--gaussians PLY is needed to lift segments with rendered depth "
-                         "(or use --depth-source gt on the demo scene)")
-    from ..gaussians import read_ply
-
-    path = Path(args.gaussians)
-    if path.is_dir():
-        path = path / "gaussians.ply"
-    if not path.is_file():
-        raise InputError(path, "Gaussians file does not exist (run `n2f2 fit-gaussians` first)")
-    gaussians = read_ply(path, device=args.device)
-    return render_depth_provider(gaussians, scene.cameras, min_alpha=LiftSettings().min_alpha)
-
-
-def _load(args):
-    from ..data import load_scene
-    from ..errors import InputError
-
-    if args.downscale <= 0:
-        raise InputError(None, f"--downscale must be > 0, got {args.downscale}")
-    scene = load_scene(args.data, downscale=args.downscale, skip_missing=args.skip_missing)
-    if len(scene) == 0:
-        raise InputError(args.data, "scene has no images")
-    return scene
-
-
 def _claim_bank(args: argparse.Namespace) -> list[str]:
     """Open ``--out``: a folder already holding a bank (bank.json or records) is refused
     without --resume or --force. Returns what is there (for --force to remove)."""
@@ -144,67 +111,15 @@ def _claim_bank(args: argparse.Namespace) -> list[str]:
 
 
 def _finish(report: dict) -> int:
-    c, t, s = report["counts"], report["timing"], report["scale_stats"]
-    per = "" if t["seconds_per_image"] is None else f", {t['seconds_per_image']:.2f} s/image"
-    print(f"segments: {c['images']} images, {c['segments']} segments ({c['valid']} lifted, "
-          f"{c['dropped_degenerate']} degenerate dropped, {c['dropped_empty']} empty), "
-          f"median scale {s['scale_median']:.4g}{per} -> {report['bank']}")
-    check = report.get("ground_truth_check")
-    if check:
-        medians = ", ".join(f"{k} {v:.3g}" for k, v in check["median_scale_by_level"].items())
-        print(f"segments: lifted scale vs true region extent: Spearman {check['spearman_scale_vs_true_extent']:.3f}; "
-              f"median scale by level: {medians}")
+    from .setup import report_lines
+
+    for line in report_lines(report):
+        print(line)
     return 0
 
 
-def _lift_settings(args: argparse.Namespace):
-    from .lifting import LiftSettings
-
+def _lift_settings(args: argparse.Namespace) -> LiftSettings:
     return LiftSettings(scale_measure=args.scale_measure)
-
-
-@dataclass(frozen=True)
-class SegmentsSetup:
-    """What ``n2f2 segments`` builds from its options: the scene, the segment source (segmenter
-    + encoder) and the depth provider. Built in this process, and once in every Ray worker
-    (picklable and hashable, so a worker keeps what it built for its next images)."""
-
-    data: str
-    downscale: float
-    skip_missing: bool
-    depth_source: str
-    gaussians: Optional[str]
-    segmenter: str
-    encoder: str
-    model: Optional[str]
-    sam_model: Optional[str]
-    device: str
-
-    @staticmethod
-    def from_args(args: argparse.Namespace) -> "SegmentsSetup":
-        return SegmentsSetup(data=str(args.data), downscale=float(args.downscale), skip_missing=bool(args.skip_missing),
-                             depth_source=args.depth_source, gaussians=None if args.gaussians is None else str(args.gaussians),
-                             segmenter=args.segmenter, encoder=args.encoder, model=args.model,
-                             sam_model=args.sam_model, device=str(args.device))
-
-    def for_ray_worker(self) -> "SegmentsSetup":
-        """A Ray task sees only the GPU Ray gave it, as device ``cuda``."""
-        return replace(self, device="cuda") if self.device.startswith("cuda") else self
-
-    def build(self) -> tuple:
-        """(scene, source, depth provider), checking the inputs before loading models."""
-        from .bank import SegmentAndEncode
-        from .encoders import DEFAULT_CLIP_MODEL, ClipEncoder, get_encoder
-        from .segmenters import get_segmenter
-
-        scene = _load(self)
-        depth = _depth_provider(self, scene)  # fail on a missing PLY before loading models
-        segmenter = get_segmenter(self.segmenter, scene=scene, model_id=self.sam_model, device=self.device)
-        if self.encoder == "clip":
-            encoder = ClipEncoder.from_pretrained(self.model or DEFAULT_CLIP_MODEL, device=self.device)
-        else:
-            encoder = get_encoder("captions", device=self.device)
-        return scene, SegmentAndEncode(segmenter, encoder), depth
 
 
 def run_segments(args: argparse.Namespace) -> int:
@@ -226,22 +141,15 @@ def run_segments(args: argparse.Namespace) -> int:
 
 
 def run_from_langsplat(args: argparse.Namespace) -> int:
-    from ..errors import InputError
     from ..io import remove_results
     from .bank import build_bank
-    from .langsplat import LangSplatSource, langsplat_encoder_spec, recorded_encoder
+    from .setup import depth_provider, langsplat_source, load_bank_scene
 
     present = _claim_bank(args)
     features = Path(args.features) if args.features else Path(args.data) / "language_features"
-    if not features.is_dir():
-        raise InputError(features, "LangSplat features folder does not exist")
-    recorded = recorded_encoder(features)
-    encoder = args.encoder or (recorded["name"] if recorded else "clip")
-    model = args.model or (recorded.get("model_id") if recorded and recorded["name"] == encoder == "clip" else None)
-    spec = langsplat_encoder_spec(encoder, model)  # before the scene and Gaussians: fail fast
-    scene = _load(args)
-    depth = _depth_provider(args, scene)
-    source = LangSplatSource(features, spec)
+    source = langsplat_source(features, args.encoder, args.model)  # before the scene and Gaussians: fail fast
+    scene = load_bank_scene(args.data, args.downscale, args.skip_missing)
+    depth = depth_provider(scene, args.depth_source, args.gaussians, args.device)
     # Every file checked and hashed before the bank is touched.
     source.prepare(scene.image_names, [(c.height, c.width) for c in scene.cameras])
     if args.resume:

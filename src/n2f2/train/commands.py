@@ -11,24 +11,44 @@ from ..validate import nonneg_float, nonneg_int, positive_float, positive_int
 # Field options: name -> (type, help). None = keep the preset's (or the checkpoint's) value.
 _FIELD_OPTIONS = {
     "backbone": (str, "triplane: TriPlane + 3-layer MLP (paper); mlp: positional encoding + MLP"),
-    "dim": (positive_int, "D, feature-field dims = number of quantized scales (cpu 128, paper 512)"),
-    "plane_resolution": (positive_int, "TriPlane resolution (cpu 128, paper 512)"),
-    "plane_channels": (positive_int, "TriPlane channels, rasterized by deferred rendering (cpu 32, paper 64)"),
-    "hidden": (positive_int, "MLP hidden width (256)"),
-    "pe_frequencies": (nonneg_int, "positional-encoding frequencies of the MLP backbone (8)"),
+    "dim": (positive_int, "D, feature-field dims = number of quantized scales"),
+    "plane_resolution": (positive_int, "TriPlane resolution"),
+    "plane_channels": (positive_int, "TriPlane channels, rasterized by deferred rendering"),
+    "hidden": (positive_int, "MLP hidden width"),
+    "pe_frequencies": (nonneg_int, "positional-encoding frequencies of the MLP backbone"),
     "variant": (str, "nested (N2F2), flat (non-nested ablation), levels (3 scale groups, LangSplat-like)"),
-    "step_size": (positive_int, "k of the dimension-scale mapping, paper Table 6 (1)"),
+    "step_size": (positive_int, "k of the dimension-scale mapping, paper Table 6"),
 }
 _TRAIN_OPTIONS = {
-    "iterations": (positive_int, "optimisation steps (cpu 3000, paper 30000)"),
-    "views_per_step": (positive_int, "views rasterized per step without --blend-cache (1)"),
+    "iterations": (positive_int, "optimisation steps"),
+    "views_per_step": (positive_int, "views rasterized per step without --blend-cache"),
     "render_downscale": (positive_int, "render training views downscaled by this integer factor (1 = bank resolution)"),
-    "pixels_per_step": (positive_int, "sampled pixels per step (4096)"),
+    "pixels_per_step": (positive_int, "sampled pixels per step"),
     "checkpoint_every": (nonneg_int, "write checkpoint.pt every N steps; 0: only at the end"),
-    "cos_weight": (nonneg_float, "lambda of the cosine loss (0.001)"),
-    "scale_jitter": (nonneg_float, "uniform noise added to each sampled quantized scale before B(s) (cpu 0.03, "
-                            "paper 0 = off; not in the paper)"),
+    "cos_weight": (nonneg_float, "lambda of the cosine loss"),
+    "scale_jitter": (nonneg_float, "uniform noise added to each sampled quantized scale before B(s) (0 = off, the "
+                                   "paper's; not in the paper)"),
 }
+
+
+def _preset_values(name: str) -> str:
+    """``(cpu X, paper Y)`` of a FieldConfig or TrainConfig setting, read from the presets."""
+    from ..field.model import FieldConfig
+    from .trainer import TrainConfig
+
+    cls = FieldConfig if name in _FIELD_OPTIONS else TrainConfig
+    values = {p: getattr(cls.preset(p), name) for p in cls.PRESETS}
+    if len(set(values.values())) == 1:
+        return f"({next(iter(values.values()))})"
+    return "(" + ", ".join(f"{p} {v}" for p, v in values.items()) + ")"
+
+
+def _preset_summary(name: str) -> str:
+    from ..field.model import FieldConfig
+    from .trainer import TrainConfig
+
+    f, t = FieldConfig.preset(name), TrainConfig.preset(name)
+    return f"D={f.dim}, {f.plane_resolution}^2x{f.plane_channels} planes, {t.iterations} steps"
 
 
 def register(subparsers) -> None:
@@ -43,13 +63,13 @@ def register(subparsers) -> None:
     p.add_argument("--segments", required=True, metavar="BANK", help="segment bank folder (`n2f2 segments`)")
     p.add_argument("--out", required=True, metavar="DIR", help="run folder")
     p.add_argument("--preset", choices=["cpu", "paper"], default=None,
-                   help="cpu: small field, 3000 steps (default without CUDA); paper: D=512, 512^2x64 "
-                        "planes, 30k steps (default with --device cuda)")
+                   help=f"cpu: small field, {_preset_summary('cpu')} (default without CUDA); paper: the paper's "
+                        f"field, {_preset_summary('paper')} (default with --device cuda)")
     for name, (typ, text) in {**_FIELD_OPTIONS, **_TRAIN_OPTIONS}.items():
         flag = "--" + name.replace("_", "-")
         kw = {"choices": {"backbone": ["triplane", "mlp"], "variant": ["nested", "flat", "levels"]}[name]} \
             if name in ("backbone", "variant") else {}
-        p.add_argument(flag, type=typ, default=None, help=text, **kw)
+        p.add_argument(flag, type=typ, default=None, help=f"{text} {_preset_values(name)}", **kw)
     p.add_argument("--no-deferred", action="store_true",
                    help="rasterize D-dim features (MLP per Gaussian) instead of deferred rendering")
     p.add_argument("--blend-cache", action=argparse.BooleanOptionalAction, default=None,

@@ -54,7 +54,8 @@ FIELD_NAME = "field.pt"
 CHECKPOINT_NAME = "checkpoint.pt"
 REPORT_NAME = "train_report.json"
 GAUSSIANS_NAME = "gaussians.ply"
-RESULT_NAMES = (FIELD_NAME, CHECKPOINT_NAME, REPORT_NAME)  # what a finished or started run holds
+LIFT_NAME = "lift.pt"
+RESULT_NAMES = (FIELD_NAME, CHECKPOINT_NAME, REPORT_NAME, LIFT_NAME)  # what a finished or started run holds
 _CHECKPOINT_FORMAT = "n2f2-field-checkpoint-v1"
 
 
@@ -78,6 +79,9 @@ class TrainConfig(ConfigDict):
     # blend_cache_mb.
     blend_cache: bool = False
     blend_cache_mb: float = 1024.0
+    # With the blend cache: after training, average the bank's features onto the Gaussians with
+    # the cached weights (the training-free `lift` baseline, field/lift.py) into RUN/lift.pt.
+    lift: bool = False
     pixels_per_step: int = 4096  # sampled pixels (each with one sampled segment) per step
     lr_triplane: float = 0.0016  # x scene extent (paper)
     lr_mlp: float = 0.00125  # MLP and W (paper)
@@ -138,7 +142,7 @@ class TrainConfig(ConfigDict):
 
         Use ``--iterations`` (and ``--dim``) when minutes matter less."""
         return TrainConfig(iterations=3000, pixels_per_step=4096, checkpoint_every=500, blend_cache=True,
-                           scale_jitter=0.03)
+                           scale_jitter=0.03, lift=True)
 
 
 def field_preset(name: str, **overrides: Any) -> FieldConfig:
@@ -447,11 +451,20 @@ def train_field(
     gpath = _record_gaussians(paths.get("gaussians"), out)
     field_meta = {**meta, "gaussians": gpath, "step": step, "train_config": config.to_dict()}
     save_field(out / FIELD_NAME, field, field_meta)
+    lift_info: dict = {"written": False}
+    if config.lift and cache is not None and config.render_downscale == 1:
+        from ..field.lift import lift_features, save_lift
+
+        lift = lift_features(cache, usable, bank, int(geometry["means"].shape[0]))
+        save_lift(out / LIFT_NAME, lift, {"bank": bank_path, "gaussians": gpath})
+        lift_info = {"written": True, "path": str(out / LIFT_NAME), "seconds": lift.seconds["lift"],
+                     "blend_weights_s": cache_info.get("build_s")}
     report = {
         "steps": step,
         "variant": field_config.variant,
         "deferred": config.deferred,
         "blend_cache": cache_info,
+        "lift": lift_info,
         "field_config": field_config.to_dict(),
         "train_config": config.to_dict(),
         "embed_dim": E,

@@ -1,0 +1,131 @@
+"""Evaluation of the bench's runs: LangSplat's protocol through :func:`n2f2.eval.runner.evaluate_run`
+(both box sizes), the per-level cosine to the teacher, and statistics of the composite weights
+gamma. Each result is cached in its run folder's ``stages.json``, keyed on the content of the
+field and the labels (:class:`n2f2.pipeline.cache.StageCache`)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Callable, Sequence
+
+if TYPE_CHECKING:
+    from .bench import BenchConfig, BenchData
+
+
+class MemoEncoder:
+    """A text encoder that remembers its embeddings, shared by the bench's many query engines
+    (queries, negatives and canonical phrases are the same in every evaluation)."""
+
+    def __init__(self, encoder: Any) -> None:
+        self._encoder = encoder
+        self._cache: dict[str, Any] = {}
+
+    def __getattr__(self, name: str) -> Any:  # description, spec, name, ... of the wrapped encoder
+        return getattr(self._encoder, name)
+
+    def encode_text(self, texts: Sequence[str]) -> Any:  # -> [Q, E]
+        import torch
+
+        missing = [t for t in dict.fromkeys(texts) if t not in self._cache]
+        if missing:
+            for t, e in zip(missing, torch.as_tensor(self._encoder.encode_text(list(missing)))):
+                self._cache[t] = e
+        return torch.stack([self._cache[t] for t in texts])
+
+
+def evaluate_variant(run_dir: Path, data: "BenchData", modes: Sequence[str], out_dir: Path,
+                     config: "BenchConfig", temperature: float = 1.0,
+                     log: Callable[[str], None] = print, encoder: Any = None) -> dict:
+    """``evaluate_run`` of one run (both box sizes), written to ``out_dir`` (eval.json and eval.md;
+    the bench draws its own plots); reused while the field, the labels, the modes and T are
+    unchanged."""
+    from ..eval.runner import load_eval
+    from ..pipeline.cache import StageCache, file_digest, stage_key, tree_digest
+
+    eval_json = out_dir / "eval.json"
+    key = stage_key(field=file_digest(run_dir / "field.pt"), labels=tree_digest(data.label_dir),
+                    bank=file_digest(data.bank_dir / "bank.json"), modes=list(modes), temperature=temperature)
+    cache = StageCache.open(run_dir)
+    cache.run(out_dir.name, key, [eval_json],
+              lambda: _evaluate(run_dir, data, modes, out_dir, config, temperature, encoder),
+              log=lambda s: log(f"[bench] {run_dir.name}: {s}"))
+    return load_eval(eval_json)
+
+
+def _evaluate(run_dir: Path, data: "BenchData", modes: Sequence[str], out_dir: Path, config: "BenchConfig",
+              temperature: float, encoder: Any) -> None:
+    from ..eval.runner import EvalConfig, evaluate_run, markdown_report
+    from ..io import write_json, write_text
+    from ..query.engine import QueryConfig
+
+    result = evaluate_run(run_dir, data.label_dir, scene=data.scene_dir, bank=data.bank_dir,
+                          config=EvalConfig(modes=tuple(modes), progress=config.progress),
+                          query_config=QueryConfig(temperature=temperature), device=config.device,
+                          encoder=encoder)
+    result.notes.append(f"bench: composite temperature T = {temperature:g}")
+    # eval.md and eval.json as `n2f2 eval` writes them; the JSON round trip gives the same dict a
+    # reused evaluation has.
+    d = result.to_dict()
+    d["bench_temperature"] = temperature
+    write_text(out_dir / "eval.md", markdown_report(d))
+    write_json(out_dir / "eval.json", d)
+
+
+def cosine_variant(run_dir: Path, data: "BenchData", config: "BenchConfig",
+                   log: Callable[[str], None] = print) -> dict:
+    """Per-level cosine to the teacher on the run's held-out views (``eval_field.json``, reused
+    while the field and the bank are unchanged)."""
+    from ..pipeline.cache import StageCache, file_digest, stage_key
+
+    path = run_dir / "eval_field.json"
+    key = stage_key(field=file_digest(run_dir / "field.pt"), bank=file_digest(data.bank_dir / "bank.json"))
+    StageCache.open(run_dir).run("eval-field", key, [path], lambda: _cosine(run_dir, data, config, path),
+                                 log=lambda s: log(f"[bench] {run_dir.name}: {s}"))
+    return json.loads(path.read_text())
+
+
+def _cosine(run_dir: Path, data: "BenchData", config: "BenchConfig", path: Path) -> None:
+    from ..data import load_scene
+    from ..field import load_field
+    from ..gaussians import read_ply
+    from ..io import write_json
+    from ..segments.bank import SegmentBank
+    from ..train.evaluate import evaluate_cosine_by_level
+
+    field, meta = load_field(run_dir / "field.pt", device=config.device)
+    views = meta.get("heldout_views") or list(range(len(meta.get("train_views", []))))
+    result = evaluate_cosine_by_level(field, read_ply(run_dir / "gaussians.ply"), load_scene(data.scene_dir),
+                                      SegmentBank.open(data.bank_dir), views, device=config.device)
+    write_json(path, result)
+
+
+def gamma_statistics(engine: Any, temperature: float) -> dict:
+    """Statistics over the Gaussians of ``gamma^3D`` (paper Eq. 6) at ``temperature``: how far it
+    is from uniform (max gamma x number of scales; 1 = uniform), its effective number of scales
+    ``exp(entropy)``, where its mass sits (mean weight-averaged prefix length / D), and the
+    prefix weights ``revcumsum(gamma)`` (paper Eq. 7) at a few dimensions."""
+    import torch
+
+    from ..query.composite import composite_weights, prefix_weights
+
+    with torch.no_grad():
+        canon = engine.encode(engine.config.canonical)
+        gamma = composite_weights(engine.theta, engine.W, canon, engine.step, temperature)  # [N, S]
+        N, S = gamma.shape
+        mx = gamma.amax(dim=1)
+        ent = -(gamma * torch.log(gamma.clamp(min=1e-30))).sum(dim=1)
+        dims = torch.tensor(engine.scale_dims, dtype=gamma.dtype)
+        centre = (gamma * dims).sum(dim=1) / engine.dim
+        ramp = prefix_weights(gamma, engine.dim, engine.step).mean(dim=0)  # [D]
+        at = sorted({0, engine.dim // 4, engine.dim // 2, (3 * engine.dim) // 4, engine.dim - 1})
+        argmax = gamma.argmax(dim=1)
+    q = lambda t, p: float(torch.quantile(t.double(), p))  # noqa: E731
+    return {"temperature": temperature, "scales": S, "gaussians": N, "uniform": 1.0 / S,
+            "max_gamma_mean": float(mx.mean()), "max_gamma_median": q(mx, 0.5), "max_gamma_p95": q(mx, 0.95),
+            "max_gamma_max": float(mx.max()), "max_gamma_x_scales_mean": float(mx.mean()) * S,
+            "effective_scales_mean": float(torch.exp(ent).mean()),
+            "mass_centre_mean": float(centre.mean()),
+            "argmax_first_scale": float((argmax == 0).double().mean()),
+            "argmax_last_scale": float((argmax == S - 1).double().mean()),
+            "prefix_weight_at": {str(j + 1): float(ramp[j]) for j in at}}

@@ -1,0 +1,129 @@
+"""Answer text queries on a trained run and write what ``n2f2 query`` writes: per view and
+query a raw relevancy .npy, a heatmap and a mask PNG over the rendered RGB, ``OUT/query.json``,
+and with ``three_d`` the selected Gaussians as a PLY and their mask in every view. The command
+and the demo's relevancy pictures both call :func:`answer_queries`."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Optional, Sequence, Union
+
+
+def listed_results(out: Path) -> list[str]:
+    """The files that the query.json already in ``out`` lists (so --force replaces a previous
+    answer as a whole, not only the names a new one shares with it); [] when it is unreadable."""
+    try:
+        summary = json.loads((Path(out) / "query.json").read_text())
+        names = []
+        for view in summary.get("views", []):
+            names.append(f"{view['view']}_rgb.png")
+            for rec in view.get("queries", []):
+                names += list(rec.get("files", {}).values())
+                if rec.get("selection"):
+                    names.append(rec["selection"]["file"])
+        for sel in summary.get("selection_3d", {}).get("selections", {}).values():
+            if sel.get("ply"):
+                names.append(sel["ply"])
+    except (OSError, ValueError, TypeError, KeyError, AttributeError):
+        return []
+    # Only plain names inside out: a hand-edited query.json must not point --force elsewhere.
+    return [n for n in names if isinstance(n, str) and n and Path(n).name == n and n not in (".", "..")]
+
+
+def query_results(texts: Sequence[str], view_names: Sequence[str], three_d: bool) -> list[str]:
+    """The files a query writes into its output folder (see :mod:`n2f2.query.outputs`)."""
+    from .outputs import unique_slugs
+
+    slugs = unique_slugs(list(texts))
+    names = ["query.json"]
+    for v in view_names:
+        names.append(f"{v}_rgb.png")
+        for slug in slugs:
+            names += [f"{v}_{slug}.npy", f"{v}_{slug}_heatmap.png", f"{v}_{slug}_mask.png"]
+            if three_d:
+                names.append(f"{v}_{slug}_selection.png")
+    if three_d:
+        names += [f"{slug}_selection.ply" for slug in slugs]
+    return names
+
+
+def answer_queries(run_dir: Union[str, Path], texts: Sequence[str], views: Sequence[int], out: Path, *,
+                   mode: str = "composite", scene: Optional[Union[str, Path]] = None, three_d: bool = False,
+                   threshold: Optional[float] = None, mask_threshold: float, box_size: Union[int, str],
+                   temperature: float = 1.0, canonical: Optional[tuple[str, ...]] = None,
+                   selection: str = "smoothed", force: bool = False, device: str = "cpu",
+                   progress: bool = True) -> dict:
+    """Render each view's feature cache once, answer every query of ``texts`` in one pass, and
+    write the outputs into ``out`` (refused when it holds an answer, unless ``force``).
+    Returns the ``query.json`` summary."""
+    from tqdm import tqdm
+
+    from ..io import claim_out_dir, remove_results, write_png
+    from .engine import QueryConfig, QueryEngine
+    from .maps import LANGSPLAT_THRESHOLD, resolve_box_size
+    from .outputs import mask_overlay, unique_slugs, write_summary, write_view_outputs
+
+    texts = list(texts)
+    # A finished query is refused before anything is loaded; the per-view names are checked
+    # once the scene is (they hold its image names).
+    claim_out_dir(out, ["query.json"], force=force, resume_flag=None)
+    overrides = {"canonical": tuple(canonical)} if canonical else {}
+    config = QueryConfig(temperature=temperature, selection=selection, box_size=box_size, **overrides)
+    engine = QueryEngine.from_run(run_dir, device=device, scene=scene, config=config)
+    view_names = [engine.camera(i)[2] for i in views]  # fail before any work on a bad index
+    results = list(dict.fromkeys(query_results(texts, view_names, three_d) + listed_results(out)))
+    present = claim_out_dir(out, results, force=force, resume_flag=None)
+    if force:  # the inputs are read: now the old results go
+        remove_results(out, present)
+    views_out = []
+    selections = {}
+    if three_d:
+        for text, slug in zip(texts, unique_slugs(texts)):
+            mask = engine.select(text, threshold, mode)
+            n = int(mask.sum())
+            path = out / f"{slug}_selection.ply"
+            if n:
+                engine.export_selection(mask, path)
+            selections[text] = {"mask": mask, "slug": slug, "count": n,
+                                "ply": path.name if n else None}
+    for i in tqdm(views, desc="query", unit="view", disable=not progress):
+        view = engine.render_view(i, modes=[mode])
+        result = engine.query(view, texts, mode=mode)
+        size = resolve_box_size(box_size, view.width)
+        records = write_view_outputs(out, view, result, size, mask_threshold)
+        rgb = view.rgb.float().cpu().numpy() if view.rgb is not None else None
+        for rec in records:
+            sel = selections.get(rec["query"])
+            if sel is None:
+                continue
+            cover = engine.render_selection(sel["mask"], view).float().cpu().numpy()
+            m = cover > 0.5
+            name = f"{view.name}_{sel['slug']}_selection.png"
+            if rgb is not None:
+                write_png(out / name, mask_overlay(rgb, m))
+            rec["selection"] = {"file": name, "mask_area_px": int(m.sum())}
+        views_out.append({"view": view.name, "view_index": i, "height": view.height, "width": view.width,
+                          "box_size": size, "render_s": view.seconds.get("render"),
+                          "cache_s": view.seconds.get("cache"), "query_s": result.seconds,
+                          "queries": records})
+    summary = {
+        "run_dir": str(Path(run_dir)),
+        "mode": mode,
+        "queries": texts,
+        "encoder": getattr(engine.encoder, "description", str(engine.meta.get("encoder_spec"))),
+        "field": {"variant": engine.variant, "D": engine.dim, "step_size": engine.step,
+                  "num_scales": len(engine.scale_dims) if engine.variant != "levels" else 3},
+        "composite": {"canonical": list(config.canonical), "temperature": config.temperature},
+        "relevancy": {"negatives": list(config.negatives), "feature_normalisation": "L2 (cosine)"},
+        "segmentation": {"threshold": mask_threshold, "box_size": box_size, "selection": config.selection},
+        "views": views_out,
+    }
+    if three_d:
+        rule = (f"relevancy >= {threshold}" if threshold is not None
+                else f"protocol rule (normalised > {LANGSPLAT_THRESHOLD})")
+        summary["selection_3d"] = {"rule": rule, "num_gaussians": engine.gaussians.num,
+                                   "selections": {t: {"count": s["count"], "ply": s["ply"]}
+                                                  for t, s in selections.items()}}
+    write_summary(out / "query.json", summary)
+    return summary
