@@ -5,7 +5,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 DEMO_OUT ?= demo_out
 
-.PHONY: demo test venv clean
+.PHONY: demo test lint venv clean
 
 $(BIN)/n2f2: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -19,7 +19,12 @@ venv: $(BIN)/n2f2
 demo: venv
 	$(BIN)/n2f2 demo --out $(DEMO_OUT)
 
-test: venv
+# Lint and format checks of src/ first (settings in pyproject.toml), then the suite.
+lint: venv
+	$(BIN)/ruff check src
+	$(BIN)/ruff format --check src
+
+test: lint
 	$(BIN)/python -m pytest tests
 
 clean:

@@ -97,8 +97,9 @@ class Camera:
         return m
 
     @staticmethod
-    def from_world_to_camera(w2c: np.ndarray, fx: float, fy: float, cx: float, cy: float,
-                             width: int, height: int) -> "Camera":
+    def from_world_to_camera(
+        w2c: np.ndarray, fx: float, fy: float, cx: float, cy: float, width: int, height: int
+    ) -> "Camera":
         w2c = np.asarray(w2c, dtype=np.float64)
         if w2c.shape not in ((4, 4), (3, 4)):
             raise ValueError(f"world-to-camera matrix must be 3x4 or 4x4, got shape {w2c.shape}")
@@ -139,8 +140,9 @@ class Camera:
         """[H, W, 3] world-space directions through pixel centres, scaled so that camera z = 1
         (so ``center + depth * dir`` is the point at that z-depth)."""
         uv = self.pixel_centers()
-        d_cam = np.stack([(uv[..., 0] - self.cx) / self.fx, (uv[..., 1] - self.cy) / self.fy,
-                          np.ones(uv.shape[:2])], axis=-1)
+        d_cam = np.stack(
+            [(uv[..., 0] - self.cx) / self.fx, (uv[..., 1] - self.cy) / self.fy, np.ones(uv.shape[:2])], axis=-1
+        )
         return d_cam @ self.R  # R^T d
 
     def depth_to_points(self, depth: np.ndarray) -> np.ndarray:
@@ -155,8 +157,15 @@ class Camera:
         fx, cx scale by width ratio and fy, cy by height ratio."""
         sx = width / self.width
         sy = height / self.height
-        return replace(self, fx=self.fx * sx, fy=self.fy * sy, cx=self.cx * sx, cy=self.cy * sy,
-                       width=int(width), height=int(height))
+        return replace(
+            self,
+            fx=self.fx * sx,
+            fy=self.fy * sy,
+            cx=self.cx * sx,
+            cy=self.cy * sy,
+            width=int(width),
+            height=int(height),
+        )
 
     def downscaled(self, factor: float) -> "Camera":
         """The camera for images downscaled by ``factor`` (as 3DGS ``-r``: round(W / factor))."""
@@ -186,8 +195,7 @@ def downscaled_size(size: int, factor: float) -> int:
     return max(1, int(round(size / factor)))
 
 
-def from_opengl_c2w(c2w: np.ndarray, fx: float, fy: float, cx: float, cy: float,
-                    width: int, height: int) -> Camera:
+def from_opengl_c2w(c2w: np.ndarray, fx: float, fy: float, cx: float, cy: float, width: int, height: int) -> Camera:
     """Build a Camera from an OpenGL/nerfstudio camera-to-world matrix [3|4, 4]."""
     c2w = np.asarray(c2w, dtype=np.float64)
     if c2w.shape not in ((4, 4), (3, 4)):
@@ -219,22 +227,29 @@ def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = (0.0, 0.0, 1.0
 def qvec_to_rotmat(q: np.ndarray) -> np.ndarray:
     """Unit quaternion (w, x, y, z) -> rotation matrix [3, 3] (COLMAP's convention)."""
     w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def rotmat_to_qvec(R: np.ndarray) -> np.ndarray:
     """Rotation matrix [3, 3] -> unit quaternion (w, x, y, z) with w >= 0."""
     R = np.asarray(R, dtype=np.float64)
-    K = np.array([
-        [R[0, 0] - R[1, 1] - R[2, 2], 0, 0, 0],
-        [R[1, 0] + R[0, 1], R[1, 1] - R[0, 0] - R[2, 2], 0, 0],
-        [R[2, 0] + R[0, 2], R[2, 1] + R[1, 2], R[2, 2] - R[0, 0] - R[1, 1], 0],
-        [R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1], R[0, 0] + R[1, 1] + R[2, 2]],
-    ]) / 3.0
+    K = (
+        np.array(
+            [
+                [R[0, 0] - R[1, 1] - R[2, 2], 0, 0, 0],
+                [R[1, 0] + R[0, 1], R[1, 1] - R[0, 0] - R[2, 2], 0, 0],
+                [R[2, 0] + R[0, 2], R[2, 1] + R[1, 2], R[2, 2] - R[0, 0] - R[1, 1], 0],
+                [R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1], R[0, 0] + R[1, 1] + R[2, 2]],
+            ]
+        )
+        / 3.0
+    )
     eigvals, eigvecs = np.linalg.eigh(K)
     x, y, z, w = eigvecs[:, np.argmax(eigvals)]
     q = np.array([w, x, y, z])

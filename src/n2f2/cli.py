@@ -19,9 +19,9 @@ import sys
 PASSIVE_WAIT_COMMANDS = ("view",)
 BATCH_SPIN_COUNT = "100000"
 
-from . import __version__
-from .errors import N2F2Error
-from .validate import OneLineArgumentParser
+from . import __version__  # noqa: E402 (after the wait-policy notes above; imports no torch)
+from .errors import N2F2Error  # noqa: E402
+from .validate import OneLineArgumentParser  # noqa: E402
 
 
 def command_modules() -> tuple:
@@ -37,14 +37,24 @@ def command_modules() -> tuple:
     from .train import commands as train_commands
     from .viewer import commands as viewer_commands
 
-    return (data_commands, gaussians_commands, segments_commands, train_commands, query_commands,
-            eval_commands, pipeline_commands, experiments_commands, viewer_commands)
+    return (
+        data_commands,
+        gaussians_commands,
+        segments_commands,
+        train_commands,
+        query_commands,
+        eval_commands,
+        pipeline_commands,
+        experiments_commands,
+        viewer_commands,
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = OneLineArgumentParser(
         prog="n2f2",
-        description="Nested Neural Feature Fields: hierarchical open-vocabulary queries on 3D Gaussian Splatting scenes.",
+        description="Nested Neural Feature Fields: hierarchical open-vocabulary queries on 3D Gaussian "
+        "Splatting scenes.",
     )
     parser.add_argument("--version", action="version", version=f"n2f2 {__version__}")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")

@@ -95,8 +95,11 @@ def check_ray_address(address: str, timeout: float = 5.0) -> None:
     try:
         socket.create_connection((host.strip("[]"), int(port)), timeout=timeout).close()
     except OSError as e:
-        raise InputError(None, f"no Ray head node answers at {address} ({e}); start one with "
-                         "`ray start --head --port=PORT` (docs/distributed.md)") from None
+        raise InputError(
+            None,
+            f"no Ray head node answers at {address} ({e}); start one with "
+            "`ray start --head --port=PORT` (docs/distributed.md)",
+        ) from None
 
 
 class RayExecutor:
@@ -112,8 +115,15 @@ class RayExecutor:
 
     name = "ray"
 
-    def __init__(self, address: Optional[str] = None, *, num_cpus: Optional[int] = None,
-                 cpus_per_task: float = 1, gpus_per_task: float = 0, max_retries: int = MAX_RETRIES) -> None:
+    def __init__(
+        self,
+        address: Optional[str] = None,
+        *,
+        num_cpus: Optional[int] = None,
+        cpus_per_task: float = 1,
+        gpus_per_task: float = 0,
+        max_retries: int = MAX_RETRIES,
+    ) -> None:
         self.ray = import_ray()  # fail before any work when Ray is missing
         if address is not None:
             check_ray_address(address)
@@ -139,8 +149,12 @@ class RayExecutor:
             return
         try:
             if self.address is None:
-                ray.init(address="local", num_cpus=self.num_cpus or os.cpu_count(), include_dashboard=False,
-                         _node_ip_address="127.0.0.1")
+                ray.init(
+                    address="local",
+                    num_cpus=self.num_cpus or os.cpu_count(),
+                    include_dashboard=False,
+                    _node_ip_address="127.0.0.1",
+                )
             else:
                 ray.init(address=self.address)
         except (ConnectionError, ValueError, RuntimeError) as e:
@@ -155,8 +169,11 @@ class RayExecutor:
         if not any(all(r.get(k, 0) >= v for k, v in want.items() if v) for r in nodes):
             need = " and ".join(f"{v:g} {k}" for k, v in want.items() if v)
             have = "; ".join(f"{r.get('CPU', 0):g} CPU, {r.get('GPU', 0):g} GPU" for r in nodes) or "no nodes"
-            raise InputError(None, f"no node of the Ray cluster has {need} for one task (nodes: {have}); lower "
-                             "--ray-cpus-per-task, or start nodes with `ray start ... --num-gpus N` for --device cuda")
+            raise InputError(
+                None,
+                f"no node of the Ray cluster has {need} for one task (nodes: {have}); lower "
+                "--ray-cpus-per-task, or start nodes with `ray start ... --num-gpus N` for --device cuda",
+            )
 
     def map(self, fn: Callable[[Any], Any], items: Sequence[Any]) -> Iterator[tuple[int, Any]]:
         """``(k, fn(items[k]))`` in completion order; a bad input yields ``(k, TaskFailure)``.
@@ -166,8 +183,12 @@ class RayExecutor:
         self.start()
         self._check_feasible()
         ray = self.ray
-        task = ray.remote(_run_task).options(num_cpus=self.cpus_per_task, num_gpus=self.gpus_per_task,
-                                             max_retries=self.max_retries, retry_exceptions=False)
+        task = ray.remote(_run_task).options(
+            num_cpus=self.cpus_per_task,
+            num_gpus=self.gpus_per_task,
+            max_retries=self.max_retries,
+            retry_exceptions=False,
+        )
         fn_ref = ray.put(fn)
         pending = {task.remote(fn_ref, item): k for k, item in enumerate(items)}
         try:
@@ -201,15 +222,28 @@ def worker_state(key: Hashable, build: Callable[[], Any]) -> Any:
 # ----------------------------------------------------------------------------- command line
 def add_executor_options(p: argparse.ArgumentParser, unit: str) -> None:
     """``--executor``, ``--ray-address`` and ``--ray-cpus-per-task`` (one task per ``unit``)."""
-    p.add_argument("--executor", choices=EXECUTORS, default="serial",
-                   help=f"serial: one {unit} after another in this process (default); ray: one Ray task per "
-                        f"{unit} (needs the ray extra: pip install 'n2f2[ray]'; see docs/distributed.md)")
-    p.add_argument("--ray-address", metavar="ADDR", default=None,
-                   help="with --executor ray: 'auto' or HOST:PORT joins a running Ray cluster (its nodes must "
-                        "see the same scene and output folders); default: start a local Ray instance on "
-                        "all cores of this machine")
-    p.add_argument("--ray-cpus-per-task", type=positive_float, default=1.0, metavar="N",
-                   help=f"with --executor ray: CPUs each {unit}'s task asks for (its torch threads; default 1)")
+    p.add_argument(
+        "--executor",
+        choices=EXECUTORS,
+        default="serial",
+        help=f"serial: one {unit} after another in this process (default); ray: one Ray task per "
+        f"{unit} (needs the ray extra: pip install 'n2f2[ray]'; see docs/distributed.md)",
+    )
+    p.add_argument(
+        "--ray-address",
+        metavar="ADDR",
+        default=None,
+        help="with --executor ray: 'auto' or HOST:PORT joins a running Ray cluster (its nodes must "
+        "see the same scene and output folders); default: start a local Ray instance on "
+        "all cores of this machine",
+    )
+    p.add_argument(
+        "--ray-cpus-per-task",
+        type=positive_float,
+        default=1.0,
+        metavar="N",
+        help=f"with --executor ray: CPUs each {unit}'s task asks for (its torch threads; default 1)",
+    )
 
 
 def executor_from_args(args: argparse.Namespace, gpu: bool = False) -> Executor:

@@ -72,8 +72,11 @@ def load_torch(path: str | Path, what: str = "file") -> Any:
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError:
-        raise InputError(path, f"cannot read the {what}: it holds Python objects other than tensors and plain "
-                               "containers, which are refused without running them (n2f2 writes none)") from None
+        raise InputError(
+            path,
+            f"cannot read the {what}: it holds Python objects other than tensors and plain "
+            "containers, which are refused without running them (n2f2 writes none)",
+        ) from None
     except Exception as e:  # noqa: BLE001 - truncated or foreign files: the user's input problem
         reason = (str(e).strip().splitlines() or [""])[0]
         raise InputError(path, f"cannot read the {what} ({type(e).__name__}: {reason})") from None
@@ -116,8 +119,14 @@ def existing_results(out: str | Path, results: Iterable[str]) -> list[str]:
     return [name for name in results if (out / name).exists()]
 
 
-def claim_out_dir(out: str | Path, results: Iterable[str], *, resume: bool = False, force: bool = False,
-                  resume_flag: Optional[str] = "--resume") -> list[str]:
+def claim_out_dir(
+    out: str | Path,
+    results: Iterable[str],
+    *,
+    resume: bool = False,
+    force: bool = False,
+    resume_flag: Optional[str] = "--resume",
+) -> list[str]:
     """Open a command's ``--out`` folder before any work: remove orphaned temporary files, and
     refuse (one :class:`~n2f2.errors.InputError` naming the folder) when it already holds any
     of ``results`` unless the user asked to resume or to replace them (``--force``). Returns

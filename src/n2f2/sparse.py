@@ -17,10 +17,12 @@ import torch
 from torch import Tensor
 
 
-def csr_matrix(crow: Tensor,  # [R + 1] long row pointers
-               col: Tensor,  # [nnz] long column of each entry
-               value: Tensor,  # [nnz] float
-               shape: tuple[int, int]) -> Tensor:  # sparse CSR [R, K]
+def csr_matrix(
+    crow: Tensor,  # [R + 1] long row pointers
+    col: Tensor,  # [nnz] long column of each entry
+    value: Tensor,  # [nnz] float
+    shape: tuple[int, int],
+) -> Tensor:  # sparse CSR [R, K]
     """A CSR tensor, without the beta-feature warning torch prints for every new layout."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
@@ -46,10 +48,11 @@ class _ConstantSparseMatmul(torch.autograd.Function):
         return a_t @ grad, None, None
 
 
-def constant_sparse_matmul(a: Tensor,  # sparse CSR [R, K], constant (no gradient)
-                           x: Tensor,  # [K, C]
-                           a_t: Optional[Tensor] = None,  # CSR [K, R] = a^T when precomputed
-                           ) -> Tensor:  # [R, C] = a @ x, differentiable in x
+def constant_sparse_matmul(
+    a: Tensor,  # sparse CSR [R, K], constant (no gradient)
+    x: Tensor,  # [K, C]
+    a_t: Optional[Tensor] = None,  # CSR [K, R] = a^T when precomputed
+) -> Tensor:  # [R, C] = a @ x, differentiable in x
     """``a @ x`` whose backward is ``a^T @ grad`` (``a_t``, or transposed on demand)."""
     if a.layout != torch.sparse_csr:
         raise ValueError(f"constant_sparse_matmul needs a CSR matrix, got layout {a.layout}")

@@ -100,8 +100,9 @@ def check_finite(path: str | Path, obj: Any) -> None:
 
 
 # ----------------------------------------------------------------------------- option types
-def _option_type(name: str, parse: Callable[[str], Any], ok: Callable[[Any], bool], need: str,
-                 invalid: tuple[str, ...]) -> Callable[[str], Any]:
+def _option_type(
+    name: str, parse: Callable[[str], Any], ok: Callable[[Any], bool], need: str, invalid: tuple[str, ...]
+) -> Callable[[str], Any]:
     def convert(text: str) -> Any:
         try:
             value = parse(text)
@@ -122,20 +123,27 @@ def _finite(x: float) -> bool:
     return math.isfinite(x)
 
 
-positive_int = _option_type("positive_int", int, lambda v: v > 0, "a positive integer",
-                            ("0", "-1", "nan", "inf", "1.5", "x"))
-nonneg_int = _option_type("nonneg_int", int, lambda v: v >= 0, "an integer >= 0",
-                          ("-1", "nan", "inf", "1.5", "x"))
-port_number = _option_type("port_number", int, lambda v: 0 <= v <= 65535, "a port number in 0..65535",
-                           ("-1", "65536", "nan", "inf", "x"))
-positive_float = _option_type("positive_float", float, lambda v: _finite(v) and v > 0, "a finite number > 0",
-                              ("0", "-1", "nan", "inf", "-inf", "x"))
-nonneg_float = _option_type("nonneg_float", float, lambda v: _finite(v) and v >= 0, "a finite number >= 0",
-                            ("-1", "nan", "inf", "-inf", "x"))
-finite_float = _option_type("finite_float", float, _finite, "a finite number",
-                            ("nan", "inf", "-inf", "x"))
-unit_interval = _option_type("unit_interval", float, lambda v: 0.0 <= v <= 1.0, "a number in [0, 1]",
-                             ("-0.5", "1.5", "nan", "inf", "x"))
+positive_int = _option_type(
+    "positive_int", int, lambda v: v > 0, "a positive integer", ("0", "-1", "nan", "inf", "1.5", "x")
+)
+nonneg_int = _option_type("nonneg_int", int, lambda v: v >= 0, "an integer >= 0", ("-1", "nan", "inf", "1.5", "x"))
+port_number = _option_type(
+    "port_number", int, lambda v: 0 <= v <= 65535, "a port number in 0..65535", ("-1", "65536", "nan", "inf", "x")
+)
+positive_float = _option_type(
+    "positive_float",
+    float,
+    lambda v: _finite(v) and v > 0,
+    "a finite number > 0",
+    ("0", "-1", "nan", "inf", "-inf", "x"),
+)
+nonneg_float = _option_type(
+    "nonneg_float", float, lambda v: _finite(v) and v >= 0, "a finite number >= 0", ("-1", "nan", "inf", "-inf", "x")
+)
+finite_float = _option_type("finite_float", float, _finite, "a finite number", ("nan", "inf", "-inf", "x"))
+unit_interval = _option_type(
+    "unit_interval", float, lambda v: 0.0 <= v <= 1.0, "a number in [0, 1]", ("-0.5", "1.5", "nan", "inf", "x")
+)
 
 OPTION_TYPES = (positive_int, nonneg_int, port_number, positive_float, nonneg_float, finite_float, unit_interval)
 
@@ -147,7 +155,7 @@ class OneLineArgumentParser(argparse.ArgumentParser):
 
     def error(self, message: str) -> None:  # type: ignore[override]
         if message.startswith("argument ") and ": must be " in message:
-            flag, _, rest = message[len("argument "):].partition(": ")
+            flag, _, rest = message[len("argument ") :].partition(": ")
             message = f"{flag} {rest}"
         message = " ".join(message.split())
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")

@@ -69,8 +69,9 @@ def detect_format(path: str | Path, format: str = "auto") -> tuple[str, Path]:
         raise InputError(None, f"unknown scene format {format!r}; expected one of {', '.join(FORMATS)}")
     if not path.exists():
         raise InputError(path, "scene path does not exist")
-    if format == "nerfstudio" or (format == "auto" and (path.suffix.lower() == ".json"
-                                                         or (path / TRANSFORMS_NAME).is_file())):
+    if format == "nerfstudio" or (
+        format == "auto" and (path.suffix.lower() == ".json" or (path / TRANSFORMS_NAME).is_file())
+    ):
         json_path = transforms_path(path)
         if not json_path.is_file():
             raise InputError(json_path, "file does not exist (a nerfstudio scene needs transforms.json)")
@@ -78,10 +79,15 @@ def detect_format(path: str | Path, format: str = "auto") -> tuple[str, Path]:
     model = _colmap_model_dir(path) if path.is_dir() else None
     if model is None:
         if format == "colmap":
-            raise InputError(path / "sparse" / "0", "no COLMAP model found: expected cameras.bin + "
-                                                    "images.bin (or cameras.txt + images.txt)")
-        raise InputError(path, f"no scene found: expected {TRANSFORMS_NAME} (nerfstudio) or sparse/0/ "
-                               f"with cameras.bin|txt and images.bin|txt (COLMAP)")
+            raise InputError(
+                path / "sparse" / "0",
+                "no COLMAP model found: expected cameras.bin + images.bin (or cameras.txt + images.txt)",
+            )
+        raise InputError(
+            path,
+            f"no scene found: expected {TRANSFORMS_NAME} (nerfstudio) or sparse/0/ "
+            f"with cameras.bin|txt and images.bin|txt (COLMAP)",
+        )
     return "colmap", model
 
 
@@ -93,8 +99,14 @@ def _colmap_root(model: Path) -> Path:
     return model.parent.parent if model.parent.name == "sparse" else model.parent
 
 
-def load_scene(path: str | Path, downscale: float = 1, format: str = "auto", *,
-               cache_dir: Optional[str | Path] = None, skip_missing: bool = False) -> Scene:
+def load_scene(
+    path: str | Path,
+    downscale: float = 1,
+    format: str = "auto",
+    *,
+    cache_dir: Optional[str | Path] = None,
+    skip_missing: bool = False,
+) -> Scene:
     """Load a scene folder (COLMAP or nerfstudio, see the module docstring) into a Scene.
 
     ``downscale`` (>= 1 usually, like 3DGS ``-r``) divides the image size; ``format`` is
@@ -150,9 +162,17 @@ def load_scene(path: str | Path, downscale: float = 1, format: str = "auto", *,
             image_paths = _predownscaled(image_paths, downscale)
     _check_aspect_ratios(cameras, image_paths, listing)
 
-    scene = Scene(root=root, cameras=cameras, image_paths=image_paths, points=points,
-                  point_colors=colors, downscale=downscale, source_format=source_format,
-                  undistorted_from=undistorted_from, original_image_paths=original_paths)
+    scene = Scene(
+        root=root,
+        cameras=cameras,
+        image_paths=image_paths,
+        points=points,
+        point_colors=colors,
+        downscale=downscale,
+        source_format=source_format,
+        undistorted_from=undistorted_from,
+        original_image_paths=original_paths,
+    )
     if (root / "regions.json").is_file():
         scene.ground_truth = GroundTruth(root, scene.image_names)
     return scene
@@ -180,5 +200,8 @@ def _check_aspect_ratios(cameras, image_paths: list[Path], listing: Path) -> Non
         # w / cam.width image pixels when the camera is downscaled; more is another shape.
         tol = 1.0 + max(w / cam.width, h / cam.height) + 1e-9
         if abs(h - w * cam.height / cam.width) > tol and abs(w - h * cam.width / cam.height) > tol:
-            raise InputError(image_path, f"image is {w}x{h} pixels but the camera in {listing.name} is "
-                                         f"{cam.width}x{cam.height} (after downscaling): a different aspect ratio")
+            raise InputError(
+                image_path,
+                f"image is {w}x{h} pixels but the camera in {listing.name} is "
+                f"{cam.width}x{cam.height} (after downscaling): a different aspect ratio",
+            )

@@ -67,17 +67,24 @@ _MODELS = {
     "SIMPLE_RADIAL": (0, None, lambda k: Lens.perspective("COLMAP SIMPLE_RADIAL", k1=k[0])),
     "RADIAL": (0, None, lambda k: Lens.perspective("COLMAP RADIAL", k1=k[0], k2=k[1])),
     "OPENCV": (0, 1, lambda k: Lens.perspective("COLMAP OPENCV", k1=k[0], k2=k[1], p1=k[2], p2=k[3])),
-    "FULL_OPENCV": (0, 1, lambda k: Lens.perspective("COLMAP FULL_OPENCV", k1=k[0], k2=k[1], p1=k[2], p2=k[3],
-                                                     k3=k[4], k4=k[5], k5=k[6], k6=k[7])),
+    "FULL_OPENCV": (
+        0,
+        1,
+        lambda k: Lens.perspective(
+            "COLMAP FULL_OPENCV", k1=k[0], k2=k[1], p1=k[2], p2=k[3], k3=k[4], k4=k[5], k5=k[6], k6=k[7]
+        ),
+    ),
     "OPENCV_FISHEYE": (0, 1, lambda k: Lens.fisheye("COLMAP OPENCV_FISHEYE", *k)),
     "SIMPLE_RADIAL_FISHEYE": (0, None, lambda k: Lens.fisheye("COLMAP SIMPLE_RADIAL_FISHEYE", k1=k[0])),
     "RADIAL_FISHEYE": (0, None, lambda k: Lens.fisheye("COLMAP RADIAL_FISHEYE", k1=k[0], k2=k[1])),
     "FOV": (0, 1, "omega"),  # a pinhole when omega = 0, refused otherwise
 }
 
-UNDISTORT_HINT = ("undistort the images first, e.g. `colmap image_undistorter --image_path images "
-                  "--input_path sparse/0 --output_path undistorted --output_type COLMAP`, "
-                  "then use the undistorted folder")
+UNDISTORT_HINT = (
+    "undistort the images first, e.g. `colmap image_undistorter --image_path images "
+    "--input_path sparse/0 --output_path undistorted --output_type COLMAP`, "
+    "then use the undistorted folder"
+)
 
 
 @dataclass(frozen=True)
@@ -116,8 +123,9 @@ def find_model_files(sparse_dir: str | Path) -> Optional[tuple[str, dict[str, Pa
     return None
 
 
-def read_colmap_model(sparse_dir: str | Path) -> tuple[dict[int, ColmapCamera], list[ColmapImage],
-                                                        Optional[np.ndarray], Optional[np.ndarray]]:
+def read_colmap_model(
+    sparse_dir: str | Path,
+) -> tuple[dict[int, ColmapCamera], list[ColmapImage], Optional[np.ndarray], Optional[np.ndarray]]:
     """Read a COLMAP model folder (binary preferred over text).
 
     Returns ``(cameras, images, points, colors)``: cameras by id, images in file order,
@@ -127,8 +135,11 @@ def read_colmap_model(sparse_dir: str | Path) -> tuple[dict[int, ColmapCamera], 
     sparse_dir = Path(sparse_dir)
     found = find_model_files(sparse_dir)
     if found is None:
-        raise InputError(sparse_dir, "no COLMAP model here: expected cameras.bin + images.bin "
-                                     "(+ points3D.bin) or cameras.txt + images.txt (+ points3D.txt)")
+        raise InputError(
+            sparse_dir,
+            "no COLMAP model here: expected cameras.bin + images.bin "
+            "(+ points3D.bin) or cameras.txt + images.txt (+ points3D.txt)",
+        )
     kind, files = found
     if kind == "binary":
         cameras = read_cameras_binary(files["cameras"])
@@ -142,8 +153,10 @@ def read_colmap_model(sparse_dir: str | Path) -> tuple[dict[int, ColmapCamera], 
         points, colors = None, None
     for image in images:
         if image.camera_id not in cameras:
-            raise InputError(files["images"], f"image {image.name!r} uses camera id {image.camera_id}, "
-                                              f"which {files['cameras'].name} does not define")
+            raise InputError(
+                files["images"],
+                f"image {image.name!r} uses camera id {image.camera_id}, which {files['cameras'].name} does not define",
+            )
     return cameras, images, points, colors
 
 
@@ -168,12 +181,17 @@ def read_colmap_scene(sparse_dir: str | Path) -> ColmapScene:
     kind, files = find_model_files(sparse_dir)
     if not images:
         raise InputError(files["images"], "lists no images")
-    lenses = {cam_id: colmap_lens(cam, files["cameras"]) for cam_id, cam in raw_cameras.items()
-              if any(im.camera_id == cam_id for im in images)}
-    cameras = [colmap_to_camera(raw_cameras[im.camera_id], im, files["images"], lenses[im.camera_id][0])
-               for im in images]
-    return ColmapScene(cameras, [im.name for im in images], points, colors, kind, files,
-                       [lenses[im.camera_id][1] for im in images])
+    lenses = {
+        cam_id: colmap_lens(cam, files["cameras"])
+        for cam_id, cam in raw_cameras.items()
+        if any(im.camera_id == cam_id for im in images)
+    }
+    cameras = [
+        colmap_to_camera(raw_cameras[im.camera_id], im, files["images"], lenses[im.camera_id][0]) for im in images
+    ]
+    return ColmapScene(
+        cameras, [im.name for im in images], points, colors, kind, files, [lenses[im.camera_id][1] for im in images]
+    )
 
 
 def colmap_lens(camera: ColmapCamera, source: Path) -> tuple[tuple[float, float, float, float], Optional[Lens]]:
@@ -182,8 +200,9 @@ def colmap_lens(camera: ColmapCamera, source: Path) -> tuple[tuple[float, float,
     :class:`InputError` naming ``source`` and telling the user to undistort first."""
     model, p = camera.model, camera.params
     if model not in _MODELS:
-        raise InputError(source, f"camera {camera.id} uses the {model} model, which n2f2 cannot "
-                                 f"undistort; {UNDISTORT_HINT}")
+        raise InputError(
+            source, f"camera {camera.id} uses the {model} model, which n2f2 cannot undistort; {UNDISTORT_HINT}"
+        )
     if not all(math.isfinite(v) for v in p):
         raise InputError(source, f"camera {camera.id} has NaN or infinite parameters {list(p)}")
     ifx, ify, make_lens = _MODELS[model]
@@ -196,15 +215,22 @@ def colmap_lens(camera: ColmapCamera, source: Path) -> tuple[tuple[float, float,
     _check_size(source, f"camera {camera.id}", camera.width, camera.height)
     if make_lens == "omega":
         if any(extra):
-            raise InputError(source, f"camera {camera.id} uses the {model} model with omega = {extra[0]}, "
-                                     f"which n2f2 cannot undistort; {UNDISTORT_HINT}")
+            raise InputError(
+                source,
+                f"camera {camera.id} uses the {model} model with omega = {extra[0]}, "
+                f"which n2f2 cannot undistort; {UNDISTORT_HINT}",
+            )
         make_lens = None
     lens = make_lens(extra) if make_lens is not None else None
     return (fx, fy, cx, cy), lens
 
 
-def colmap_to_camera(camera: ColmapCamera, image: ColmapImage, source: Path,
-                     intrinsics: Optional[tuple[float, float, float, float]] = None) -> Camera:
+def colmap_to_camera(
+    camera: ColmapCamera,
+    image: ColmapImage,
+    source: Path,
+    intrinsics: Optional[tuple[float, float, float, float]] = None,
+) -> Camera:
     """Build an n2f2 :class:`Camera` from a COLMAP camera and image (``source`` names the file
     in error messages; ``intrinsics`` defaults to the pinhole part from :func:`colmap_lens`,
     without the distortion, which the caller must handle)."""
@@ -212,8 +238,10 @@ def colmap_to_camera(camera: ColmapCamera, image: ColmapImage, source: Path,
     q = np.asarray(image.qvec, dtype=np.float64)
     t = np.asarray(image.tvec, dtype=np.float64)
     if not (np.isfinite(q).all() and np.isfinite(t).all()):
-        raise InputError(source, f"image {image.name!r} has a NaN or infinite pose "
-                                 f"(qvec={list(image.qvec)}, tvec={list(image.tvec)})")
+        raise InputError(
+            source,
+            f"image {image.name!r} has a NaN or infinite pose (qvec={list(image.qvec)}, tvec={list(image.tvec)})",
+        )
     if np.linalg.norm(q) < 1e-12:
         raise InputError(source, f"image {image.name!r} has a zero quaternion")
     try:
@@ -236,8 +264,11 @@ class _BinaryReader:
 
     def _need(self, n: int, what: str) -> None:
         if self.offset + n > len(self.data):
-            raise InputError(self.path, f"file is truncated: expected {n} bytes ({what}) at offset "
-                                        f"{self.offset}, but the file has {len(self.data)} bytes")
+            raise InputError(
+                self.path,
+                f"file is truncated: expected {n} bytes ({what}) at offset "
+                f"{self.offset}, but the file has {len(self.data)} bytes",
+            )
 
     def unpack(self, fmt: str, what: str) -> tuple:
         size = struct.calcsize(fmt)
@@ -253,9 +284,12 @@ class _BinaryReader:
     def cstring(self, what: str) -> str:
         end = self.data.find(b"\x00", self.offset)
         if end < 0:
-            raise InputError(self.path, f"file is truncated: {what} at offset {self.offset} has no "
-                                        f"terminating NUL byte before the end of the file")
-        raw = self.data[self.offset:end]
+            raise InputError(
+                self.path,
+                f"file is truncated: {what} at offset {self.offset} has no "
+                f"terminating NUL byte before the end of the file",
+            )
+        raw = self.data[self.offset : end]
         self.offset = end + 1
         try:
             return raw.decode("utf-8")
@@ -273,8 +307,9 @@ def read_cameras_binary(path: str | Path) -> dict[int, ColmapCamera]:
     for k in range(r.count("camera count")):
         cam_id, model_id, width, height = r.unpack("<iiQQ", f"camera #{k} header")
         if model_id not in CAMERA_MODELS:
-            raise InputError(r.path, f"camera {cam_id} has unknown model id {model_id} "
-                                     f"(is this really a COLMAP cameras.bin?)")
+            raise InputError(
+                r.path, f"camera {cam_id} has unknown model id {model_id} (is this really a COLMAP cameras.bin?)"
+            )
         model, n_params = CAMERA_MODELS[model_id]
         params = r.unpack(f"<{n_params}d", f"{n_params} parameters of camera {cam_id} ({model})")
         _check_size(r.path, f"camera {cam_id}", width, height)
@@ -304,8 +339,11 @@ def read_points3d_binary(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     n = r.count("point count")
     room = len(r.data) - r.offset
     if n * _POINT_RECORD_BYTES > room:
-        raise InputError(r.path, f"file is truncated: it declares {n} points, expected at least "
-                                 f"{_POINT_RECORD_BYTES} bytes each, but only {room} bytes remain")
+        raise InputError(
+            r.path,
+            f"file is truncated: it declares {n} points, expected at least "
+            f"{_POINT_RECORD_BYTES} bytes each, but only {room} bytes remain",
+        )
     points = np.empty((n, 3), dtype=np.float64)
     colors = np.empty((n, 3), dtype=np.uint8)
     head = struct.Struct("<QdddBBBdQ")  # id, xyz, rgb, error, track length
@@ -318,8 +356,11 @@ def read_points3d_binary(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     return points, colors
 
 
-def _check_points_finite(path: Path, points: np.ndarray,  # [P, 3]
-                         where) -> None:
+def _check_points_finite(
+    path: Path,
+    points: np.ndarray,  # [P, 3]
+    where,
+) -> None:
     """An :class:`InputError` naming the first point (``where(k)``) with a NaN or infinite coordinate."""
     bad = np.flatnonzero(~np.isfinite(points).all(axis=1))
     if bad.size:
@@ -356,13 +397,15 @@ def read_cameras_text(path: str | Path) -> dict[int, ColmapCamera]:
             cam_id, model, width, height = int(elems[0]), elems[1], int(elems[2]), int(elems[3])
             params = tuple(float(v) for v in elems[4:])
         except (ValueError, IndexError):
-            raise InputError(path, f"line {number}: expected 'CAMERA_ID MODEL WIDTH HEIGHT PARAMS...', "
-                                   f"got {line[:80]!r}") from None
+            raise InputError(
+                path, f"line {number}: expected 'CAMERA_ID MODEL WIDTH HEIGHT PARAMS...', got {line[:80]!r}"
+            ) from None
         if model not in CAMERA_MODEL_IDS:
             raise InputError(path, f"line {number}: unknown camera model {model!r}")
         if len(params) != CAMERA_MODEL_IDS[model][1]:
-            raise InputError(path, f"line {number}: the {model} model has {CAMERA_MODEL_IDS[model][1]} "
-                                   f"parameters, got {len(params)}")
+            raise InputError(
+                path, f"line {number}: the {model} model has {CAMERA_MODEL_IDS[model][1]} parameters, got {len(params)}"
+            )
         _check_size(path, f"line {number}: camera {cam_id}", width, height)
         cameras[cam_id] = ColmapCamera(cam_id, model, width, height, params)
     return cameras
@@ -387,8 +430,9 @@ def read_images_text(path: str | Path) -> list[ColmapImage]:
             if len(qvec) != 4 or len(tvec) != 3 or not name:
                 raise ValueError
         except (ValueError, IndexError):
-            raise InputError(path, f"line {number}: expected 'IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME', "
-                                   f"got {line[:80]!r}") from None
+            raise InputError(
+                path, f"line {number}: expected 'IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME', got {line[:80]!r}"
+            ) from None
         images.append(ColmapImage(image_id, qvec, tvec, cam_id, name))
         next(lines, None)  # the 2D-point line of this image
     return images
@@ -405,8 +449,9 @@ def read_points3d_text(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
             xyz.append((float(elems[1]), float(elems[2]), float(elems[3])))
             rgb.append((int(elems[4]), int(elems[5]), int(elems[6])))
         except (ValueError, IndexError):
-            raise InputError(path, f"line {number}: expected 'POINT3D_ID X Y Z R G B ERROR TRACK...', "
-                                   f"got {line[:80]!r}") from None
+            raise InputError(
+                path, f"line {number}: expected 'POINT3D_ID X Y Z R G B ERROR TRACK...', got {line[:80]!r}"
+            ) from None
         numbers.append(number)
     points = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
     _check_points_finite(path, points, lambda k: f"line {numbers[k]}")
@@ -417,12 +462,12 @@ def read_points3d_text(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
 
 
 # ================================================================================== writing
-def _model_from_cameras(cameras: Sequence[Camera], image_names: Sequence[str]
-                        ) -> tuple[list[ColmapCamera], list[ColmapImage]]:
+def _model_from_cameras(
+    cameras: Sequence[Camera], image_names: Sequence[str]
+) -> tuple[list[ColmapCamera], list[ColmapImage]]:
     """COLMAP cameras (PINHOLE, one per distinct intrinsics, ids from 1) and images (ids from 1)."""
     if len(cameras) != len(image_names):
-        raise ValueError(f"need one image name per camera, got {len(cameras)} cameras and "
-                         f"{len(image_names)} names")
+        raise ValueError(f"need one image name per camera, got {len(cameras)} cameras and {len(image_names)} names")
     intrinsics_ids: dict[tuple, int] = {}
     colmap_cameras: list[ColmapCamera] = []
     colmap_images: list[ColmapImage] = []
@@ -430,11 +475,15 @@ def _model_from_cameras(cameras: Sequence[Camera], image_names: Sequence[str]
         key = (cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy)
         if key not in intrinsics_ids:
             intrinsics_ids[key] = len(intrinsics_ids) + 1
-            colmap_cameras.append(ColmapCamera(intrinsics_ids[key], "PINHOLE", cam.width, cam.height,
-                                               (cam.fx, cam.fy, cam.cx, cam.cy)))
+            colmap_cameras.append(
+                ColmapCamera(intrinsics_ids[key], "PINHOLE", cam.width, cam.height, (cam.fx, cam.fy, cam.cx, cam.cy))
+            )
         q = rotmat_to_qvec(cam.R)
-        colmap_images.append(ColmapImage(i + 1, tuple(float(v) for v in q), tuple(float(v) for v in cam.t),
-                                         intrinsics_ids[key], str(name)))
+        colmap_images.append(
+            ColmapImage(
+                i + 1, tuple(float(v) for v in q), tuple(float(v) for v in cam.t), intrinsics_ids[key], str(name)
+            )
+        )
     return colmap_cameras, colmap_images
 
 
@@ -452,12 +501,13 @@ def _check_points(points: Optional[np.ndarray], colors: Optional[np.ndarray]) ->
     return points, colors
 
 
-def write_colmap_text(sparse_dir: str | Path,
-                      cameras: Sequence[Camera],
-                      image_names: Sequence[str],  # relative to the images folder
-                      points: Optional[np.ndarray] = None,  # [P, 3] world space
-                      colors: Optional[np.ndarray] = None,  # [P, 3] uint8 (default grey)
-                      ) -> None:
+def write_colmap_text(
+    sparse_dir: str | Path,
+    cameras: Sequence[Camera],
+    image_names: Sequence[str],  # relative to the images folder
+    points: Optional[np.ndarray] = None,  # [P, 3] world space
+    colors: Optional[np.ndarray] = None,  # [P, 3] uint8 (default grey)
+) -> None:
     """Write ``cameras.txt``, ``images.txt`` and ``points3D.txt`` (PINHOLE cameras, empty 2D
     point lists and tracks) into ``sparse_dir``. Floats are written with ``repr`` so that
     reading them back is exact."""
@@ -465,36 +515,46 @@ def write_colmap_text(sparse_dir: str | Path,
     colmap_cameras, colmap_images = _model_from_cameras(cameras, image_names)
     points, colors = _check_points(points, colors)
 
-    lines = ["# Camera list with one line of data per camera:",
-             "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]",
-             f"# Number of cameras: {len(colmap_cameras)}"]
-    lines += [f"{c.id} {c.model} {c.width} {c.height} " + " ".join(repr(float(v)) for v in c.params)
-              for c in colmap_cameras]
+    lines = [
+        "# Camera list with one line of data per camera:",
+        "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]",
+        f"# Number of cameras: {len(colmap_cameras)}",
+    ]
+    lines += [
+        f"{c.id} {c.model} {c.width} {c.height} " + " ".join(repr(float(v)) for v in c.params) for c in colmap_cameras
+    ]
     write_text(sparse_dir / "cameras.txt", "\n".join(lines) + "\n")
 
-    lines = ["# Image list with two lines of data per image:",
-             "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME",
-             "#   POINTS2D[] as (X, Y, POINT3D_ID)",
-             f"# Number of images: {len(colmap_images)}, mean observations per image: 0"]
+    lines = [
+        "# Image list with two lines of data per image:",
+        "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME",
+        "#   POINTS2D[] as (X, Y, POINT3D_ID)",
+        f"# Number of images: {len(colmap_images)}, mean observations per image: 0",
+    ]
     for im in colmap_images:
         lines.append(f"{im.id} " + " ".join(repr(v) for v in (*im.qvec, *im.tvec)) + f" {im.camera_id} {im.name}")
         lines.append("")
     write_text(sparse_dir / "images.txt", "\n".join(lines) + "\n")
 
-    lines = ["# 3D point list with one line of data per point:",
-             "#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)",
-             f"# Number of points: {len(points)}, mean track length: 0"]
-    lines += [f"{k + 1} {p[0]!r} {p[1]!r} {p[2]!r} {c[0]} {c[1]} {c[2]} 0.0"
-              for k, (p, c) in enumerate(zip(points.tolist(), colors.tolist()))]
+    lines = [
+        "# 3D point list with one line of data per point:",
+        "#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)",
+        f"# Number of points: {len(points)}, mean track length: 0",
+    ]
+    lines += [
+        f"{k + 1} {p[0]!r} {p[1]!r} {p[2]!r} {c[0]} {c[1]} {c[2]} 0.0"
+        for k, (p, c) in enumerate(zip(points.tolist(), colors.tolist()))
+    ]
     write_text(sparse_dir / "points3D.txt", "\n".join(lines) + "\n")
 
 
-def write_colmap_binary(sparse_dir: str | Path,
-                        cameras: Sequence[Camera],
-                        image_names: Sequence[str],  # relative to the images folder
-                        points: Optional[np.ndarray] = None,  # [P, 3] world space
-                        colors: Optional[np.ndarray] = None,  # [P, 3] uint8 (default grey)
-                        ) -> None:
+def write_colmap_binary(
+    sparse_dir: str | Path,
+    cameras: Sequence[Camera],
+    image_names: Sequence[str],  # relative to the images folder
+    points: Optional[np.ndarray] = None,  # [P, 3] world space
+    colors: Optional[np.ndarray] = None,  # [P, 3] uint8 (default grey)
+) -> None:
     """Write ``cameras.bin``, ``images.bin`` and ``points3D.bin`` into ``sparse_dir`` (same
     content as :func:`write_colmap_text`)."""
     sparse_dir = Path(sparse_dir)
@@ -521,4 +581,3 @@ def write_colmap_binary(sparse_dir: str | Path,
     table["xyz"] = points
     table["rgb"] = colors
     write_bytes(sparse_dir / "points3D.bin", struct.pack("<Q", len(points)) + table.tobytes())
-

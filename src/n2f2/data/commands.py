@@ -13,16 +13,24 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "inspect",
         help="load a scene (COLMAP or nerfstudio) and print a summary",
         description="Load a scene folder the way training does (same checks, same undistortion, "
-                    "same downscaling) and print views, image size, intrinsics, lens undistortion, "
-                    "sparse points, ground truth and bounds.",
+        "same downscaling) and print views, image size, intrinsics, lens undistortion, "
+        "sparse points, ground truth and bounds.",
     )
     p.add_argument("data", metavar="DATA", help="scene folder (with transforms.json or sparse/0/)")
-    p.add_argument("--downscale", "-r", type=positive_float, default=1.0,
-                   help="image downscale factor, as 3DGS -r (default: 1)")
-    p.add_argument("--format", choices=("auto", "colmap", "nerfstudio"), default="auto",
-                   help="scene format; auto prefers transforms.json over COLMAP (default: auto)")
-    p.add_argument("--skip-missing", action="store_true",
-                   help="drop views whose image file is missing (default: a missing image is an error)")
+    p.add_argument(
+        "--downscale", "-r", type=positive_float, default=1.0, help="image downscale factor, as 3DGS -r (default: 1)"
+    )
+    p.add_argument(
+        "--format",
+        choices=("auto", "colmap", "nerfstudio"),
+        default="auto",
+        help="scene format; auto prefers transforms.json over COLMAP (default: auto)",
+    )
+    p.add_argument(
+        "--skip-missing",
+        action="store_true",
+        help="drop views whose image file is missing (default: a missing image is an error)",
+    )
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.set_defaults(func=run_inspect)
     register_sfm(subparsers)
@@ -47,8 +55,12 @@ def summarize(scene) -> dict:
         "views": len(scene),
         "downscale": scene.downscale,
         "image_sizes": [list(s) for s in sizes],
-        "image_folder": sorted({str(p.parent.relative_to(scene.root)) if p.is_relative_to(scene.root)
-                                else str(p.parent) for p in user_paths}),
+        "image_folder": sorted(
+            {
+                str(p.parent.relative_to(scene.root)) if p.is_relative_to(scene.root) else str(p.parent)
+                for p in user_paths
+            }
+        ),
         "first_image": user_paths[0].name,
         "last_image": user_paths[-1].name,
         "fx": value_range([c.fx for c in cams]),
@@ -82,17 +94,24 @@ def run_inspect(args: argparse.Namespace) -> int:
         return f"{a:.6g}" if a == b else f"{a:.6g} .. {b:.6g}"
 
     sizes = ", ".join(f"{w}x{h}" for w, h in info["image_sizes"])
-    points = "none" if not info["points"] else (
-        f"{info['points']}" + (" (with colours)" if info["point_colors"] else " (no colours)"))
+    points = (
+        "none"
+        if not info["points"]
+        else (f"{info['points']}" + (" (with colours)" if info["point_colors"] else " (no colours)"))
+    )
     print(f"scene        {info['root']}")
     print(f"format       {info['format']}")
-    print(f"views        {info['views']}  ({info['first_image']} .. {info['last_image']} "
-          f"in {', '.join(info['image_folder'])})")
+    print(
+        f"views        {info['views']}  ({info['first_image']} .. {info['last_image']} "
+        f"in {', '.join(info['image_folder'])})"
+    )
     print(f"image size   {sizes}  (downscale {info['downscale']:g})")
     print(f"intrinsics   fx {rng('fx')}, fy {rng('fy')}, cx {rng('cx')}, cy {rng('cy')}")
     if info["undistorted_views"]:
-        print(f"undistorted  {info['undistorted_views']} views from {info['undistorted_from']} to pinhole "
-              f"(cached in {info['undistorted_cache']})")
+        print(
+            f"undistorted  {info['undistorted_views']} views from {info['undistorted_from']} to pinhole "
+            f"(cached in {info['undistorted_cache']})"
+        )
     print(f"points       {points}")
     print(f"ground truth {'yes' if info['ground_truth'] else 'no'}")
     lo = ", ".join(f"{v + 0.0:.4g}" for v in info["bounds_min"])
@@ -111,23 +130,40 @@ def register_sfm(subparsers: argparse._SubParsersAction) -> None:
         "sfm",
         help="pose a folder of photos with structure from motion (pycolmap) and write a COLMAP scene",
         description="Structure from motion with pycolmap: SIFT features, matching, incremental mapping "
-                    "(the largest model is kept) and undistortion to PINHOLE. Writes DATA/images, "
-                    "DATA/sparse/0 (the layout `n2f2 inspect`, `fit-gaussians` and `run` read) and "
-                    "DATA/sfm_report.json. Rerunning on unchanged photos and settings reuses the result.",
+        "(the largest model is kept) and undistortion to PINHOLE. Writes DATA/images, "
+        "DATA/sparse/0 (the layout `n2f2 inspect`, `fit-gaussians` and `run` read) and "
+        "DATA/sfm_report.json. Rerunning on unchanged photos and settings reuses the result.",
     )
     p.add_argument("photos", metavar="PHOTOS", help="folder of photos (directly inside, or in PHOTOS/images)")
     p.add_argument("--out", required=True, metavar="DATA", help="output scene folder")
-    p.add_argument("--matcher", choices=MATCHERS, default=d.matcher,
-                   help=f"exhaustive: every pair; sequential: neighbours in file-name order (video frames); "
-                        f"auto: exhaustive up to {d.exhaustive_max_images} photos (default: auto)")
-    p.add_argument("--camera-model", choices=CAMERA_MODELS, default=d.camera_model,
-                   help=f"lens model estimated before undistortion (default: {d.camera_model})")
-    p.add_argument("--per-image-camera", action="store_true",
-                   help="estimate intrinsics per photo instead of one camera shared by all")
-    p.add_argument("--max-image-size", type=positive_int, default=d.max_image_size, metavar="N",
-                   help=f"longest side features are extracted at (default: {d.max_image_size})")
-    p.add_argument("--overwrite", action="store_true",
-                   help="replace a finished result in DATA made from other photos or settings")
+    p.add_argument(
+        "--matcher",
+        choices=MATCHERS,
+        default=d.matcher,
+        help=f"exhaustive: every pair; sequential: neighbours in file-name order (video frames); "
+        f"auto: exhaustive up to {d.exhaustive_max_images} photos (default: auto)",
+    )
+    p.add_argument(
+        "--camera-model",
+        choices=CAMERA_MODELS,
+        default=d.camera_model,
+        help=f"lens model estimated before undistortion (default: {d.camera_model})",
+    )
+    p.add_argument(
+        "--per-image-camera",
+        action="store_true",
+        help="estimate intrinsics per photo instead of one camera shared by all",
+    )
+    p.add_argument(
+        "--max-image-size",
+        type=positive_int,
+        default=d.max_image_size,
+        metavar="N",
+        help=f"longest side features are extracted at (default: {d.max_image_size})",
+    )
+    p.add_argument(
+        "--overwrite", action="store_true", help="replace a finished result in DATA made from other photos or settings"
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=run_sfm_command)
 
@@ -135,8 +171,12 @@ def register_sfm(subparsers: argparse._SubParsersAction) -> None:
 def run_sfm_command(args: argparse.Namespace) -> int:
     from .sfm import SfmSettings, run_sfm
 
-    settings = SfmSettings(matcher=args.matcher, camera_model=args.camera_model,
-                           per_image_camera=args.per_image_camera, max_image_size=args.max_image_size)
+    settings = SfmSettings(
+        matcher=args.matcher,
+        camera_model=args.camera_model,
+        per_image_camera=args.per_image_camera,
+        max_image_size=args.max_image_size,
+    )
     report = run_sfm(args.photos, args.out, settings, overwrite=args.overwrite, progress=not args.quiet)
     print(report.summary())
     return 0

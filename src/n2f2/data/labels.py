@@ -100,8 +100,11 @@ def frame_view_index(name: str) -> int:
 
 
 # ----------------------------------------------------------------------------- masks <-> polygons
-def polygon_to_mask(polygon: Sequence[Sequence[float]],  # [K, 2] (x, y) pixel indices
-                    height: int, width: int) -> np.ndarray:
+def polygon_to_mask(
+    polygon: Sequence[Sequence[float]],  # [K, 2] (x, y) pixel indices
+    height: int,
+    width: int,
+) -> np.ndarray:
     """bool [H, W]: the polygon filled with ``cv2.fillPoly`` (int32 vertices, as LangSplat).
     A polygon reaching beyond one image size outside the image is clipped to that box first
     (see the module docstring)."""
@@ -118,9 +121,10 @@ def polygon_to_mask(polygon: Sequence[Sequence[float]],  # [K, 2] (x, y) pixel i
     return mask.astype(bool)
 
 
-def clip_polygon(points: np.ndarray,  # [K, 2] (x, y)
-                 box: tuple[float, float, float, float],  # x0, y0, x1, y1
-                 ) -> np.ndarray:  # [M, 2] float64
+def clip_polygon(
+    points: np.ndarray,  # [K, 2] (x, y)
+    box: tuple[float, float, float, float],  # x0, y0, x1, y1
+) -> np.ndarray:  # [M, 2] float64
     """Sutherland-Hodgman: the polygon cut by each side of ``box`` in turn. Every point inside
     the box keeps its winding number (a part cut off by one side cannot wind around a point on
     the other side), so even-odd and non-zero filling inside the box are unchanged."""
@@ -145,8 +149,10 @@ def clip_polygon(points: np.ndarray,  # [K, 2] (x, y)
     return pts
 
 
-def mask_to_polygons(mask: np.ndarray,  # [H, W] bool
-                     min_area: int = 4) -> list[np.ndarray]:
+def mask_to_polygons(
+    mask: np.ndarray,  # [H, W] bool
+    min_area: int = 4,
+) -> list[np.ndarray]:
     """One polygon (int32 [K, 2], (x, y) pixel indices) per connected piece of ``mask``.
 
     LangSplat's format has no holes, so each hole (e.g. the gap inside a mug handle, or a
@@ -202,8 +208,11 @@ def polygon_bbox(polygon: np.ndarray) -> tuple[float, float, float, float]:  # p
     return (float(p[:, 0].min()), float(p[:, 1].min()), float(p[:, 0].max()), float(p[:, 1].max()))
 
 
-def labels_from_masks(frame: str, masks: Mapping[str, np.ndarray],  # category -> bool [H, W]
-                      min_area: int = 4) -> FrameLabels:
+def labels_from_masks(
+    frame: str,
+    masks: Mapping[str, np.ndarray],  # category -> bool [H, W]
+    min_area: int = 4,
+) -> FrameLabels:
     """Frame labels with one object per connected piece of each category's mask."""
     shapes = {m.shape for m in masks.values()}
     if len(shapes) > 1:
@@ -220,15 +229,20 @@ def labels_from_masks(frame: str, masks: Mapping[str, np.ndarray],  # category -
 def write_frame_labels(path: str | Path, labels: FrameLabels) -> None:
     """Write one ``frame_XXXXX.json`` (atomically). ``info.name`` is ``<frame>.jpg`` as in
     LangSplat's label folders, whose evaluation script parses the frame number from it."""
+
     def num(x: float) -> float | int:
         return int(x) if float(x).is_integer() else float(x)
 
     obj = {
-        "info": {"name": f"{labels.frame_name}.jpg", "height": int(labels.height),
-                 "width": int(labels.width)},
-        "objects": [{"category": o.category, "bbox": [num(v) for v in o.bbox],
-                     "segmentation": [[num(x), num(y)] for x, y in o.polygon]}
-                    for o in labels.objects],
+        "info": {"name": f"{labels.frame_name}.jpg", "height": int(labels.height), "width": int(labels.width)},
+        "objects": [
+            {
+                "category": o.category,
+                "bbox": [num(v) for v in o.bbox],
+                "segmentation": [[num(x), num(y)] for x, y in o.polygon],
+            }
+            for o in labels.objects
+        ],
     }
     write_json(path, obj)
 
@@ -256,8 +270,11 @@ def read_frame_labels(path: str | Path) -> FrameLabels:
         if not _is_int(info.get(key)) or info[key] <= 0:
             raise InputError(path, f"'info.{key}' must be a positive integer, got {info.get(key)!r}")
     if info["height"] * info["width"] > MAX_LABEL_PIXELS:
-        raise InputError(path, f"'info' declares a {info['width']}x{info['height']} image, more than the "
-                               f"{MAX_LABEL_PIXELS} pixels a label mask may have")
+        raise InputError(
+            path,
+            f"'info' declares a {info['width']}x{info['height']} image, more than the "
+            f"{MAX_LABEL_PIXELS} pixels a label mask may have",
+        )
     if "name" in info and not isinstance(info["name"], str):
         raise InputError(path, f"'info.name' must be a string, got {info['name']!r}")
     objs = data.get("objects")
@@ -274,15 +291,18 @@ def read_frame_labels(path: str | Path) -> FrameLabels:
         if not isinstance(o["category"], str) or not o["category"].strip():
             raise InputError(path, f"{where}.category must be a non-empty string")
         bbox = o["bbox"]
-        if (not isinstance(bbox, list) or len(bbox) != 4 or not all(_is_num(v) for v in bbox)):
+        if not isinstance(bbox, list) or len(bbox) != 4 or not all(_is_num(v) for v in bbox):
             raise InputError(path, f"{where}.bbox must be [x1, y1, x2, y2] numbers, got {bbox!r}")
         seg = o["segmentation"]
-        if (not isinstance(seg, list) or not seg
-                or not all(isinstance(p, list) and len(p) == 2 and all(_is_num(v) for v in p)
-                           for p in seg)):
+        if (
+            not isinstance(seg, list)
+            or not seg
+            or not all(isinstance(p, list) and len(p) == 2 and all(_is_num(v) for v in p) for p in seg)
+        ):
             raise InputError(path, f"{where}.segmentation must be a non-empty list of [x, y] numbers")
-        objects.append(LabelObject(o["category"], tuple(float(v) for v in bbox),
-                                   [[float(x), float(y)] for x, y in seg]))
+        objects.append(
+            LabelObject(o["category"], tuple(float(v) for v in bbox), [[float(x), float(y)] for x, y in seg])
+        )
     return FrameLabels(frame, int(info["height"]), int(info["width"]), objects)
 
 

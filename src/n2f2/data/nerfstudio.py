@@ -59,8 +59,10 @@ _DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "k5", "k6", "p1", "p2")
 _PERSPECTIVE_MODELS = {"OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "PERSPECTIVE", "SIMPLE_RADIAL", "RADIAL"}
 _FISHEYE_MODELS = {"OPENCV_FISHEYE"}
 _UNSUPPORTED_LENS_KEYS = ("latlong", "equirectangular", "ftheta_p0")  # instant-ngp lens modes
-UNDISTORT_HINT = ("undistort the images first (e.g. process the data with COLMAP's "
-                  "`colmap image_undistorter`) and write pinhole intrinsics")
+UNDISTORT_HINT = (
+    "undistort the images first (e.g. process the data with COLMAP's "
+    "`colmap image_undistorter`) and write pinhole intrinsics"
+)
 
 
 class TransformsData(NamedTuple):
@@ -108,8 +110,11 @@ def read_transforms(path: str | Path, missing: str = "keep") -> TransformsData:
         if not isinstance(frame, dict):
             raise InputError(path, f"frame {index} is not a JSON object")
     all_paths = [_frame_image_path(path, root, frame, index) for index, frame in frames]
-    keep = (range(len(frames)) if missing == "keep"
-            else keep_present_images(all_paths, path, root, skip_missing=missing == "skip"))
+    keep = (
+        range(len(frames))
+        if missing == "keep"
+        else keep_present_images(all_paths, path, root, skip_missing=missing == "skip")
+    )
     cameras, lenses, image_paths = [], [], []
     for k in keep:
         index, frame = frames[k]
@@ -148,8 +153,9 @@ def _matrix(path: Path, value: Any, what: str) -> np.ndarray:
     except (TypeError, ValueError):
         raise InputError(path, f"{what} is not a matrix of numbers") from None
     if m.shape not in ((4, 4), (3, 4)):
-        raise InputError(path, f"{what} must be a 4x4 (or 3x4) matrix, got shape "
-                               f"{'x'.join(map(str, m.shape)) or 'scalar'}")
+        raise InputError(
+            path, f"{what} must be a 4x4 (or 3x4) matrix, got shape {'x'.join(map(str, m.shape)) or 'scalar'}"
+        )
     if not np.isfinite(m).all():
         raise InputError(path, f"{what} has NaN or infinite entries")
     return m
@@ -180,15 +186,16 @@ def _frame_lens(path: Path, meta: dict, frame: dict, where: str, get) -> Optiona
         raise InputError(path, f"{where}: camera_model {model} is not supported; {UNDISTORT_HINT}")
     bad = {key: k[key] for key in ("k4", "k5", "k6") if k[key]}
     if bad:
-        raise InputError(path, f"{where}: distortion terms {bad} of the {model} model have no OpenCV "
-                               f"equivalent (nerfstudio's k4 is an r^8 term); {UNDISTORT_HINT}")
-    lens = Lens.perspective(f"transforms.json {model}", k1=k["k1"], k2=k["k2"], p1=k["p1"], p2=k["p2"],
-                            k3=k["k3"])
+        raise InputError(
+            path,
+            f"{where}: distortion terms {bad} of the {model} model have no OpenCV "
+            f"equivalent (nerfstudio's k4 is an r^8 term); {UNDISTORT_HINT}",
+        )
+    lens = Lens.perspective(f"transforms.json {model}", k1=k["k1"], k2=k["k2"], p1=k["p1"], p2=k["p2"], k3=k["k3"])
     return None if lens.is_pinhole else lens
 
 
-def _frame_camera(path: Path, meta: dict, frame: dict, index: int,
-                  image_path: Path) -> tuple[Camera, Optional[Lens]]:
+def _frame_camera(path: Path, meta: dict, frame: dict, index: int, image_path: Path) -> tuple[Camera, Optional[Lens]]:
     where = f"frame {index} ({frame.get('file_path')})"
 
     def get(key: str) -> Optional[float]:
@@ -242,12 +249,13 @@ def _image_size(image_path: Path, source: Path) -> tuple[int, int]:
 
 
 # ================================================================================== writing
-def write_transforms(path: str | Path,
-                     cameras: Sequence[Camera],
-                     image_relpaths: Sequence[str],  # relative to the json's folder
-                     points: Optional[np.ndarray] = None,  # [P, 3] -> sparse_pc.ply, optional
-                     colors: Optional[np.ndarray] = None,  # [P, 3] uint8
-                     ) -> None:
+def write_transforms(
+    path: str | Path,
+    cameras: Sequence[Camera],
+    image_relpaths: Sequence[str],  # relative to the json's folder
+    points: Optional[np.ndarray] = None,  # [P, 3] -> sparse_pc.ply, optional
+    colors: Optional[np.ndarray] = None,  # [P, 3] uint8
+) -> None:
     """Write a nerfstudio ``transforms.json`` (``path`` is the file, or a folder to put it in).
 
     Intrinsics are written once at the top level when all cameras share them, else per frame.
@@ -257,8 +265,7 @@ def write_transforms(path: str | Path,
     """
     path = transforms_path(path)
     if len(cameras) != len(image_relpaths):
-        raise ValueError(f"need one image path per camera, got {len(cameras)} cameras and "
-                         f"{len(image_relpaths)} paths")
+        raise ValueError(f"need one image path per camera, got {len(cameras)} cameras and {len(image_relpaths)} paths")
     if not cameras:
         raise ValueError("need at least one camera")
 
@@ -286,10 +293,22 @@ def write_transforms(path: str | Path,
 
 # ================================================================================== PLY
 _PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
-    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
-    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+    "char": "i1",
+    "int8": "i1",
+    "uchar": "u1",
+    "uint8": "u1",
+    "short": "i2",
+    "int16": "i2",
+    "ushort": "u2",
+    "uint16": "u2",
+    "int": "i4",
+    "int32": "i4",
+    "uint": "u4",
+    "uint32": "u4",
+    "float": "f4",
+    "float32": "f4",
+    "double": "f8",
+    "float64": "f8",
 }
 
 
@@ -338,8 +357,11 @@ def read_ply_points(path: str | Path) -> tuple[np.ndarray, Optional[np.ndarray]]
 
     if fmt == "ascii":
         if 2 * count * len(props) - 1 > len(data) - body_start:  # each value but the last takes 2 bytes or more
-            raise InputError(path, f"file is truncated: header says {count} vertices with {len(props)} values "
-                                   f"each, the file holds {len(data) - body_start} bytes after the header")
+            raise InputError(
+                path,
+                f"file is truncated: header says {count} vertices with {len(props)} values "
+                f"each, the file holds {len(data) - body_start} bytes after the header",
+            )
         rows = data[body_start:].decode("ascii", errors="replace").split("\n")
         rows = [r for r in rows if r.strip()][:count]
         try:
@@ -347,16 +369,22 @@ def read_ply_points(path: str | Path) -> tuple[np.ndarray, Optional[np.ndarray]]
         except ValueError:
             raise InputError(path, "vertex data contains something that is not a number") from None
         if table.size != count * len(props):
-            raise InputError(path, f"file is truncated: expected {count} vertices with {len(props)} "
-                                   f"values each, found {table.size} values")
+            raise InputError(
+                path,
+                f"file is truncated: expected {count} vertices with {len(props)} "
+                f"values each, found {table.size} values",
+            )
         columns = {n: table.reshape(count, len(props))[:, k] for k, n in enumerate(names)}
     elif fmt in ("binary_little_endian", "binary_big_endian"):
         order = "<" if fmt == "binary_little_endian" else ">"
         dtype = np.dtype([(n, order + t) for n, t in props])
         need = dtype.itemsize * count
         if len(data) - body_start < need:
-            raise InputError(path, f"file is truncated: expected {need} bytes of vertex data at offset "
-                                   f"{body_start}, but only {len(data) - body_start} remain")
+            raise InputError(
+                path,
+                f"file is truncated: expected {need} bytes of vertex data at offset "
+                f"{body_start}, but only {len(data) - body_start} remain",
+            )
         table = np.frombuffer(data, dtype=dtype, count=count, offset=body_start)
         columns = {n: table[n] for n in names}
     else:
@@ -374,10 +402,11 @@ def read_ply_points(path: str | Path) -> tuple[np.ndarray, Optional[np.ndarray]]
     return points, colors
 
 
-def write_ply_points(path: str | Path,
-                     points: np.ndarray,  # [P, 3]
-                     colors: Optional[np.ndarray] = None,  # [P, 3] uint8
-                     ) -> None:
+def write_ply_points(
+    path: str | Path,
+    points: np.ndarray,  # [P, 3]
+    colors: Optional[np.ndarray] = None,  # [P, 3] uint8
+) -> None:
     """Binary little-endian PLY with ``double x y z`` and (optionally) ``uchar red green blue``."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     fields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]

@@ -74,8 +74,9 @@ class Scene:
         if not 0 <= index < len(self):
             raise IndexError(f"view index {index} out of range (scene has {len(self)} views)")
         if index not in self._cache:
-            self._cache[index] = load_image(self.image_paths[index], self.cameras[index].width,
-                                            self.cameras[index].height)
+            self._cache[index] = load_image(
+                self.image_paths[index], self.cameras[index].width, self.cameras[index].height
+            )
         return self._cache[index]
 
     def check_images_exist(self) -> None:
@@ -86,8 +87,9 @@ class Scene:
 
     def scene_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """Axis-aligned bounds [3], [3] of the sparse points, or of the camera centres."""
-        pts = self.points if self.points is not None and len(self.points) else np.stack(
-            [c.center for c in self.cameras])
+        pts = (
+            self.points if self.points is not None and len(self.points) else np.stack([c.center for c in self.cameras])
+        )
         return pts.min(axis=0), pts.max(axis=0)
 
     def extent(self) -> float:
@@ -96,8 +98,9 @@ class Scene:
         return float(1.1 * np.linalg.norm(centers - centers.mean(axis=0), axis=1).max())
 
 
-def keep_present_images(image_paths: Sequence[Path], listing: Path, root: Path,
-                        skip_missing: bool = False) -> list[int]:
+def keep_present_images(
+    image_paths: Sequence[Path], listing: Path, root: Path, skip_missing: bool = False
+) -> list[int]:
     """Indices of the views whose image file exists. When some are missing: one
     :class:`InputError` on ``listing`` naming how many and which, or, with ``skip_missing``,
     one warning line on stderr and the rest are kept (all missing is still an error)."""
@@ -114,10 +117,14 @@ def keep_present_images(image_paths: Sequence[Path], listing: Path, root: Path,
         raise InputError(listing, f"none of the {total} images it lists exists: {names}")
     if not skip_missing:
         verb = "does" if n == 1 else "do"
-        raise InputError(listing, f"{n} of the {total} images it lists {verb} not exist: {names} "
-                                  f"(--skip-missing loads the other views)")
-    print(f"warning: skipping {n} of {total} views listed in {listing.name} whose images do not exist: {names}",
-          file=sys.stderr)
+        raise InputError(
+            listing,
+            f"{n} of the {total} images it lists {verb} not exist: {names} (--skip-missing loads the other views)",
+        )
+    print(
+        f"warning: skipping {n} of {total} views listed in {listing.name} whose images do not exist: {names}",
+        file=sys.stderr,
+    )
     return present
 
 
@@ -280,11 +287,17 @@ def _read_16bit(im: Any, path: Path) -> np.ndarray:  # -> float32 [h, w, 3] in [
     return np.ascontiguousarray(pixels, dtype=np.float32) / 65535.0
 
 
-def _resize_float(image: np.ndarray,  # [h, w, 3] float32 in [0, 1]
-                  width: int, height: int, resample: int) -> np.ndarray:  # -> [height, width, 3]
+def _resize_float(
+    image: np.ndarray,  # [h, w, 3] float32 in [0, 1]
+    width: int,
+    height: int,
+    resample: int,
+) -> np.ndarray:  # -> [height, width, 3]
     """The 8-bit path's PIL filter, applied per channel in float (PIL mode "F"), kept in [0, 1]."""
     from PIL import Image
 
-    channels = [np.asarray(Image.fromarray(np.ascontiguousarray(image[..., c]), mode="F")
-                           .resize((width, height), resample)) for c in range(image.shape[2])]
+    channels = [
+        np.asarray(Image.fromarray(np.ascontiguousarray(image[..., c]), mode="F").resize((width, height), resample))
+        for c in range(image.shape[2])
+    ]
     return np.clip(np.stack(channels, axis=2), 0.0, 1.0).astype(np.float32)

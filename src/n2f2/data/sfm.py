@@ -37,8 +37,18 @@ from typing import Callable, Optional
 from ..errors import InputError
 from ..io import write_json
 
-__all__ = ["CAMERA_MODELS", "IMAGE_EXTENSIONS", "MATCHERS", "REPORT_NAME", "SfmReport", "SfmSettings",
-           "find_photo_folder", "list_photos", "posed_scene_path", "run_sfm"]
+__all__ = [
+    "CAMERA_MODELS",
+    "IMAGE_EXTENSIONS",
+    "MATCHERS",
+    "REPORT_NAME",
+    "SfmReport",
+    "SfmSettings",
+    "find_photo_folder",
+    "list_photos",
+    "posed_scene_path",
+    "run_sfm",
+]
 
 REPORT_NAME = "sfm_report.json"
 WORK_DIR = "colmap"
@@ -102,12 +112,19 @@ class SfmSettings:
         if self.matcher not in MATCHERS:
             raise InputError(None, f"unknown matcher {self.matcher!r}; expected one of {', '.join(MATCHERS)}")
         if self.camera_model not in CAMERA_MODELS:
-            raise InputError(None, f"unknown camera model {self.camera_model!r}; expected one of "
-                                   f"{', '.join(CAMERA_MODELS)}")
+            raise InputError(
+                None, f"unknown camera model {self.camera_model!r}; expected one of {', '.join(CAMERA_MODELS)}"
+            )
         if not self.max_image_size >= 64:
             raise InputError(None, f"max image size must be >= 64 pixels, got {self.max_image_size}")
-        for name in ("exhaustive_max_images", "sequential_overlap", "max_num_features",
-                     "abs_pose_min_num_inliers", "init_min_num_inliers", "min_num_matches"):
+        for name in (
+            "exhaustive_max_images",
+            "sequential_overlap",
+            "max_num_features",
+            "abs_pose_min_num_inliers",
+            "init_min_num_inliers",
+            "min_num_matches",
+        ):
             if not getattr(self, name) >= 1:
                 raise InputError(None, f"{name} must be >= 1, got {getattr(self, name)}")
         if not 0 < self.peak_threshold < 1:
@@ -164,16 +181,21 @@ class SfmReport:
         """One line for the terminal."""
         stages = ", ".join(f"{name} {seconds:.0f} s" for name, seconds in self.timings_s.items())
         models = "one model" if len(self.models) == 1 else f"the largest of {len(self.models)} models"
-        return (f"sfm: registered {self.registered} of {self.images_given} photos ({models}), "
-                f"{self.points:,} points, mean reprojection error {self.mean_reprojection_error_px:.2f} px, "
-                f"mean track length {self.mean_track_length:.1f}; {stages} -> {self.out}")
+        return (
+            f"sfm: registered {self.registered} of {self.images_given} photos ({models}), "
+            f"{self.points:,} points, mean reprojection error {self.mean_reprojection_error_px:.2f} px, "
+            f"mean track length {self.mean_track_length:.1f}; {stages} -> {self.out}"
+        )
 
 
 # ----------------------------------------------------------------------------- photo folders
 def list_photos(folder: Path) -> list[str]:
     """Names of the image files directly inside ``folder`` (not recursive), sorted."""
-    return sorted(p.name for p in Path(folder).iterdir()
-                  if p.is_file() and not p.name.startswith(".") and p.suffix.lower() in IMAGE_EXTENSIONS)
+    return sorted(
+        p.name
+        for p in Path(folder).iterdir()
+        if p.is_file() and not p.name.startswith(".") and p.suffix.lower() in IMAGE_EXTENSIONS
+    )
 
 
 def find_photo_folder(data: Path) -> Optional[Path]:
@@ -202,8 +224,12 @@ def _photo_sizes(folder: Path, names: list[str]) -> list[tuple[int, int]]:
 
 def _cache_key(folder: Path, names: list[str], settings: SfmSettings, version: str) -> str:
     stats = [os.stat(folder / n) for n in names]
-    inputs = {"photos": [[n, s.st_size, s.st_mtime_ns] for n, s in zip(names, stats)],
-              "settings": settings.key_fields(), "pycolmap": version, "format": FORMAT_VERSION}
+    inputs = {
+        "photos": [[n, s.st_size, s.st_mtime_ns] for n, s in zip(names, stats)],
+        "settings": settings.key_fields(),
+        "pycolmap": version,
+        "format": FORMAT_VERSION,
+    }
     return hashlib.sha256(json.dumps(inputs, sort_keys=True).encode()).hexdigest()[:16]
 
 
@@ -232,8 +258,17 @@ def _pair_batches(num_images: int, matcher: str, overlap: int, block: int = 50) 
     bridges longer gaps), in batches of ``block`` consecutive first images."""
     starts = range(0, num_images, block)
     if matcher == "exhaustive":
-        return [[(i, j) for i in range(a, min(a + block, num_images)) for j in range(b, min(b + block, num_images))
-                 if i < j] for a in starts for b in starts if b >= a]
+        return [
+            [
+                (i, j)
+                for i in range(a, min(a + block, num_images))
+                for j in range(b, min(b + block, num_images))
+                if i < j
+            ]
+            for a in starts
+            for b in starts
+            if b >= a
+        ]
     batches = []
     for a in starts:
         pairs = set()
@@ -249,8 +284,15 @@ def _pair_batches(num_images: int, matcher: str, overlap: int, block: int = 50) 
 class _Stages:
     """Runs the pycolmap stages in ``work`` with one settings object; records timings."""
 
-    def __init__(self, photos: Path, names: list[str], work: Path, settings: SfmSettings,
-                 progress: bool, log: Callable[[str], None]):
+    def __init__(
+        self,
+        photos: Path,
+        names: list[str],
+        work: Path,
+        settings: SfmSettings,
+        progress: bool,
+        log: Callable[[str], None],
+    ):
         import pycolmap
 
         self.pycolmap = pycolmap
@@ -280,9 +322,15 @@ class _Stages:
         chunk = max(8, 4 * (os.cpu_count() or 1))
         with self._bar(len(self.names), "sfm: extracting features") as bar:
             for start in range(0, len(self.names), chunk):
-                batch = self.names[start:start + chunk]
-                pc.extract_features(self.database, self.photos, image_names=batch, camera_mode=mode,
-                                    reader_options=reader, extraction_options=options)
+                batch = self.names[start : start + chunk]
+                pc.extract_features(
+                    self.database,
+                    self.photos,
+                    image_names=batch,
+                    camera_mode=mode,
+                    reader_options=reader,
+                    extraction_options=options,
+                )
                 if shared_camera and reader.existing_camera_id < 0:
                     # Later chunks must reuse the first chunk's camera, not make their own.
                     with pc.Database.open(self.database) as db:
@@ -293,8 +341,9 @@ class _Stages:
             counts = [db.num_keypoints_for_image(im.image_id) for im in images]
         missing = sorted(set(self.names) - {im.name for im in images})
         if missing:
-            raise InputError(self.photos / missing[0], f"COLMAP could not read {len(missing)} of the photos "
-                                                       f"(first: {missing[0]})")
+            raise InputError(
+                self.photos / missing[0], f"COLMAP could not read {len(missing)} of the photos (first: {missing[0]})"
+            )
         return sum(counts) / max(len(counts), 1)
 
     def match(self, matcher: str) -> int:
@@ -312,8 +361,9 @@ class _Stages:
             else:
                 pairing = pc.SequentialPairingOptions()
                 pairing.overlap = s.sequential_overlap
-                pc.match_sequential(self.database, matching_options=options, pairing_options=pairing,
-                                    verification_options=verification)
+                pc.match_sequential(
+                    self.database, matching_options=options, pairing_options=pairing, verification_options=verification
+                )
         else:
             self._match_batches(_pair_batches(len(self.names), matcher, s.sequential_overlap), options, verification)
         with pc.Database.open(self.database) as db:
@@ -329,8 +379,9 @@ class _Stages:
                 pair_file.write_text("".join(f"{self.names[i]} {self.names[j]}\n" for i, j in batch))
                 pairing = pc.ImportedPairingOptions()
                 pairing.match_list_path = pair_file
-                pc.match_image_pairs(self.database, matching_options=options, pairing_options=pairing,
-                                     verification_options=verification)
+                pc.match_image_pairs(
+                    self.database, matching_options=options, pairing_options=pairing, verification_options=verification
+                )
                 bar.update(len(batch))
 
     def map(self):
@@ -346,10 +397,10 @@ class _Stages:
         sparse = self.work / "sparse"
         sparse.mkdir(parents=True, exist_ok=True)
         with self._bar(len(self.names), "sfm: registering photos") as bar:
-            models = pc.incremental_mapping(self.database, self.photos, sparse, options=options,
-                                            next_image_callback=lambda: bar.update(1))
-        return sorted(models.items(), key=lambda kv: (kv[1].num_reg_images(), kv[1].num_points3D()),
-                      reverse=True)
+            models = pc.incremental_mapping(
+                self.database, self.photos, sparse, options=options, next_image_callback=lambda: bar.update(1)
+            )
+        return sorted(models.items(), key=lambda kv: (kv[1].num_reg_images(), kv[1].num_points3D()), reverse=True)
 
     def undistort(self, model_dir: Path, dest: Path) -> None:
         """Undistort the photos of ``model_dir`` to PINHOLE into ``dest/images`` and
@@ -358,8 +409,9 @@ class _Stages:
         undistorted = self.work / "undistorted"
         if undistorted.exists():
             shutil.rmtree(undistorted)
-        pc.undistort_images(undistorted, model_dir, self.photos, output_type="COLMAP",
-                            num_threads=self.settings.num_threads)
+        pc.undistort_images(
+            undistorted, model_dir, self.photos, output_type="COLMAP", num_threads=self.settings.num_threads
+        )
         os.replace(undistorted / "images", dest / "images")
         (dest / "sparse").mkdir(exist_ok=True)
         os.replace(undistorted / "sparse", dest / "sparse" / "0")
@@ -394,9 +446,15 @@ class _ColmapLog:
         log.logtostderr, log.alsologtostderr, log.stderrthreshold = self.saved
 
 
-def run_sfm(photos: str | Path, out: str | Path, settings: SfmSettings = SfmSettings(), *,
-            overwrite: bool = False, progress: bool = True,
-            log: Callable[[str], None] = print) -> SfmReport:
+def run_sfm(
+    photos: str | Path,
+    out: str | Path,
+    settings: SfmSettings = SfmSettings(),
+    *,
+    overwrite: bool = False,
+    progress: bool = True,
+    log: Callable[[str], None] = print,
+) -> SfmReport:
     """Pose the photos in ``photos`` (image files directly inside, or in ``photos/images``)
     and write the COLMAP scene layout to ``out`` (see the module docstring).
 
@@ -414,12 +472,12 @@ def run_sfm(photos: str | Path, out: str | Path, settings: SfmSettings = SfmSett
         raise InputError(photos, "photo folder does not exist")
     folder = find_photo_folder(photos)
     if folder is None:
-        raise InputError(photos, f"no images here ({', '.join(IMAGE_EXTENSIONS)}, directly inside "
-                                 f"or in images/)")
+        raise InputError(photos, f"no images here ({', '.join(IMAGE_EXTENSIONS)}, directly inside or in images/)")
     names = list_photos(folder)
     if len(names) < 3:
-        raise InputError(folder, f"only {len(names)} image(s): structure from motion needs at least 3 "
-                                 f"overlapping photos")
+        raise InputError(
+            folder, f"only {len(names)} image(s): structure from motion needs at least 3 overlapping photos"
+        )
     if _is_within(folder, out):
         raise InputError(out, f"the output folder contains the photos ({folder}); choose another --out")
     key = _cache_key(folder, names, settings, pycolmap.__version__)
@@ -433,11 +491,15 @@ def run_sfm(photos: str | Path, out: str | Path, settings: SfmSettings = SfmSett
             log(f"sfm: {out} is up to date (key {key}): reusing it")
             return report
         if not same and not overwrite:
-            raise InputError(out, "holds the structure-from-motion result of other photos or settings; "
-                                  "pass --overwrite to replace it, or choose another --out")
+            raise InputError(
+                out,
+                "holds the structure-from-motion result of other photos or settings; "
+                "pass --overwrite to replace it, or choose another --out",
+            )
     elif out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise InputError(out, f"exists and is not a finished sfm result (no {REPORT_NAME}); "
-                              f"choose a new or empty --out")
+        raise InputError(
+            out, f"exists and is not a finished sfm result (no {REPORT_NAME}); choose a new or empty --out"
+        )
 
     partial = out.with_name(out.name + ".partial")
     if partial.exists():
@@ -453,41 +515,63 @@ def run_sfm(photos: str | Path, out: str | Path, settings: SfmSettings = SfmSett
     if not settings.per_image_camera and not shared:
         log(f"sfm: the photos have {len(set(sizes))} different sizes: one camera per photo")
     matcher = settings.resolved_matcher(len(names))
-    log(f"sfm: {len(names)} photos in {folder}, {matcher} matching, "
-        f"{'one shared' if shared else 'one per-photo'} {settings.camera_model} camera")
+    log(
+        f"sfm: {len(names)} photos in {folder}, {matcher} matching, "
+        f"{'one shared' if shared else 'one per-photo'} {settings.camera_model} camera"
+    )
 
     stages = _Stages(folder, names, work, settings, progress, log)
     with _ColmapLog(pycolmap, work):
-        features = stages.timed("extract", lambda: stages.extract(shared),
-                                lambda n: f"{n:.0f} features per photo")
+        features = stages.timed("extract", lambda: stages.extract(shared), lambda n: f"{n:.0f} features per photo")
         pairs = stages.timed("match", lambda: stages.match(matcher), lambda n: f"{n} verified pairs")
-        models = stages.timed("map", stages.map,
-                              lambda m: "models of " + ", ".join(str(r.num_reg_images()) for _, r in m)
-                              + " photos" if m else "no model")
+        models = stages.timed(
+            "map",
+            stages.map,
+            lambda m: "models of " + ", ".join(str(r.num_reg_images()) for _, r in m) + " photos" if m else "no model",
+        )
         registered = models[0][1].num_reg_images() if models else 0
         if 2 * registered < len(names):
-            raise InputError(folder, f"registered {registered} of {len(names)} photos; structure from "
-                                     f"motion needs sharp, textured photos that overlap (every part of the "
-                                     f"scene in 3 or more photos, taken a small step apart)"
-                                     + ("; try --matcher exhaustive" if matcher == "sequential" else "")
-                                     + f"; working files in {work}")
+            raise InputError(
+                folder,
+                f"registered {registered} of {len(names)} photos; structure from "
+                f"motion needs sharp, textured photos that overlap (every part of the "
+                f"scene in 3 or more photos, taken a small step apart)"
+                + ("; try --matcher exhaustive" if matcher == "sequential" else "")
+                + f"; working files in {work}",
+            )
         index, model = models[0]
         stages.timed("undistort", lambda: stages.undistort(work / "sparse" / str(index), partial))
 
     result = pycolmap.Reconstruction(partial / "sparse" / "0")
     kept = {im.name for im in result.images.values()}
     report = SfmReport(
-        photos=str(folder), out=str(out), images_given=len(names), registered=result.num_reg_images(),
+        photos=str(folder),
+        out=str(out),
+        images_given=len(names),
+        registered=result.num_reg_images(),
         points=result.num_points3D(),
         mean_reprojection_error_px=round(float(result.compute_mean_reprojection_error()), 4),
         mean_track_length=round(float(result.compute_mean_track_length()), 3),
         models=[r.num_reg_images() for _, r in models],
-        unregistered=[n for n in names if n not in kept], matcher=matcher,
+        unregistered=[n for n in names if n not in kept],
+        matcher=matcher,
         camera_mode="shared" if shared else "per-image",
-        cameras=[{"model": c.model.name, "width": c.width, "height": c.height,
-                  "params": [round(float(p), 6) for p in c.params]} for c in model.cameras.values()],
-        features_per_image=round(features, 1), verified_pairs=pairs, timings_s=dict(stages.timings),
-        key=key, settings=settings.key_fields(), pycolmap_version=pycolmap.__version__)
+        cameras=[
+            {
+                "model": c.model.name,
+                "width": c.width,
+                "height": c.height,
+                "params": [round(float(p), 6) for p in c.params],
+            }
+            for c in model.cameras.values()
+        ],
+        features_per_image=round(features, 1),
+        verified_pairs=pairs,
+        timings_s=dict(stages.timings),
+        key=key,
+        settings=settings.key_fields(),
+        pycolmap_version=pycolmap.__version__,
+    )
     write_json(partial / REPORT_NAME, report.to_dict())
     (partial / PARTIAL_MARKER).unlink()
     if out.exists():  # a finished result being overwritten, or an empty folder
@@ -496,8 +580,14 @@ def run_sfm(photos: str | Path, out: str | Path, settings: SfmSettings = SfmSett
     return report
 
 
-def posed_scene_path(data: str | Path, cache_root: str | Path, settings: Optional[SfmSettings] = None, *,
-                     progress: bool = True, log: Callable[[str], None] = print) -> Path:
+def posed_scene_path(
+    data: str | Path,
+    cache_root: str | Path,
+    settings: Optional[SfmSettings] = None,
+    *,
+    progress: bool = True,
+    log: Callable[[str], None] = print,
+) -> Path:
     """``data`` itself when it is a scene (``transforms.json`` or a COLMAP model) or not a photo
     folder; for a plain folder of photos (images directly inside, or ``images/`` without a
     model), the scene :func:`run_sfm` makes from them in ``cache_root`` (reused while the

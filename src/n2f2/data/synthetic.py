@@ -218,13 +218,32 @@ class _Builder:
         self.regions.append(Region(rid, level, name, caption, parent))
         return rid
 
-    def add(self, kind: str, center, rotation, size, material: Material, *, part: int = -1,
-            obj: int, casts_shadow: bool = True) -> None:
+    def add(
+        self,
+        kind: str,
+        center,
+        rotation,
+        size,
+        material: Material,
+        *,
+        part: int = -1,
+        obj: int,
+        casts_shadow: bool = True,
+    ) -> None:
         group = self.regions[obj].parent
-        self.primitives.append(Primitive(kind, np.asarray(center, dtype=np.float64),
-                                         np.asarray(rotation, dtype=np.float64),
-                                         tuple(float(s) for s in size), material, part, obj,
-                                         -1 if group is None else group, casts_shadow))
+        self.primitives.append(
+            Primitive(
+                kind,
+                np.asarray(center, dtype=np.float64),
+                np.asarray(rotation, dtype=np.float64),
+                tuple(float(s) for s in size),
+                material,
+                part,
+                obj,
+                -1 if group is None else group,
+                casts_shadow,
+            )
+        )
 
     def posed(self, xy: Sequence[float], yaw: float, z0: float = TABLE_HEIGHT):
         """Returns ``add_local(kind, center_local, rotation_local, size, material, ...)``."""
@@ -232,8 +251,14 @@ class _Builder:
         offset = np.array([xy[0], xy[1], z0])
 
         def add_local(kind, center, rotation, size, material, **kw):
-            self.add(kind, R @ np.asarray(center, dtype=np.float64) + offset,
-                     R @ np.asarray(rotation, dtype=np.float64), size, material, **kw)
+            self.add(
+                kind,
+                R @ np.asarray(center, dtype=np.float64) + offset,
+                R @ np.asarray(rotation, dtype=np.float64),
+                size,
+                material,
+                **kw,
+            )
 
         return add_local
 
@@ -241,8 +266,12 @@ class _Builder:
 def _add_walls(b: _Builder, wall: int, half_x: float, half_y: float, material: Material) -> None:
     """Four vertical wall planes at x = +-half_x and y = +-half_y (local x horizontal, local y
     = world z, local z = the inward normal); they cast no shadows."""
-    for normal, axis_x in (((1, 0, 0), (0, 1, 0)), ((-1, 0, 0), (0, -1, 0)),
-                           ((0, 1, 0), (-1, 0, 0)), ((0, -1, 0), (1, 0, 0))):
+    for normal, axis_x in (
+        ((1, 0, 0), (0, 1, 0)),
+        ((-1, 0, 0), (0, -1, 0)),
+        ((0, 1, 0), (-1, 0, 0)),
+        ((0, -1, 0), (1, 0, 0)),
+    ):
         n = np.asarray(normal, dtype=np.float64)
         x = np.asarray(axis_x, dtype=np.float64)
         rot = np.stack([x, np.cross(n, x), n], axis=1)
@@ -306,38 +335,72 @@ def _tabletop_scene(seed: int) -> DemoScene:
     banana = b.region(0, "banana", "a banana", fruit_plate)
 
     # ---- room: planes do not cast shadows (the room is closed; the key light is "outside")
-    planks = Material(tint((0.55, 0.36, 0.20)), "planks", color2=(0.30, 0.18, 0.09), period=0.16,
-                      noise=0.10, noise_freq=20.0)
+    planks = Material(
+        tint((0.55, 0.36, 0.20)), "planks", color2=(0.30, 0.18, 0.09), period=0.16, noise=0.10, noise_freq=20.0
+    )
     b.add("plane", (0, 0, 0), I, (), planks, obj=floor, casts_shadow=False)
-    wallpaper = Material(tint((0.82, 0.78, 0.66)), "stripes", color2=tint((0.55, 0.62, 0.70)),
-                         period=0.22, duty=0.35, axis=0, noise=0.08, noise_freq=12.0)
+    wallpaper = Material(
+        tint((0.82, 0.78, 0.66)),
+        "stripes",
+        color2=tint((0.55, 0.62, 0.70)),
+        period=0.22,
+        duty=0.35,
+        axis=0,
+        noise=0.08,
+        noise_freq=12.0,
+    )
     _add_walls(b, wall, 3.0, 3.0, wallpaper)
     ceiling = Material((0.90, 0.89, 0.86), noise=0.03, noise_freq=5.0)
     b.add("plane", (0, 0, 2.8), I, (), ceiling, obj=wall, casts_shadow=False)
 
     # ---- table
-    cloth = Material(tint((0.35, 0.62, 0.38)), "checker", color2=(0.93, 0.93, 0.90), period=0.07,
-                     noise=0.05, noise_freq=150.0)
-    dark_wood = Material((0.30, 0.19, 0.11), "stripes", color2=(0.22, 0.13, 0.07), period=0.03,
-                         duty=0.3, axis=2, noise=0.08, noise_freq=60.0)
+    cloth = Material(
+        tint((0.35, 0.62, 0.38)), "checker", color2=(0.93, 0.93, 0.90), period=0.07, noise=0.05, noise_freq=150.0
+    )
+    dark_wood = Material(
+        (0.30, 0.19, 0.11),
+        "stripes",
+        color2=(0.22, 0.13, 0.07),
+        period=0.03,
+        duty=0.3,
+        axis=2,
+        noise=0.08,
+        noise_freq=60.0,
+    )
     b.add("cylinder", (0, 0, TABLE_HEIGHT - 0.02), I, (0.62, 0.02), cloth, part=tabletop, obj=table)
     b.add("cylinder", (0, 0, 0.395), I, (0.05, 0.315), dark_wood, part=table_base, obj=table)
     b.add("cone", (0, 0, 0.04), I, (0.30, 0.06, 0.04), dark_wood, part=table_base, obj=table)
 
     # ---- teapot: spout along local +x, handle along -x
     add = b.posed(jitter((-0.17, 0.15)), 0.5 + rng.uniform(-0.25, 0.25))
-    porcelain = Material(tint((0.94, 0.92, 0.86), 0.02), "stripes", color2=(0.18, 0.32, 0.72),
-                         period=0.045, duty=0.22, axis=2, noise=0.04, noise_freq=90.0,
-                         specular=0.35)
+    porcelain = Material(
+        tint((0.94, 0.92, 0.86), 0.02),
+        "stripes",
+        color2=(0.18, 0.32, 0.72),
+        period=0.045,
+        duty=0.22,
+        axis=2,
+        noise=0.04,
+        noise_freq=90.0,
+        specular=0.35,
+    )
     cream = Material((0.93, 0.90, 0.83), noise=0.05, noise_freq=120.0, specular=0.3)
-    lid_blue = Material(tint((0.16, 0.28, 0.68)), "dots", color2=(0.85, 0.88, 0.95),
-                        period=0.015, duty=0.25, noise=0.05, specular=0.3)
+    lid_blue = Material(
+        tint((0.16, 0.28, 0.68)), "dots", color2=(0.85, 0.88, 0.95), period=0.015, duty=0.25, noise=0.05, specular=0.3
+    )
     add("ellipsoid", (0, 0, 0.10), I, (0.13, 0.13, 0.10), porcelain, part=pot_body, obj=teapot)
     add("cylinder", (0, 0, 0.197), I, (0.062, 0.012), lid_blue, part=pot_lid, obj=teapot)
     add("ellipsoid", (0, 0, 0.215), I, (0.022, 0.022, 0.017), lid_blue, part=pot_lid, obj=teapot)
     spout_dir = _normalize((1.0, 0.0, 1.0))
-    add("cone", np.array([0.10, 0.0, 0.08]) + 0.075 * spout_dir, _frame_z(spout_dir),
-        (0.034, 0.014, 0.075), cream, part=pot_spout, obj=teapot)
+    add(
+        "cone",
+        np.array([0.10, 0.0, 0.08]) + 0.075 * spout_dir,
+        _frame_z(spout_dir),
+        (0.034, 0.014, 0.075),
+        cream,
+        part=pot_spout,
+        obj=teapot,
+    )
     bar_x = _frame_z((1, 0, 0))
     for z in (0.05, 0.15):
         add("cylinder", (-0.155, 0, z), bar_x, (0.014, 0.05), cream, part=pot_handle, obj=teapot)
@@ -345,14 +408,31 @@ def _tabletop_scene(seed: int) -> DemoScene:
 
     # ---- mugs (coffee surface slightly above the top cap)
     coffee = Material((0.20, 0.11, 0.06), noise=0.10, noise_freq=200.0, specular=0.5)
-    red = Material(tint((0.80, 0.12, 0.10)), "stripes", color2=(0.95, 0.93, 0.90), period=0.04,
-                   duty=0.15, axis=2, noise=0.05, noise_freq=100.0, specular=0.3)
+    red = Material(
+        tint((0.80, 0.12, 0.10)),
+        "stripes",
+        color2=(0.95, 0.93, 0.90),
+        period=0.04,
+        duty=0.15,
+        axis=2,
+        noise=0.05,
+        noise_freq=100.0,
+        specular=0.3,
+    )
     add = b.posed(jitter((0.22, 0.32)), rng.uniform(0, 2 * np.pi))
     add("cylinder", (0, 0, 0.06), I, (0.055, 0.06), red, obj=red_mug)
     add("cylinder", (0, 0, 0.1205), I, (0.047, 0.0015), coffee, obj=red_mug)
 
-    blue = Material(tint((0.15, 0.30, 0.80)), "dots", color2=(0.90, 0.92, 0.98), period=0.02,
-                    duty=0.22, noise=0.05, noise_freq=100.0, specular=0.3)
+    blue = Material(
+        tint((0.15, 0.30, 0.80)),
+        "dots",
+        color2=(0.90, 0.92, 0.98),
+        period=0.02,
+        duty=0.22,
+        noise=0.05,
+        noise_freq=100.0,
+        specular=0.3,
+    )
     white = Material((0.95, 0.95, 0.93), noise=0.04, noise_freq=150.0, specular=0.3)
     add = b.posed(jitter((0.33, 0.03)), -0.3 + rng.uniform(-0.3, 0.3))
     add("cylinder", (0, 0, 0.06), I, (0.055, 0.06), blue, part=blue_body, obj=blue_mug)
@@ -362,16 +442,30 @@ def _tabletop_scene(seed: int) -> DemoScene:
     add("cylinder", (0.105, 0, 0.0625), I, (0.011, 0.0435), white, part=blue_handle, obj=blue_mug)
 
     # ---- bag of cookies: a paper bag with two cookies standing up out of it
-    kraft = Material(tint((0.72, 0.55, 0.36)), "stripes", color2=(0.55, 0.40, 0.25), period=0.035,
-                     duty=0.12, axis=0, noise=0.08, noise_freq=120.0)
-    cookie = Material(tint((0.84, 0.62, 0.32)), "dots", color2=(0.25, 0.14, 0.07), period=0.011,
-                      duty=0.25, noise=0.08, noise_freq=200.0)
+    kraft = Material(
+        tint((0.72, 0.55, 0.36)),
+        "stripes",
+        color2=(0.55, 0.40, 0.25),
+        period=0.035,
+        duty=0.12,
+        axis=0,
+        noise=0.08,
+        noise_freq=120.0,
+    )
+    cookie = Material(
+        tint((0.84, 0.62, 0.32)),
+        "dots",
+        color2=(0.25, 0.14, 0.07),
+        period=0.011,
+        duty=0.25,
+        noise=0.08,
+        noise_freq=200.0,
+    )
     add = b.posed(jitter((-0.27, -0.22)), 0.4 + rng.uniform(-0.3, 0.3))
     add("box", (0, 0, 0.09), I, (0.07, 0.05, 0.09), kraft, part=bag, obj=cookie_bag)
     for x, y, z, tilt in ((-0.027, 0.0, 0.182, 1.25), (0.026, 0.008, 0.176, 1.15)):
         axis = (0.0, math.sin(tilt), math.cos(tilt))
-        add("cylinder", (x, y, z), _frame_z(axis), (0.034, 0.007), cookie, part=bag_cookies,
-            obj=cookie_bag)
+        add("cylinder", (x, y, z), _frame_z(axis), (0.034, 0.007), cookie, part=bag_cookies, obj=cookie_bag)
 
     # ---- loose cookies lying flat next to the bag
     add = b.posed(jitter((0.0, -0.41), 0.01), rng.uniform(0, 2 * np.pi))
@@ -379,23 +473,37 @@ def _tabletop_scene(seed: int) -> DemoScene:
         add("cylinder", (x, y, 0.007), I, (0.034, 0.007), cookie, obj=loose)
 
     # ---- plate of fruit
-    china = Material((0.95, 0.95, 0.95), "rim", color2=(0.20, 0.45, 0.70), period=0.125,
-                     noise=0.03, noise_freq=150.0, specular=0.2)
-    apple_skin = Material(tint((0.78, 0.10, 0.08)), "dots", color2=(0.85, 0.65, 0.15),
-                          period=0.02, duty=0.2, noise=0.08, noise_freq=150.0, specular=0.3)
+    china = Material(
+        (0.95, 0.95, 0.95), "rim", color2=(0.20, 0.45, 0.70), period=0.125, noise=0.03, noise_freq=150.0, specular=0.2
+    )
+    apple_skin = Material(
+        tint((0.78, 0.10, 0.08)),
+        "dots",
+        color2=(0.85, 0.65, 0.15),
+        period=0.02,
+        duty=0.2,
+        noise=0.08,
+        noise_freq=150.0,
+        specular=0.3,
+    )
     stem = Material((0.30, 0.20, 0.08))
     peel = Material((0.98, 0.55, 0.08), noise=0.12, noise_freq=400.0, specular=0.15)
-    banana_skin = Material((0.95, 0.82, 0.20), "stripes", color2=(0.55, 0.45, 0.12), period=0.07,
-                           duty=0.08, axis=0, noise=0.06, noise_freq=120.0)
+    banana_skin = Material(
+        (0.95, 0.82, 0.20),
+        "stripes",
+        color2=(0.55, 0.45, 0.12),
+        period=0.07,
+        duty=0.08,
+        axis=0,
+        noise=0.06,
+        noise_freq=120.0,
+    )
     add = b.posed(jitter((0.30, -0.29), 0.01), rng.uniform(0, 2 * np.pi))
     add("cone", (0, 0, 0.012), I, (0.09, 0.14, 0.012), china, part=plate, obj=fruit_plate)
-    add("ellipsoid", (-0.045, 0.035, 0.065), I, (0.042, 0.042, 0.040), apple_skin, part=apple,
-        obj=fruit_plate)
+    add("ellipsoid", (-0.045, 0.035, 0.065), I, (0.042, 0.042, 0.040), apple_skin, part=apple, obj=fruit_plate)
     add("cylinder", (-0.045, 0.035, 0.108), I, (0.004, 0.008), stem, part=apple, obj=fruit_plate)
-    add("ellipsoid", (0.05, 0.03, 0.069), I, (0.045, 0.045, 0.045), peel, part=orange,
-        obj=fruit_plate)
-    add("ellipsoid", (0.0, -0.06, 0.045), _rot_z(0.2), (0.075, 0.021, 0.021), banana_skin,
-        part=banana, obj=fruit_plate)
+    add("ellipsoid", (0.05, 0.03, 0.069), I, (0.045, 0.045, 0.045), peel, part=orange, obj=fruit_plate)
+    add("ellipsoid", (0.0, -0.06, 0.045), _rot_z(0.2), (0.075, 0.021, 0.021), banana_skin, part=banana, obj=fruit_plate)
 
     ids = {r.name: r.id for r in b.regions}
     q = [
@@ -487,32 +595,54 @@ def _lounge_scene(seed: int) -> DemoScene:
     candle = b.region(1, "candle", "a white candle", things)
 
     # ---- room: planes do not cast shadows; the lower 0.9 m of the walls is a darker dado
-    tiles = Material(tint((0.74, 0.71, 0.66)), "checker", color2=tint((0.62, 0.60, 0.57)),
-                     period=0.5, noise=0.07, noise_freq=9.0)
+    tiles = Material(
+        tint((0.74, 0.71, 0.66)), "checker", color2=tint((0.62, 0.60, 0.57)), period=0.5, noise=0.07, noise_freq=9.0
+    )
     b.add("plane", (0, 0, 0), I, (), tiles, obj=floor, casts_shadow=False)
-    paint = Material(tint((0.80, 0.74, 0.62)), "stripes", color2=tint((0.36, 0.46, 0.40)),
-                     period=6.0, duty=0.15, axis=1, noise=0.07, noise_freq=3.0)
+    paint = Material(
+        tint((0.80, 0.74, 0.62)),
+        "stripes",
+        color2=tint((0.36, 0.46, 0.40)),
+        period=6.0,
+        duty=0.15,
+        axis=1,
+        noise=0.07,
+        noise_freq=3.0,
+    )
     _add_walls(b, wall, 7.0, 5.5, paint)
     ceiling = Material((0.93, 0.92, 0.90), noise=0.03, noise_freq=2.0)
     b.add("plane", (0, 0, 3.4), I, (), ceiling, obj=wall, casts_shadow=False)
 
-    rug_wool = Material(tint((0.25, 0.36, 0.62)), "rim", color2=(0.86, 0.80, 0.62), period=1.18,
-                        noise=0.12, noise_freq=25.0)
+    rug_wool = Material(
+        tint((0.25, 0.36, 0.62)), "rim", color2=(0.86, 0.80, 0.62), period=1.18, noise=0.12, noise_freq=25.0
+    )
     b.add("cylinder", (0.0, 0.1, 0.004), I, (1.35, 0.004), rug_wool, obj=rug)
 
     # the painting hangs on the wall behind the sofa (y = 5.5); the canvas stands 1 cm proud
-    gilt = Material((0.55, 0.42, 0.20), "stripes", color2=(0.35, 0.25, 0.10), period=0.05,
-                    duty=0.3, axis=0, noise=0.08, noise_freq=30.0, specular=0.3)
-    art = Material(tint((0.20, 0.42, 0.66)), "dots", color2=(0.95, 0.72, 0.22), period=0.16,
-                   duty=0.4, noise=0.10, noise_freq=8.0)
+    gilt = Material(
+        (0.55, 0.42, 0.20),
+        "stripes",
+        color2=(0.35, 0.25, 0.10),
+        period=0.05,
+        duty=0.3,
+        axis=0,
+        noise=0.08,
+        noise_freq=30.0,
+        specular=0.3,
+    )
+    art = Material(
+        tint((0.20, 0.42, 0.66)), "dots", color2=(0.95, 0.72, 0.22), period=0.16, duty=0.4, noise=0.10, noise_freq=8.0
+    )
     b.add("box", (0.4, 5.47, 1.8), I, (0.95, 0.03, 0.65), gilt, part=frame, obj=painting)
     b.add("box", (0.4, 5.46, 1.8), I, (0.82, 0.03, 0.52), art, part=canvas, obj=painting)
 
     # ---- sofa against the painting's side, facing -y
-    fabric = Material(tint((0.47, 0.49, 0.52)), "dots", color2=(0.40, 0.42, 0.45), period=0.03,
-                      duty=0.35, noise=0.06, noise_freq=60.0)
-    cushion_fabric = Material(fabric.color, "stripes", color2=(0.42, 0.44, 0.47), period=0.45,
-                              duty=0.04, axis=0, noise=0.06, noise_freq=60.0)
+    fabric = Material(
+        tint((0.47, 0.49, 0.52)), "dots", color2=(0.40, 0.42, 0.45), period=0.03, duty=0.35, noise=0.06, noise_freq=60.0
+    )
+    cushion_fabric = Material(
+        fabric.color, "stripes", color2=(0.42, 0.44, 0.47), period=0.45, duty=0.04, axis=0, noise=0.06, noise_freq=60.0
+    )
     b.add("box", (0.0, 1.32, 0.21), I, (0.90, 0.42, 0.21), cushion_fabric, part=sofa_seat, obj=sofa)
     b.add("box", (0.0, 1.70, 0.58), I, (0.90, 0.12, 0.36), fabric, part=sofa_back, obj=sofa)
     for x in (-1.0, 1.0):
@@ -520,26 +650,51 @@ def _lounge_scene(seed: int) -> DemoScene:
     cl, sl = math.cos(0.3), math.sin(0.3)  # cushions lean back against the sofa back (+y)
     lean = np.array([[1.0, 0.0, 0.0], [0.0, cl, sl], [0.0, -sl, cl]])
     yellow = Material(tint((0.92, 0.74, 0.16)), noise=0.10, noise_freq=40.0)
-    blue_stripes = Material(tint((0.18, 0.32, 0.66)), "stripes", color2=(0.92, 0.92, 0.88),
-                            period=0.07, duty=0.3, axis=0, noise=0.06, noise_freq=40.0)
+    blue_stripes = Material(
+        tint((0.18, 0.32, 0.66)),
+        "stripes",
+        color2=(0.92, 0.92, 0.88),
+        period=0.07,
+        duty=0.3,
+        axis=0,
+        noise=0.06,
+        noise_freq=40.0,
+    )
     for obj, x, mat in ((yellow_cushion, -0.52, yellow), (blue_cushion, 0.50, blue_stripes)):
         xy = jitter((x, 1.50), 0.03)
-        b.add("ellipsoid", (xy[0], xy[1], 0.62), _rot_z(rng.uniform(-0.15, 0.15)) @ lean,
-              (0.23, 0.08, 0.19), mat, obj=obj)
+        b.add(
+            "ellipsoid", (xy[0], xy[1], 0.62), _rot_z(rng.uniform(-0.15, 0.15)) @ lean, (0.23, 0.08, 0.19), mat, obj=obj
+        )
 
     # ---- coffee table on the rug
-    oak = Material(tint((0.66, 0.47, 0.28)), "stripes", color2=(0.55, 0.37, 0.20), period=0.025,
-                   duty=0.3, axis=1, noise=0.08, noise_freq=50.0, specular=0.15)
-    b.add("box", (0.0, 0.0, top - 0.025), I, (0.60, 0.35, 0.025), oak, part=table_top,
-          obj=coffee_table)
+    oak = Material(
+        tint((0.66, 0.47, 0.28)),
+        "stripes",
+        color2=(0.55, 0.37, 0.20),
+        period=0.025,
+        duty=0.3,
+        axis=1,
+        noise=0.08,
+        noise_freq=50.0,
+        specular=0.15,
+    )
+    b.add("box", (0.0, 0.0, top - 0.025), I, (0.60, 0.35, 0.025), oak, part=table_top, obj=coffee_table)
     leg_h = 0.5 * (top - 0.05)
     for x in (-0.54, 0.54):
         for y in (-0.29, 0.29):
             b.add("box", (x, y, leg_h), I, (0.03, 0.03, leg_h), oak, part=table_legs, obj=coffee_table)
 
     # ---- floor lamp beside the sofa
-    linen = Material((0.95, 0.88, 0.70), "stripes", color2=(0.80, 0.62, 0.38), period=0.32,
-                     duty=0.08, axis=2, noise=0.05, noise_freq=30.0)
+    linen = Material(
+        (0.95, 0.88, 0.70),
+        "stripes",
+        color2=(0.80, 0.62, 0.38),
+        period=0.32,
+        duty=0.08,
+        axis=2,
+        noise=0.05,
+        noise_freq=30.0,
+    )
     brass = Material((0.70, 0.56, 0.28), noise=0.05, noise_freq=60.0, specular=0.5)
     black = Material((0.10, 0.10, 0.11), noise=0.05, noise_freq=60.0, specular=0.3)
     lx, ly = jitter((-1.55, 1.15), 0.03)
@@ -548,12 +703,22 @@ def _lounge_scene(seed: int) -> DemoScene:
     b.add("cone", (lx, ly, 1.46), I, (0.27, 0.16, 0.17), linen, part=shade, obj=lamp)
 
     # ---- vase of flowers: a round vase with a neck, flowers on stems leaning out of it
-    glaze = Material(tint((0.14, 0.34, 0.62)), "stripes", color2=(0.88, 0.90, 0.95), period=0.05,
-                     duty=0.15, axis=2, noise=0.04, noise_freq=90.0, specular=0.4)
+    glaze = Material(
+        tint((0.14, 0.34, 0.62)),
+        "stripes",
+        color2=(0.88, 0.90, 0.95),
+        period=0.05,
+        duty=0.15,
+        axis=2,
+        noise=0.04,
+        noise_freq=90.0,
+        specular=0.4,
+    )
     stem = Material((0.25, 0.50, 0.18), noise=0.08, noise_freq=200.0)
-    petals = [Material(tint(c), "dots", color2=(0.98, 0.88, 0.30), period=0.012, duty=0.2,
-                       noise=0.06, noise_freq=200.0)
-              for c in ((0.92, 0.36, 0.55), (0.97, 0.95, 0.92), (0.90, 0.20, 0.22))]
+    petals = [
+        Material(tint(c), "dots", color2=(0.98, 0.88, 0.30), period=0.012, duty=0.2, noise=0.06, noise_freq=200.0)
+        for c in ((0.92, 0.36, 0.55), (0.97, 0.95, 0.92), (0.90, 0.20, 0.22))
+    ]
     add = b.posed(jitter((-0.36, 0.12)), rng.uniform(0, 2 * np.pi), z0=top)
     add("ellipsoid", (0, 0, 0.10), I, (0.07, 0.07, 0.10), glaze, part=vase, obj=vase_of_flowers)
     add("cylinder", (0, 0, 0.215), I, (0.036, 0.04), glaze, part=vase, obj=vase_of_flowers)
@@ -561,59 +726,89 @@ def _lounge_scene(seed: int) -> DemoScene:
         ang = 2 * math.pi * k / 5
         axis = _normalize((0.35 * math.cos(ang), 0.35 * math.sin(ang), 1.0))
         base = np.array([0.0, 0.0, 0.24])
-        add("cylinder", base + 0.09 * axis, _frame_z(axis), (0.006, 0.09), stem, part=flowers,
-            obj=vase_of_flowers)
-        add("ellipsoid", base + 0.19 * axis, _frame_z(axis), (0.038, 0.038, 0.022),
-            petals[k % 3], part=flowers, obj=vase_of_flowers)
+        add("cylinder", base + 0.09 * axis, _frame_z(axis), (0.006, 0.09), stem, part=flowers, obj=vase_of_flowers)
+        add(
+            "ellipsoid",
+            base + 0.19 * axis,
+            _frame_z(axis),
+            (0.038, 0.038, 0.022),
+            petals[k % 3],
+            part=flowers,
+            obj=vase_of_flowers,
+        )
 
     # ---- stack of three books, each turned a little
-    cover = [Material(tint(c), "stripes", color2=(0.93, 0.90, 0.80), period=0.5, duty=0.06,
-                      axis=0, noise=0.06, noise_freq=70.0)
-             for c in ((0.72, 0.14, 0.12), (0.18, 0.48, 0.26), (0.16, 0.26, 0.60))]
+    cover = [
+        Material(
+            tint(c), "stripes", color2=(0.93, 0.90, 0.80), period=0.5, duty=0.06, axis=0, noise=0.06, noise_freq=70.0
+        )
+        for c in ((0.72, 0.14, 0.12), (0.18, 0.48, 0.26), (0.16, 0.26, 0.60))
+    ]
     add = b.posed(jitter((0.02, -0.13)), 0.1 + rng.uniform(-0.2, 0.2), z0=top)
     z = 0.0
-    for part, mat, (hx, hy, hz), yaw in ((red_book, cover[0], (0.125, 0.09, 0.02), 0.0),
-                                         (green_book, cover[1], (0.11, 0.08, 0.017), 0.18),
-                                         (blue_book, cover[2], (0.10, 0.072, 0.015), -0.12)):
+    for part, mat, (hx, hy, hz), yaw in (
+        (red_book, cover[0], (0.125, 0.09, 0.02), 0.0),
+        (green_book, cover[1], (0.11, 0.08, 0.017), 0.18),
+        (blue_book, cover[2], (0.10, 0.072, 0.015), -0.12),
+    ):
         add("box", (0, 0, z + hz), _rot_z(yaw), (hx, hy, hz), mat, part=part, obj=books)
         z += 2 * hz
 
     # ---- bowl of fruit
-    ceramic = Material(tint((0.93, 0.90, 0.84)), "rim", color2=(0.70, 0.30, 0.18), period=0.115,
-                       noise=0.04, noise_freq=120.0, specular=0.25)
-    pear_skin = Material(tint((0.60, 0.74, 0.22)), "dots", color2=(0.45, 0.52, 0.15), period=0.015,
-                         duty=0.25, noise=0.08, noise_freq=150.0, specular=0.2)
+    ceramic = Material(
+        tint((0.93, 0.90, 0.84)),
+        "rim",
+        color2=(0.70, 0.30, 0.18),
+        period=0.115,
+        noise=0.04,
+        noise_freq=120.0,
+        specular=0.25,
+    )
+    pear_skin = Material(
+        tint((0.60, 0.74, 0.22)),
+        "dots",
+        color2=(0.45, 0.52, 0.15),
+        period=0.015,
+        duty=0.25,
+        noise=0.08,
+        noise_freq=150.0,
+        specular=0.2,
+    )
     lemon_skin = Material((0.98, 0.86, 0.18), noise=0.12, noise_freq=300.0, specular=0.25)
     grape_skin = Material(tint((0.42, 0.16, 0.40)), noise=0.08, noise_freq=150.0, specular=0.5)
     brown = Material((0.32, 0.22, 0.10))
     add = b.posed(jitter((0.38, 0.10)), rng.uniform(0, 2 * np.pi), z0=top)
     add("cone", (0, 0, 0.04), I, (0.07, 0.13, 0.04), ceramic, part=bowl, obj=fruit_bowl)
-    add("ellipsoid", (-0.04, 0.035, 0.115), I, (0.038, 0.038, 0.042), pear_skin, part=pear,
-        obj=fruit_bowl)
-    add("ellipsoid", (-0.04, 0.035, 0.165), I, (0.024, 0.024, 0.032), pear_skin, part=pear,
-        obj=fruit_bowl)
+    add("ellipsoid", (-0.04, 0.035, 0.115), I, (0.038, 0.038, 0.042), pear_skin, part=pear, obj=fruit_bowl)
+    add("ellipsoid", (-0.04, 0.035, 0.165), I, (0.024, 0.024, 0.032), pear_skin, part=pear, obj=fruit_bowl)
     add("cylinder", (-0.04, 0.035, 0.202), I, (0.004, 0.01), brown, part=pear, obj=fruit_bowl)
-    add("ellipsoid", (0.05, 0.03, 0.107), _rot_z(0.6), (0.048, 0.032, 0.032), lemon_skin,
-        part=lemon, obj=fruit_bowl)
-    for gx, gy, gz in ((0.0, -0.06, 0.096), (0.03, -0.06, 0.096), (-0.03, -0.06, 0.096),
-                       (0.015, -0.035, 0.097), (-0.015, -0.035, 0.097), (0.015, -0.085, 0.097),
-                       (-0.015, -0.085, 0.097), (0.0, -0.06, 0.124), (0.016, -0.048, 0.122)):
-        add("ellipsoid", (gx, gy, gz), I, (0.017, 0.017, 0.017), grape_skin, part=grapes,
-            obj=fruit_bowl)
+    add("ellipsoid", (0.05, 0.03, 0.107), _rot_z(0.6), (0.048, 0.032, 0.032), lemon_skin, part=lemon, obj=fruit_bowl)
+    for gx, gy, gz in (
+        (0.0, -0.06, 0.096),
+        (0.03, -0.06, 0.096),
+        (-0.03, -0.06, 0.096),
+        (0.015, -0.035, 0.097),
+        (-0.015, -0.035, 0.097),
+        (0.015, -0.085, 0.097),
+        (-0.015, -0.085, 0.097),
+        (0.0, -0.06, 0.124),
+        (0.016, -0.048, 0.122),
+    ):
+        add("ellipsoid", (gx, gy, gz), I, (0.017, 0.017, 0.017), grape_skin, part=grapes, obj=fruit_bowl)
 
     # ---- toy car: wheel axles along local y, nose along +x
     paintwork = Material(tint((0.85, 0.10, 0.10)), noise=0.05, noise_freq=150.0, specular=0.6)
     glass = Material((0.55, 0.72, 0.85), noise=0.04, noise_freq=150.0, specular=0.7)
-    wheel = Material((0.75, 0.75, 0.78), "rim", color2=(0.08, 0.08, 0.08), period=0.011,
-                     noise=0.04, noise_freq=150.0, specular=0.4)  # grey hub, black tyre
+    wheel = Material(
+        (0.75, 0.75, 0.78), "rim", color2=(0.08, 0.08, 0.08), period=0.011, noise=0.04, noise_freq=150.0, specular=0.4
+    )  # grey hub, black tyre
     add = b.posed(jitter((0.06, 0.19)), -0.5 + rng.uniform(-0.3, 0.3), z0=top)
     add("box", (0, 0, 0.038), I, (0.085, 0.042, 0.018), paintwork, part=car_body, obj=car)
     add("box", (-0.012, 0, 0.072), I, (0.045, 0.036, 0.017), glass, part=car_windows, obj=car)
     axle = _frame_z((0, 1, 0))
     for x in (-0.052, 0.052):
         for y in (-0.044, 0.044):
-            add("cylinder", (x, y, 0.022), axle, (0.022, 0.009), wheel, part=car_wheels,
-                obj=car)
+            add("cylinder", (x, y, 0.022), axle, (0.022, 0.009), wheel, part=car_wheels, obj=car)
 
     # ---- candle with its flame (no parts)
     wax = Material((0.96, 0.95, 0.90), noise=0.04, noise_freq=120.0, specular=0.2)
@@ -656,8 +851,14 @@ def _lounge_scene(seed: int) -> DemoScene:
     return DemoScene(b.primitives, b.regions, q, key, fill)
 
 
-def demo_cameras(num_views: int = 40, width: int = 160, height: int = 120, seed: int = 0,
-                 hfov_deg: float = 60.0, layout: str = "tabletop") -> list[Camera]:
+def demo_cameras(
+    num_views: int = 40,
+    width: int = 160,
+    height: int = 120,
+    seed: int = 0,
+    hfov_deg: float = 60.0,
+    layout: str = "tabletop",
+) -> list[Camera]:
     """The views of a layout's camera path. PINHOLE, centred principal point."""
     if layout == "tabletop":
         return _tabletop_cameras(num_views, width, height, seed, hfov_deg)
@@ -666,8 +867,7 @@ def demo_cameras(num_views: int = 40, width: int = 160, height: int = 120, seed:
     raise ValueError(f"unknown demo layout {layout!r}; choose one of {', '.join(LAYOUTS)}")
 
 
-def _tabletop_cameras(num_views: int, width: int, height: int, seed: int,
-                      hfov_deg: float) -> list[Camera]:
+def _tabletop_cameras(num_views: int, width: int, height: int, seed: int, hfov_deg: float) -> list[Camera]:
     """Views orbiting the table once, looking at its centre, with elevation between ~23 and
     ~47 degrees and distance between 1.2 and 1.5 m."""
     rng = np.random.default_rng([int(seed), 11])
@@ -679,17 +879,15 @@ def _tabletop_cameras(num_views: int, width: int, height: int, seed: int,
         elevation = math.radians(35.0 + 12.0 * math.sin(2 * phase + 0.5))
         radius = 1.35 + 0.15 * math.sin(3 * phase)
         target = np.array([0.0, 0.0, TABLE_HEIGHT + 0.05]) + rng.uniform(-0.03, 0.03, size=3)
-        eye = target + radius * np.array([math.cos(elevation) * math.cos(azimuth),
-                                          math.cos(elevation) * math.sin(azimuth),
-                                          math.sin(elevation)])
+        eye = target + radius * np.array(
+            [math.cos(elevation) * math.cos(azimuth), math.cos(elevation) * math.sin(azimuth), math.sin(elevation)]
+        )
         R, t = look_at(eye, target, up=(0.0, 0.0, 1.0))
         cams.append(Camera(fx, fx, width / 2.0, height / 2.0, width, height, R=R, t=t))
     return cams
 
 
-
-def _lounge_cameras(num_views: int, width: int, height: int, seed: int,
-                    hfov_deg: float) -> list[Camera]:
+def _lounge_cameras(num_views: int, width: int, height: int, seed: int, hfov_deg: float) -> list[Camera]:
     """A partial elliptical arc (210 degrees, 4.2 x 3.2 m) in front of the sofa, not a closed
     ring, at eye heights of about 0.75 to 1.3 m. Three short stretches of the path swing in to
     0.4 of the arc's radius at 0.8 m high, beside the coffee table, so those views have objects
@@ -702,12 +900,18 @@ def _lounge_cameras(num_views: int, width: int, height: int, seed: int,
         azimuth = math.radians(-195.0 + 210.0 * s) + rng.uniform(-0.02, 0.02)
         close = (0.5 - 0.5 * math.cos(6 * math.pi * s)) ** 4  # 1 at s = 1/6, 1/2, 5/6
         shrink = 1.0 - 0.6 * close
-        eye = np.array([2.1 * shrink * math.cos(azimuth), -0.1 + 1.6 * shrink * math.sin(azimuth),
-                        (1.0 - close) * (1.05 + 0.3 * math.sin(3 * math.pi * s + 0.3)) + 0.8 * close])
+        eye = np.array(
+            [
+                2.1 * shrink * math.cos(azimuth),
+                -0.1 + 1.6 * shrink * math.sin(azimuth),
+                (1.0 - close) * (1.05 + 0.3 * math.sin(3 * math.pi * s + 0.3)) + 0.8 * close,
+            ]
+        )
         eye += rng.uniform(-0.03, 0.03, size=3)
         # far views look past the table towards the sofa, close ones down at the table
-        target = np.array([0.35 * math.sin(2 * math.pi * s), 0.45 * (1.0 - close),
-                           LOUNGE_TABLE_HEIGHT + 0.05 + 0.25 * (1.0 - close)])
+        target = np.array(
+            [0.35 * math.sin(2 * math.pi * s), 0.45 * (1.0 - close), LOUNGE_TABLE_HEIGHT + 0.05 + 0.25 * (1.0 - close)]
+        )
         target += rng.uniform(-0.03, 0.03, size=3)
         R, t = look_at(eye, target, up=(0.0, 0.0, 1.0))
         cams.append(Camera(fx, fx, width / 2.0, height / 2.0, width, height, R=R, t=t))
@@ -741,9 +945,11 @@ def _nearest(*candidates: np.ndarray) -> np.ndarray:
     return out
 
 
-def intersect(prim: Primitive, origins: np.ndarray,  # [N, 3] or [1, 3] (shared) world
-              dirs: np.ndarray,  # [N, 3] world (any length; t is in units of |dir|)
-              ) -> np.ndarray:  # [N] ray parameter of the nearest hit > eps, inf if none
+def intersect(
+    prim: Primitive,
+    origins: np.ndarray,  # [N, 3] or [1, 3] (shared) world
+    dirs: np.ndarray,  # [N, 3] world (any length; t is in units of |dir|)
+) -> np.ndarray:  # [N] ray parameter of the nearest hit > eps, inf if none
     """Nearest intersection of rays ``o + t d`` with a primitive (rays may start inside)."""
     if prim.kind == "plane":  # only the normal component matters
         normal = prim.rotation[:, 2]
@@ -854,10 +1060,13 @@ def _clusters(prims: Sequence[Primitive], shadow_only: bool = False) -> list[_Cl
     return out
 
 
-def _sphere_candidates(center: np.ndarray, radius: float, origins: np.ndarray,  # [N, 3]
-                       dirs: np.ndarray,  # [N, 3]
-                       t_best: np.ndarray,  # [N]
-                       ) -> np.ndarray:  # [M] indices of rays that may hit inside the sphere
+def _sphere_candidates(
+    center: np.ndarray,
+    radius: float,
+    origins: np.ndarray,  # [N, 3]
+    dirs: np.ndarray,  # [N, 3]
+    t_best: np.ndarray,  # [N]
+) -> np.ndarray:  # [M] indices of rays that may hit inside the sphere
     oc = origins - center
     a = (dirs * dirs).sum(1)
     bh = (oc * dirs).sum(1)
@@ -869,9 +1078,11 @@ def _sphere_candidates(center: np.ndarray, radius: float, origins: np.ndarray,  
     return np.nonzero((disc >= 0) & (t_far > _EPS) & (t_near < t_best))[0]
 
 
-def trace(scene: DemoScene, origins: np.ndarray,  # [N, 3], or [3] shared by all rays
-          dirs: np.ndarray,  # [N, 3]
-          ) -> tuple[np.ndarray, np.ndarray]:
+def trace(
+    scene: DemoScene,
+    origins: np.ndarray,  # [N, 3], or [3] shared by all rays
+    dirs: np.ndarray,  # [N, 3]
+) -> tuple[np.ndarray, np.ndarray]:
     """Nearest hit of each ray: ray parameter t [N] (inf if none) and primitive index [N]
     (-1 if none)."""
     dirs = np.asarray(dirs, dtype=np.float64)
@@ -900,9 +1111,11 @@ def trace(scene: DemoScene, origins: np.ndarray,  # [N, 3], or [3] shared by all
     return t_best, p_best
 
 
-def occluded(scene: DemoScene, origins: np.ndarray,  # [N, 3]
-             direction: np.ndarray,  # [3] unit vector towards a directional light
-             ) -> np.ndarray:  # [N] bool
+def occluded(
+    scene: DemoScene,
+    origins: np.ndarray,  # [N, 3]
+    direction: np.ndarray,  # [3] unit vector towards a directional light
+) -> np.ndarray:  # [N] bool
     """Whether anything that casts shadows lies between each origin and the light."""
     dirs = np.broadcast_to(direction, origins.shape)
     blocked = np.zeros(len(origins), dtype=bool)
@@ -935,8 +1148,11 @@ def _hash_float(ix: np.ndarray, iy: np.ndarray, iz: np.ndarray, seed: int) -> np
     return h.astype(np.float64) / 4294967296.0
 
 
-def value_noise(points: np.ndarray,  # [N, 3]
-                freq: float, seed: int) -> np.ndarray:  # [N] in [0, 1]
+def value_noise(
+    points: np.ndarray,  # [N, 3]
+    freq: float,
+    seed: int,
+) -> np.ndarray:  # [N] in [0, 1]
     """Smooth 3D value noise (trilinear interpolation of hashed lattice values)."""
     q = points * freq
     i0 = np.floor(q)
@@ -954,8 +1170,11 @@ def value_noise(points: np.ndarray,  # [N, 3]
     return out
 
 
-def albedo(material: Material, pl: np.ndarray,  # [N, 3] local surface points
-           seed: int) -> np.ndarray:  # [N, 3] in [0, 1]
+def albedo(
+    material: Material,
+    pl: np.ndarray,  # [N, 3] local surface points
+    seed: int,
+) -> np.ndarray:  # [N, 3] in [0, 1]
     m = material
     c1 = np.asarray(m.color)
     c2 = np.asarray(m.color2)
@@ -974,7 +1193,7 @@ def albedo(material: Material, pl: np.ndarray,  # [N, 3] local surface points
         zeros = np.zeros_like(board, dtype=np.int64)
         shade = 0.8 + 0.4 * _hash_float(board.astype(np.int64), zeros, zeros, seed + 202)
         grain = 0.5 + 0.5 * np.sin(pl[:, 1] * 180.0 + 6.0 * value_noise(pl * [0.3, 1, 1], 8.0, seed + 203))
-        w = 0.55 * grain ** 6
+        w = 0.55 * grain**6
         gap = (pl[:, 1] / m.period) % 1.0 < 0.04
         w = np.where(gap, 1.0, w)
         col = (c1 * (1 - w[:, None]) + c2 * w[:, None]) * shade[:, None]
@@ -1001,8 +1220,9 @@ class ViewRender:
     points: np.ndarray  # [H, W, 3] float64 world hit points at pixel centres
 
 
-def render_view(scene: DemoScene, camera: Camera, supersample: int = 3, seed: int = 0,
-                chunk: int = 16384) -> ViewRender:
+def render_view(
+    scene: DemoScene, camera: Camera, supersample: int = 3, seed: int = 0, chunk: int = 16384
+) -> ViewRender:
     """Ray-trace one view. ``supersample`` must be odd: the RGB is the mean of an
     ``s x s`` grid of samples per pixel whose middle sample is the pixel centre, where depth,
     ids and surface points are taken."""
@@ -1014,8 +1234,9 @@ def render_view(scene: DemoScene, camera: Camera, supersample: int = 3, seed: in
     u = (np.arange(W)[:, None] + offs[None, :]).reshape(-1)  # [W*s]
     v = (np.arange(H)[:, None] + offs[None, :]).reshape(-1)  # [H*s]
     uu, vv = np.meshgrid(u, v)  # [H*s, W*s]
-    d_cam = np.stack([(uu - camera.cx) / camera.fx, (vv - camera.cy) / camera.fy,
-                      np.ones_like(uu)], axis=-1).reshape(-1, 3)
+    d_cam = np.stack([(uu - camera.cx) / camera.fx, (vv - camera.cy) / camera.fy, np.ones_like(uu)], axis=-1).reshape(
+        -1, 3
+    )
     dirs = d_cam @ camera.R  # R^T d: camera z component stays 1, so t = z-depth
     origin = camera.center
     # Chunks of rays keep NumPy's temporaries in cache (about 2x faster than one big batch).
@@ -1037,15 +1258,22 @@ def render_view(scene: DemoScene, camera: Camera, supersample: int = 3, seed: in
     centre = lambda a: a.reshape(H, s, W, s, *a.shape[1:])[:, c, :, c]  # noqa: E731
     prim_c = centre(prim)
     ids = scene.id_table()[prim_c]  # [H, W, 3]
-    return ViewRender(rgb=rgb, depth=centre(t), primitive=prim_c,
-                      regions=np.ascontiguousarray(ids.transpose(2, 0, 1)).astype(np.int32),
-                      points=centre(points))
+    return ViewRender(
+        rgb=rgb,
+        depth=centre(t),
+        primitive=prim_c,
+        regions=np.ascontiguousarray(ids.transpose(2, 0, 1)).astype(np.int32),
+        points=centre(points),
+    )
 
 
-def _shade(scene: DemoScene, points: np.ndarray,  # [N, 3]
-           dirs: np.ndarray,  # [N, 3]
-           prim: np.ndarray,  # [N]
-           seed: int) -> np.ndarray:  # [N, 3]
+def _shade(
+    scene: DemoScene,
+    points: np.ndarray,  # [N, 3]
+    dirs: np.ndarray,  # [N, 3]
+    prim: np.ndarray,  # [N]
+    seed: int,
+) -> np.ndarray:  # [N, 3]
     n = len(points)
     normals = np.zeros((n, 3))
     base = np.zeros((n, 3))
@@ -1053,7 +1281,7 @@ def _shade(scene: DemoScene, points: np.ndarray,  # [N, 3]
     order = np.argsort(prim, kind="stable")
     bounds = np.searchsorted(prim[order], np.arange(len(scene.primitives) + 1))
     for i, p in enumerate(scene.primitives):
-        sel = order[bounds[i]:bounds[i + 1]]
+        sel = order[bounds[i] : bounds[i + 1]]
         if len(sel) == 0:
             continue
         pl = p.to_local(points[sel])
@@ -1091,9 +1319,11 @@ class _RegionStats:
         self.lo = np.full((r, 3), np.inf)  # [R, 3] bbox
         self.hi = np.full((r, 3), -np.inf)
 
-    def add(self, regions: np.ndarray,  # [3, H, W]
-            points: np.ndarray,  # [H, W, 3]
-            ) -> None:
+    def add(
+        self,
+        regions: np.ndarray,  # [3, H, W]
+        points: np.ndarray,  # [H, W, 3]
+    ) -> None:
         pts = points.reshape(-1, 3)
         outer = (pts[:, :, None] * pts[:, None, :]).reshape(-1, 9)
         for level in range(regions.shape[0]):
@@ -1126,11 +1356,19 @@ def _default_labelled_views(num_views: int) -> list[int]:
     return list(range(step // 2, num_views, step))[:8]
 
 
-def generate_demo_scene(out_dir: str | Path, *, num_views: int = 40, width: int = 160,
-                        height: int = 120, seed: int = 0,
-                        labelled_views: Optional[Sequence[int]] = None,
-                        supersample: int = 3, num_points: int = 4000,
-                        show_progress: bool = True, layout: str = "tabletop") -> Path:
+def generate_demo_scene(
+    out_dir: str | Path,
+    *,
+    num_views: int = 40,
+    width: int = 160,
+    height: int = 120,
+    seed: int = 0,
+    labelled_views: Optional[Sequence[int]] = None,
+    supersample: int = 3,
+    num_points: int = 4000,
+    show_progress: bool = True,
+    layout: str = "tabletop",
+) -> Path:
     """Render the demo scene of ``layout`` (``LAYOUTS``) and write it as a normal scene folder (layout in
     docs/architecture.md): images, ``transforms.json``, COLMAP text, depth, region ids,
     ``regions.json``, ``queries.json``, LangSplat labels and ``scene.json``.
@@ -1192,23 +1430,36 @@ def generate_demo_scene(out_dir: str | Path, *, num_views: int = 40, width: int 
 
     image_files = [f"{n}.png" for n in names]
     write_colmap_text(out / "sparse" / "0", cameras, image_files, points=points, colors=colors)
-    write_transforms(out / "transforms.json", cameras, [f"images/{f}" for f in image_files],
-                     points=points, colors=colors)
+    write_transforms(
+        out / "transforms.json", cameras, [f"images/{f}" for f in image_files], points=points, colors=colors
+    )
     write_npy(out / "points_source.npy", sources)
 
     eig, diag = stats.extents()
     regions_json = {
         "levels": list(LEVELS),
-        "extent_definition": "extent = extent_diag = bbox diagonal (m) of the region's surface points at the pixel centres of all "
-                  "views; extent_eig = largest eigenvalue (m^2) of their covariance",
-        "regions": [{"id": r.id, "level": r.level, "name": r.name, "caption": r.caption,
-                     "parent": r.parent, "extent": _num(diag[r.id]),
-                     "extent_eig": _num(eig[r.id]), "extent_diag": _num(diag[r.id]),
-                     "pixels": int(stats.count[r.id])} for r in scene.regions],
+        "extent_definition": "extent = extent_diag = bbox diagonal (m) of the region's surface points at the "
+        "pixel centres of all views; extent_eig = largest eigenvalue (m^2) of their covariance",
+        "regions": [
+            {
+                "id": r.id,
+                "level": r.level,
+                "name": r.name,
+                "caption": r.caption,
+                "parent": r.parent,
+                "extent": _num(diag[r.id]),
+                "extent_eig": _num(eig[r.id]),
+                "extent_diag": _num(diag[r.id]),
+                "pixels": int(stats.count[r.id]),
+            }
+            for r in scene.regions
+        ],
     }
     write_json(out / "regions.json", regions_json)
-    write_json(out / "queries.json", {"queries": [
-        {"query": q.query, "type": q.type, "region_ids": list(q.region_ids)} for q in scene.queries]})
+    write_json(
+        out / "queries.json",
+        {"queries": [{"query": q.query, "type": q.type, "region_ids": list(q.region_ids)} for q in scene.queries]},
+    )
 
     for i, (reg, rgb8) in labelled_regions.items():
         masks = {q.query: query_mask(reg, scene.regions, q.region_ids) for q in scene.queries}
@@ -1216,25 +1467,38 @@ def generate_demo_scene(out_dir: str | Path, *, num_views: int = 40, width: int 
         labels_mod.write_frame_labels(out / "label" / f"{names[i]}.json", fl)
         _write_jpeg(out / "label" / f"{names[i]}.jpg", rgb8)  # as in LangSplat's label folders
 
-    write_json(out / "scene.json", {
-        "generator": GENERATOR, "version": GENERATOR_VERSION, "layout": layout, "seed": int(seed),
-        "num_views": num_views, "width": width, "height": height, "supersample": supersample,
-        "camera_model": "PINHOLE", "up": [0.0, 0.0, 1.0], "depth": "z-depth (metres)",
-        "test_views": [i for i in range(num_views) if i % 8 == 0],
-        "labelled_views": labelled_views, "num_points": int(len(points)),
-        "points_source": "points_source.npy",
-    })
+    write_json(
+        out / "scene.json",
+        {
+            "generator": GENERATOR,
+            "version": GENERATOR_VERSION,
+            "layout": layout,
+            "seed": int(seed),
+            "num_views": num_views,
+            "width": width,
+            "height": height,
+            "supersample": supersample,
+            "camera_model": "PINHOLE",
+            "up": [0.0, 0.0, 1.0],
+            "depth": "z-depth (metres)",
+            "test_views": [i for i in range(num_views) if i % 8 == 0],
+            "labelled_views": labelled_views,
+            "num_points": int(len(points)),
+            "points_source": "points_source.npy",
+        },
+    )
     if show_progress:
-        print(f"demo scene ({layout}): {num_views} views of {width}x{height} written to {out} "
-              f"in {time.perf_counter() - start:.1f} s")
+        print(
+            f"demo scene ({layout}): {num_views} views of {width}x{height} written to {out} "
+            f"in {time.perf_counter() - start:.1f} s"
+        )
     return out
 
 
 # What a previous generation may have left (removed before writing a new scene there, so that
 # no stale frame survives a smaller re-generation).
 _OUTPUT_DIRS = ("images", "depth", "regions", "label", "sparse")
-_OUTPUT_FILES = ("transforms.json", "sparse_pc.ply", "regions.json", "queries.json",
-                 "points_source.npy", "scene.json")
+_OUTPUT_FILES = ("transforms.json", "sparse_pc.ply", "regions.json", "queries.json", "points_source.npy", "scene.json")
 
 
 def _prepare_output_dir(out: Path) -> None:
@@ -1260,8 +1524,7 @@ def _prepare_output_dir(out: Path) -> None:
         names = {p.name for p in out.iterdir()}
         is_demo = names <= set(_OUTPUT_DIRS) | set(_OUTPUT_FILES)
     if not is_demo:
-        raise InputError(out, "output folder is not empty and does not hold a demo scene; "
-                              "choose a new or empty folder")
+        raise InputError(out, "output folder is not empty and does not hold a demo scene; choose a new or empty folder")
     meta_path.unlink(missing_ok=True)  # first, so a crash below leaves an "interrupted" folder
     for name in _OUTPUT_DIRS:
         if (out / name).is_dir():
@@ -1270,12 +1533,16 @@ def _prepare_output_dir(out: Path) -> None:
         (out / name).unlink(missing_ok=True)
 
 
-def query_mask(regions: np.ndarray,  # [3, H, W] int32
-               region_list: Sequence[Region] | Sequence[dict],
-               region_ids: Sequence[int]) -> np.ndarray:  # [H, W] bool
+def query_mask(
+    regions: np.ndarray,  # [3, H, W] int32
+    region_list: Sequence[Region] | Sequence[dict],
+    region_ids: Sequence[int],
+) -> np.ndarray:  # [H, W] bool
     """Union of the pixels of the given regions (each compared at its own level)."""
-    level_of = {(r["id"] if isinstance(r, dict) else r.id): (r["level"] if isinstance(r, dict) else r.level)
-                for r in region_list}
+    level_of = {
+        (r["id"] if isinstance(r, dict) else r.id): (r["level"] if isinstance(r, dict) else r.level)
+        for r in region_list
+    }
     mask = np.zeros(regions.shape[1:], dtype=bool)
     for rid in region_ids:
         mask |= regions[level_of[rid]] == rid
@@ -1334,8 +1601,13 @@ def write_contact_sheet(scene_dir: str | Path, out_png: str | Path, max_views: i
     from PIL import Image
 
     rows = 1 + len(levels)
-    fig, axes = plt.subplots(rows, len(pick) + 1, figsize=(1.9 * len(pick) + 3.6, 1.55 * rows),
-                             gridspec_kw={"width_ratios": [1] * len(pick) + [1.9]}, squeeze=False)
+    fig, axes = plt.subplots(
+        rows,
+        len(pick) + 1,
+        figsize=(1.9 * len(pick) + 3.6, 1.55 * rows),
+        gridspec_kw={"width_ratios": [1] * len(pick) + [1.9]},
+        squeeze=False,
+    )
     seen_per_level = [set() for _ in levels]
     for col, i in enumerate(pick):
         stem = images[i].stem
@@ -1354,16 +1626,25 @@ def write_contact_sheet(scene_dir: str | Path, out_png: str | Path, max_views: i
         axes[r, -1].axis("off")
     by_id = {r["id"]: r for r in reg_info["regions"]}
     for lv in range(len(levels)):
-        handles = [Patch(color=_palette(np.array(rid)), label=by_id[rid]["caption"])
-                   for rid in sorted(seen_per_level[lv])]
-        axes[lv + 1, -1].legend(handles=handles, loc="center left", fontsize=5, frameon=False,
-                                ncol=1 + len(handles) // 8, handlelength=1.0, borderaxespad=0)
+        handles = [
+            Patch(color=_palette(np.array(rid)), label=by_id[rid]["caption"]) for rid in sorted(seen_per_level[lv])
+        ]
+        axes[lv + 1, -1].legend(
+            handles=handles,
+            loc="center left",
+            fontsize=5,
+            frameon=False,
+            ncol=1 + len(handles) // 8,
+            handlelength=1.0,
+            borderaxespad=0,
+        )
     try:
         layout = read_scene_meta(scene_dir).get("layout", "tabletop")
     except InputError:
         layout = "?"
-    axes[0, -1].text(0.0, 0.5, f"{scene_dir.name} ({layout})\n{len(images)} views\nblack = no region",
-                     fontsize=7, va="center")
+    axes[0, -1].text(
+        0.0, 0.5, f"{scene_dir.name} ({layout})\n{len(images)} views\nblack = no region", fontsize=7, va="center"
+    )
     fig.tight_layout(pad=0.3)
     out_png = Path(out_png)
     with atomic_path(out_png) as tmp:

@@ -82,8 +82,17 @@ class Lens:
     name: str  # the model as the scene file names it, e.g. "COLMAP SIMPLE_RADIAL"
 
     @staticmethod
-    def perspective(name: str, k1: float = 0.0, k2: float = 0.0, p1: float = 0.0, p2: float = 0.0,
-                    k3: float = 0.0, k4: float = 0.0, k5: float = 0.0, k6: float = 0.0) -> "Lens":
+    def perspective(
+        name: str,
+        k1: float = 0.0,
+        k2: float = 0.0,
+        p1: float = 0.0,
+        p2: float = 0.0,
+        k3: float = 0.0,
+        k4: float = 0.0,
+        k5: float = 0.0,
+        k6: float = 0.0,
+    ) -> "Lens":
         """OpenCV's rational model; ``k4..k6`` are the denominator terms, as in COLMAP's
         ``FULL_OPENCV`` and ``cv2``."""
         return Lens(PERSPECTIVE, tuple(float(v) for v in (k1, k2, p1, p2, k3, k4, k5, k6)), name)
@@ -108,8 +117,11 @@ def _opencv_K(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:  # [3, 
     return np.array([[fx, 0.0, cx - 0.5], [0.0, fy, cy - 0.5], [0.0, 0.0, 1.0]])
 
 
-def _undistort_points(pixels: np.ndarray,  # [N, 2] distorted, OpenCV pixel coordinates
-                      intrinsics: tuple, lens: Lens) -> np.ndarray:  # -> [N, 2] normalised x/z, y/z
+def _undistort_points(
+    pixels: np.ndarray,  # [N, 2] distorted, OpenCV pixel coordinates
+    intrinsics: tuple,
+    lens: Lens,
+) -> np.ndarray:  # -> [N, 2] normalised x/z, y/z
     import cv2
 
     K = _opencv_K(*intrinsics[:4])
@@ -125,8 +137,11 @@ def _undistort_points(pixels: np.ndarray,  # [N, 2] distorted, OpenCV pixel coor
     return out.reshape(-1, 2)
 
 
-def _distort_points(normalized: np.ndarray,  # [N, 2] x/z, y/z
-                    intrinsics: tuple, lens: Lens) -> np.ndarray:  # -> [N, 2] OpenCV pixel coordinates
+def _distort_points(
+    normalized: np.ndarray,  # [N, 2] x/z, y/z
+    intrinsics: tuple,
+    lens: Lens,
+) -> np.ndarray:  # -> [N, 2] OpenCV pixel coordinates
     import cv2
 
     K = _opencv_K(*intrinsics[:4])
@@ -147,8 +162,10 @@ def _new_intrinsics(intrinsics: tuple, lens: Lens) -> tuple[float, float, float,
     # Centres of the outermost pixels, every pixel along each edge (OpenCV coordinates).
     xs, ys = np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64)
     edges = {
-        "top": np.stack([xs, np.zeros(W)], 1), "bottom": np.stack([xs, np.full(W, H - 1.0)], 1),
-        "left": np.stack([np.zeros(H), ys], 1), "right": np.stack([np.full(H, W - 1.0), ys], 1),
+        "top": np.stack([xs, np.zeros(W)], 1),
+        "bottom": np.stack([xs, np.full(W, H - 1.0)], 1),
+        "left": np.stack([np.zeros(H), ys], 1),
+        "right": np.stack([np.full(H, W - 1.0), ys], 1),
     }
     limit = math.tan(math.radians(MAX_FISHEYE_HALF_ANGLE_DEG))
     bounds = {"top": -limit, "bottom": limit, "left": -limit, "right": limit}
@@ -166,8 +183,10 @@ def _new_intrinsics(intrinsics: tuple, lens: Lens) -> tuple[float, float, float,
         # not monotonic (coefficients fitted on a smaller field of view than the image's).
         back = _distort_points(normalized, intrinsics, lens) if np.isfinite(normalized).all() else None
         if back is None or not np.isfinite(back).all() or np.abs(back - pixels).max() > 0.05:
-            raise ValueError("its distortion cannot be inverted at the image border (the model folds "
-                             "over inside the image: are the coefficients right?)")
+            raise ValueError(
+                "its distortion cannot be inverted at the image border (the model folds "
+                "over inside the image: are the coefficients right?)"
+            )
         # The innermost point of each edge bounds the rectangle every output pixel must map into.
         axis = 1 if name in ("top", "bottom") else 0
         inner = normalized[:, axis].max() if name in ("top", "left") else normalized[:, axis].min()
@@ -193,8 +212,9 @@ def undistorted_camera(camera: Camera, lens: Lens, source: Optional[Path] = None
     try:
         fx, fy, cx, cy = _new_intrinsics(_intrinsics(camera), lens)
     except ValueError as e:
-        raise InputError(source, f"cannot undistort the {lens.name} camera with coefficients "
-                                 f"{list(lens.coeffs)}: {e}") from None
+        raise InputError(
+            source, f"cannot undistort the {lens.name} camera with coefficients {list(lens.coeffs)}: {e}"
+        ) from None
     return replace(camera, fx=fx, fy=fy, cx=cx, cy=cy)
 
 
@@ -223,8 +243,12 @@ def undistortion_maps(camera: Camera, lens: Lens, new_camera: Camera) -> tuple[n
     return _maps(_intrinsics(camera), lens, _intrinsics(new_camera))
 
 
-def undistort_image(image: np.ndarray,  # [h, w] or [h, w, C] any dtype cv2.remap takes
-                    camera: Camera, lens: Lens, new_camera: Camera) -> np.ndarray:  # -> same shape
+def undistort_image(
+    image: np.ndarray,  # [h, w] or [h, w, C] any dtype cv2.remap takes
+    camera: Camera,
+    lens: Lens,
+    new_camera: Camera,
+) -> np.ndarray:  # -> same shape
     """Resample a distorted image of ``camera`` into ``new_camera`` (bilinear). The image may
     be a resized copy of the camera's (same aspect ratio): both cameras are scaled to it."""
     import cv2
@@ -253,9 +277,14 @@ def cache_key(image_path: Path, camera: Camera, lens: Lens) -> str:
         st = image_path.stat()
     except OSError as e:
         raise InputError(image_path, f"cannot read image ({e.strerror or e})") from None
-    inputs = {"version": CACHE_VERSION, "source": str(image_path.resolve()), "bytes": st.st_size,
-              "mtime_ns": st.st_mtime_ns, "intrinsics": [repr(float(v)) for v in _intrinsics(camera)],
-              "lens": [lens.kind, *map(repr, lens.coeffs)]}
+    inputs = {
+        "version": CACHE_VERSION,
+        "source": str(image_path.resolve()),
+        "bytes": st.st_size,
+        "mtime_ns": st.st_mtime_ns,
+        "intrinsics": [repr(float(v)) for v in _intrinsics(camera)],
+        "lens": [lens.kind, *map(repr, lens.coeffs)],
+    }
     return hashlib.sha256(json.dumps(inputs, sort_keys=True).encode("utf-8")).hexdigest()[:24]
 
 
@@ -287,13 +316,19 @@ def _undistort_file(source: Path, target: Path, camera: Camera, lens: Lens, new_
     try:
         write_bytes(target, png.tobytes())
     except OSError as e:
-        raise InputError(target.parent, f"cannot write the undistorted image cache ({e.strerror or e}); "
-                                        f"set {CACHE_ENV} to a writable folder") from None
+        raise InputError(
+            target.parent,
+            f"cannot write the undistorted image cache ({e.strerror or e}); set {CACHE_ENV} to a writable folder",
+        ) from None
 
 
-def undistort_views(cameras: Sequence[Camera], lenses: Sequence[Optional[Lens]],
-                    image_paths: Sequence[Path], cache_dir: Optional[str | Path] = None,
-                    listing: Optional[Path] = None) -> tuple[list[Camera], list[Path]]:
+def undistort_views(
+    cameras: Sequence[Camera],
+    lenses: Sequence[Optional[Lens]],
+    image_paths: Sequence[Path],
+    cache_dir: Optional[str | Path] = None,
+    listing: Optional[Path] = None,
+) -> tuple[list[Camera], list[Path]]:
     """Pinhole cameras and image paths for every view: a view without distortion (lens
     ``None`` or pinhole) is returned as it is; a distorted one gets its
     :func:`undistorted_camera` and its cached undistorted PNG, written now if the cache does
@@ -317,9 +352,12 @@ def undistort_views(cameras: Sequence[Camera], lenses: Sequence[Optional[Lens]],
         out_paths.append(target)
     if todo:
         # OpenCV releases the GIL while decoding, remapping and encoding.
-        with ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1)) as pool, \
-                tqdm(total=len(todo), desc="undistorting images", unit="image",
-                     disable=len(todo) <= PROGRESS_MIN_IMAGES) as bar:
+        with (
+            ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1)) as pool,
+            tqdm(
+                total=len(todo), desc="undistorting images", unit="image", disable=len(todo) <= PROGRESS_MIN_IMAGES
+            ) as bar,
+        ):
             futures = [pool.submit(_undistort_file, *job) for job in todo]
             try:
                 for future in futures:

@@ -53,7 +53,7 @@ ROWS = (
 ABOUT = {
     "teacher": "the segment bank's 2D features of each labelled view at its 3 levels, no 3D",
     "lift": "the teacher lifted onto the Gaussians (blending-weight average over the training views) and "
-            "rendered back: no network",
+    "rendered back: no network",
     "field": "the trained field",
 }
 
@@ -63,8 +63,16 @@ class TeacherEngine(LevelBlockEngine):
     """The bank's per-view features at 3 levels, answered as a 3-level field is (modes
     ``levels`` and ``oracle``), at the scene's views only (no Gaussians)."""
 
-    def __init__(self, bank: Any, encoder: Any, meta: dict, config: Any = None, device: Any = "cpu",
-                 scene: Any = None, run_dir: Any = None) -> None:
+    def __init__(
+        self,
+        bank: Any,
+        encoder: Any,
+        meta: dict,
+        config: Any = None,
+        device: Any = "cpu",
+        scene: Any = None,
+        run_dir: Any = None,
+    ) -> None:
         super().__init__(int(bank.embed_dim), None, encoder, meta, config, device, scene, run_dir)
         self.bank = bank
         self.rule = bank_level_rule(bank)
@@ -97,8 +105,9 @@ class TeacherEngine(LevelBlockEngine):
         return ViewCache(cam, index, name, caches, alpha, None, {"render": t1 - t0, "cache": time.perf_counter() - t1})
 
 
-def teacher_engine(bank: Any, encoder: Any, meta: dict, config: Any = None, device: Any = "cpu",
-                   scene: Any = None, run_dir: Any = None) -> Any:
+def teacher_engine(
+    bank: Any, encoder: Any, meta: dict, config: Any = None, device: Any = "cpu", scene: Any = None, run_dir: Any = None
+) -> Any:
     """A query engine over the bank's own per-view features (see the module docstring)."""
     return TeacherEngine(bank, encoder, meta, config, device, scene, run_dir)
 
@@ -108,12 +117,20 @@ def _row(name: str, source: str, mode: str, ev: EvalResult) -> dict:
     scores = {}
     for b in ev.scores[mode]:
         s = ev.scores[mode][b]
-        scores[b] = {"miou": s.miou, "loc_accuracy": s.loc_accuracy, "map": ev.ap[mode][b]["map"],
-                     "oracle_miou": s.oracle_miou, "num_pairs": s.num_pairs,
-                     "kinds": {k: {f: v[f] for f in ("pairs", "miou", "loc_accuracy", "map")}
-                               for k, v in ev.kinds[mode][b].items()}}
-    per_query = {b: {q: {f: v.get(f, math.nan) for f in ("iou", "hit", "ap")} for q, v in by.items()}
-                 for b, by in ev.per_query[mode].items()}
+        scores[b] = {
+            "miou": s.miou,
+            "loc_accuracy": s.loc_accuracy,
+            "map": ev.ap[mode][b]["map"],
+            "oracle_miou": s.oracle_miou,
+            "num_pairs": s.num_pairs,
+            "kinds": {
+                k: {f: v[f] for f in ("pairs", "miou", "loc_accuracy", "map")} for k, v in ev.kinds[mode][b].items()
+            },
+        }
+    per_query = {
+        b: {q: {f: v.get(f, math.nan) for f in ("iou", "hit", "ap")} for q, v in by.items()}
+        for b, by in ev.per_query[mode].items()
+    }
     return {"name": name, "source": source, "mode": mode, "scores": scores, "per_query": per_query}
 
 
@@ -134,38 +151,49 @@ def loss_budget(
     """The loss budget table of a run (see the module docstring): ``{"rows": [...], "lift":
     {...}, "teacher": {...}, "notes": [...]}``; each row holds, per box, mIoU, localization,
     mAP and the per-kind split, and its per-query IoU / hit / AP."""
-    from ..query.lifted import lift_engine, run_lift
     from ..query.engine import QueryEngine
+    from ..query.lifted import lift_engine, run_lift
     from ..segments.bank import SegmentBank
 
     t0 = time.perf_counter()
-    base = engine if engine is not None else \
-        QueryEngine.from_run(run_dir, device=device, scene=scene, config=query_config, encoder=encoder)
+    base = (
+        engine
+        if engine is not None
+        else QueryEngine.from_run(run_dir, device=device, scene=scene, config=query_config, encoder=encoder)
+    )
     if base.scene is None:
         raise InputError(run_dir, "the run does not record its scene folder: pass --scene DIR")
     bank_path = bank if bank is not None else base.meta.get("bank")
     if not bank_path or not Path(bank_path).is_dir():
-        raise InputError(Path(bank_path) if bank_path else Path(run_dir),
-                         "the loss budget needs the run's segment bank (the teacher): pass --bank DIR")
+        raise InputError(
+            Path(bank_path) if bank_path else Path(run_dir),
+            "the loss budget needs the run's segment bank (the teacher): pass --bank DIR",
+        )
     bank_obj = SegmentBank.open(bank_path)
     bank_obj.validate_against(base.scene)
-    common: dict[str, Any] = {"scene": base.scene.root, "bank": bank_path, "query_types": query_types,
-                              "query_config": query_config, "device": device}
+    common: dict[str, Any] = {
+        "scene": base.scene.root,
+        "bank": bank_path,
+        "query_types": query_types,
+        "query_config": query_config,
+        "device": device,
+    }
     field_modes = ("composite", "explicit", "oracle") if base.variant != "levels" else ("levels", "oracle")
     if field_result is None or any(m not in field_result.modes for m in field_modes):
-        field_result = evaluate_run(run_dir, label_dir, config=replace(config, modes=field_modes),
-                                    encoder=encoder, engine=base, **common)
+        field_result = evaluate_run(
+            run_dir, label_dir, config=replace(config, modes=field_modes), encoder=encoder, engine=base, **common
+        )
     shared_encoder = base.encoder  # loaded once, used by the three engines
     level_cfg = replace(config, modes=("levels", "oracle"))
 
-    teacher = teacher_engine(bank_obj, shared_encoder, dict(base.meta), base.config, device, base.scene,
-                             Path(run_dir))
+    teacher = teacher_engine(bank_obj, shared_encoder, dict(base.meta), base.config, device, base.scene, Path(run_dir))
     teacher_result = evaluate_run(run_dir, label_dir, config=level_cfg, engine=teacher, **common)
 
     lift, from_file = run_lift(run_dir, base, bank_obj, progress=config.progress)
     views = lift.views
-    lifted = lift_engine(lift, base.gaussians, shared_encoder, dict(base.meta), base.config, device, base.scene,
-                         Path(run_dir))
+    lifted = lift_engine(
+        lift, base.gaussians, shared_encoder, dict(base.meta), base.config, device, base.scene, Path(run_dir)
+    )
     lift_result = evaluate_run(run_dir, label_dir, config=level_cfg, engine=lifted, **common)
 
     results = {"teacher": teacher_result, "lift": lift_result, "field": field_result}
@@ -177,22 +205,36 @@ def loss_budget(
         if mode is None or mode not in results[source].modes:
             continue
         rows.append(_row(name, source, mode, results[source]))
-    notes = [f"The teacher's levels: {teacher.rule[0]} of the bank ({bank_path}).",
-             (f"The lift: {len(views)} training views, {int(lift.features.shape[0])} Gaussians; "
-              + (f"written by training from its cached blending weights (RUN/lift.pt), averaging "
-                 f"{lift.seconds['lift']:.1f} s." if from_file else
-                 f"built now in {lift.seconds['total']:.1f} s ({lift.seconds['blend']:.1f} s blending weights, "
-                 f"{lift.seconds['lift']:.1f} s averaging)."))]
+    notes = [
+        f"The teacher's levels: {teacher.rule[0]} of the bank ({bank_path}).",
+        (
+            f"The lift: {len(views)} training views, {int(lift.features.shape[0])} Gaussians; "
+            + (
+                f"written by training from its cached blending weights (RUN/lift.pt), averaging "
+                f"{lift.seconds['lift']:.1f} s."
+                if from_file
+                else f"built now in {lift.seconds['total']:.1f} s ({lift.seconds['blend']:.1f} s blending weights, "
+                f"{lift.seconds['lift']:.1f} s averaging)."
+            )
+        ),
+    ]
     held = sum(bool(v.get("heldout")) for v in field_result.views)
     if held:
-        notes.append(f"{held} of {len(field_result.views)} labelled views are held out from training: the teacher "
-                     "has features there, the lift and the field only render them.")
+        notes.append(
+            f"{held} of {len(field_result.views)} labelled views are held out from training: the teacher "
+            "has features there, the lift and the field only render them."
+        )
     return {
         "rows": rows,
         "about": dict(ABOUT),
-        "lift": {"views": views, "num_gaussians": int(lift.features.shape[0]), "rule": lift.rule,
-                 "from": "RUN/lift.pt (training's blend cache)" if from_file else "built by the evaluation",
-                 "seconds": dict(lift.seconds), "coverage": dict(zip(("part", "object", "group"), lift.coverage()))},
+        "lift": {
+            "views": views,
+            "num_gaussians": int(lift.features.shape[0]),
+            "rule": lift.rule,
+            "from": "RUN/lift.pt (training's blend cache)" if from_file else "built by the evaluation",
+            "seconds": dict(lift.seconds),
+            "coverage": dict(zip(("part", "object", "group"), lift.coverage())),
+        },
         "teacher": {"rule": teacher.rule[0], "bank": str(bank_path)},
         "boxes": {b: field_result.boxes[b]["box_sizes"] for b in field_result.boxes},
         "notes": notes,
@@ -221,34 +263,49 @@ def budget_table(budget: Mapping, kinds: bool = False) -> str:
         body = []
         for r in rows:
             s = r["scores"]
-            body.append([r["name"]] + [_pct(s[b]["miou"]) for b in boxes] + [_pct(s[b]["loc_accuracy"]) for b in boxes]
-                        + [_pct(s[b]["map"]) for b in boxes]
-                        + [f"{100 * (s['exact']['miou'] - ref):+.1f}" if np.isfinite(ref) else "n/a",
-                           s["exact"]["num_pairs"]])
-        return markdown_table(["source"] + [f"mIoU % ({label[b]})" for b in boxes]
-                              + [f"loc. % ({label[b]})" for b in boxes] + [f"mAP % ({label[b]} choice)" for b in boxes]
-                              + [f"mIoU vs {rows[0]['name'] if rows else '-'} (exact)", "pairs"], body)
+            body.append(
+                [r["name"]]
+                + [_pct(s[b]["miou"]) for b in boxes]
+                + [_pct(s[b]["loc_accuracy"]) for b in boxes]
+                + [_pct(s[b]["map"]) for b in boxes]
+                + [f"{100 * (s['exact']['miou'] - ref):+.1f}" if np.isfinite(ref) else "n/a", s["exact"]["num_pairs"]]
+            )
+        return markdown_table(
+            ["source"]
+            + [f"mIoU % ({label[b]})" for b in boxes]
+            + [f"loc. % ({label[b]})" for b in boxes]
+            + [f"mAP % ({label[b]} choice)" for b in boxes]
+            + [f"mIoU vs {rows[0]['name'] if rows else '-'} (exact)", "pairs"],
+            body,
+        )
     shown = [k for k in QUERY_KINDS if any(r["scores"]["exact"]["kinds"][k]["pairs"] for r in rows)]
     body = []
     for r in rows:
         ex, sc = r["scores"]["exact"]["kinds"], r["scores"].get("scaled", r["scores"]["exact"])["kinds"]
-        body.append([r["name"]] + [f"{_pct(ex[k]['miou'])} / {_pct(sc[k]['miou'])} / {_pct(ex[k]['map'])}"
-                                   for k in shown])
+        body.append(
+            [r["name"]] + [f"{_pct(ex[k]['miou'])} / {_pct(sc[k]['miou'])} / {_pct(ex[k]['map'])}" for k in shown]
+        )
     pairs = {k: rows[0]["scores"]["exact"]["kinds"][k]["pairs"] for k in shown}
-    return markdown_table(["source"] + [f"{k} ({pairs[k]} pairs): mIoU exact / mIoU scaled / mAP %" for k in shown],
-                          body, ["l"] + ["r"] * len(shown))
+    return markdown_table(
+        ["source"] + [f"{k} ({pairs[k]} pairs): mIoU exact / mIoU scaled / mAP %" for k in shown],
+        body,
+        ["l"] + ["r"] * len(shown),
+    )
 
 
 def budget_markdown(budget: Mapping) -> str:
     """The ``eval.md`` section of the loss budget."""
-    out = ["\n## Loss budget: teacher -> lift -> field -> answers\n\n",
-           "Same labels, same protocol, same evaluation code for every row. Sources: "
-           + "; ".join(f"**{k}**: {v}" for k, v in budget.get("about", ABOUT).items()) + ". "
-           "`3 levels` is LangSplat's level choice (max R' for segmentation, max box(R) for localization); "
-           "`oracle` the best level / scale per pair (an upper bound of that choice).\n\n",
-           budget_table(budget),
-           "\n### By query kind\n\n",
-           budget_table(budget, kinds=True)]
+    out = [
+        "\n## Loss budget: teacher -> lift -> field -> answers\n\n",
+        "Same labels, same protocol, same evaluation code for every row. Sources: "
+        + "; ".join(f"**{k}**: {v}" for k, v in budget.get("about", ABOUT).items())
+        + ". "
+        "`3 levels` is LangSplat's level choice (max R' for segmentation, max box(R) for localization); "
+        "`oracle` the best level / scale per pair (an upper bound of that choice).\n\n",
+        budget_table(budget),
+        "\n### By query kind\n\n",
+        budget_table(budget, kinds=True),
+    ]
     for note in budget.get("notes", []):
         out.append(f"\n- {note}")
     out.append("\n")

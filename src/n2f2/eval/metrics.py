@@ -52,8 +52,9 @@ def segment_mean_relevancy(
     if seg.ndim == 2:
         seg = seg[None]
     if rel.ndim != 3 or seg.ndim != 3 or rel.shape[1:] != seg.shape[1:]:
-        raise ValueError(f"relevancy [Q, H, W] {np.shape(relevancy)} and segments [L, H, W] "
-                         f"{np.shape(segments)} must share H, W")
+        raise ValueError(
+            f"relevancy [Q, H, W] {np.shape(relevancy)} and segments [L, H, W] {np.shape(segments)} must share H, W"
+        )
     if not np.issubdtype(seg.dtype, np.integer):
         raise ValueError(f"segment ids must be integers, got {seg.dtype}")
     if seg.min(initial=-1) < -1:
@@ -131,8 +132,7 @@ def recall_at_k(
     for q in range(len(sc)):
         ids = np.unique(np.asarray(positives[q], dtype=np.int64))
         if ids.size and (ids.min() < 0 or ids.max() >= sc.shape[1]):
-            raise ValueError(f"query {names[q]!r}: positive ids {ids.tolist()} outside the pool "
-                             f"of {sc.shape[1]}")
+            raise ValueError(f"query {names[q]!r}: positive ids {ids.tolist()} outside the pool of {sc.shape[1]}")
         ranks = segment_ranks(sc[q])[ids]
         ranks = ranks[~np.isnan(ranks)]
         if ranks.size == 0:
@@ -140,8 +140,7 @@ def recall_at_k(
             continue
         rec = {k: float((ranks <= k).sum() / min(k, ranks.size)) for k in ks}
         per_query.append(QueryRetrieval(names[q], int(ranks.min()), rec, int(ranks.size)))
-    mean = {k: (float(np.mean([p.recall[k] for p in per_query])) if per_query else math.nan)
-            for k in ks}
+    mean = {k: (float(np.mean([p.recall[k] for p in per_query])) if per_query else math.nan) for k in ks}
     first = float(np.mean([p.first_rank for p in per_query])) if per_query else math.nan
     pool = int((~np.isnan(sc)).any(axis=0).sum())
     return RetrievalScores(ks, mean, first, per_query, skipped, pool)
@@ -207,8 +206,7 @@ def query_deltas(
         if bad:
             raise ValueError(f"run {name} has non-finite scores for {bad[:3]}")
     shared = sorted(set(run_a) & set(run_b))
-    deltas = [QueryDelta(q, float(run_a[q]), float(run_b[q]), float(run_b[q]) - float(run_a[q]))
-              for q in shared]
+    deltas = [QueryDelta(q, float(run_a[q]), float(run_b[q]), float(run_b[q]) - float(run_a[q])) for q in shared]
     ordered = sorted(deltas, key=lambda d: -d.delta)  # stable: name order among ties
     worst = sorted(deltas, key=lambda d: d.delta)
     return QueryDeltas(

@@ -39,8 +39,15 @@ from typing import Any, Callable, Literal, Optional, Union
 import numpy as np
 
 from ..errors import InputError
-from .protocol import (LANGSPLAT_MIX, ProtocolConfig, _as_numpy, box_filter, mask_from_smoothed,
-                       resolve_box_size, resolve_majority_radius)
+from .protocol import (
+    LANGSPLAT_MIX,
+    ProtocolConfig,
+    _as_numpy,
+    box_filter,
+    mask_from_smoothed,
+    resolve_box_size,
+    resolve_majority_radius,
+)
 
 
 @dataclass
@@ -177,8 +184,7 @@ def evaluate_ovs3d(
     radii: set[int] = set()
     for view in tqdm(labels.views, desc="eval 3D-OVS", unit="view", disable=not progress):
         if not 0 <= view.view_index < num_views:
-            raise InputError(labels.root / view.name,
-                             f"view {view.view_index} is not in the scene ({num_views} views)")
+            raise InputError(labels.root / view.name, f"view {view.view_index} is not in the scene ({num_views} views)")
         rel = np.asarray(_as_numpy(score_fn(view.view_index, list(labels.classes))), dtype=np.float32)
         if rel.ndim == 3:
             rel = rel[None]
@@ -186,9 +192,11 @@ def evaluate_ovs3d(
             raise ValueError(f"score_fn must return [L, {c}, H, W], got shape {rel.shape}")
         h, w = rel.shape[-2:]
         if view.masks.shape[1:] != (h, w):
-            raise InputError(labels.root / view.name,
-                             f"masks are {view.masks.shape[2]}x{view.masks.shape[1]} but the "
-                             f"relevancy maps are {w}x{h} (pass size= to read_ovs3d_segmentations)")
+            raise InputError(
+                labels.root / view.name,
+                f"masks are {view.masks.shape[2]}x{view.masks.shape[1]} but the "
+                f"relevancy maps are {w}x{h} (pass size= to read_ovs3d_segmentations)",
+            )
         size = resolve_box_size(config.box_size, w, config.box_ref_width)
         radius = resolve_majority_radius(config.majority_radius, w, config.box_ref_width)
         box_sizes.add(size)
@@ -200,8 +208,9 @@ def evaluate_ovs3d(
             gt_rows = view.masks.reshape(c, -1)
             acc = float((gt_rows == pred.reshape(c, -1)).all(axis=0).mean())
         else:
-            pred = np.stack([mask_from_smoothed(smoothed[level[k], k], config.threshold,
-                                                radius) != 0 for k in range(c)])
+            pred = np.stack(
+                [mask_from_smoothed(smoothed[level[k], k], config.threshold, radius) != 0 for k in range(c)]
+            )
             acc = None
         ious, empty = per_class_iou(view.masks, pred)
         empty_count += int(empty.sum())
@@ -210,15 +219,23 @@ def evaluate_ovs3d(
         all_ious.append(ious)
         if acc is not None:
             accuracies.append(acc)
-        per_view.append({"view": view.name, "view_index": view.view_index,
-                         "iou": [float(v) for v in ious], "accuracy": acc,
-                         "levels": [int(v) for v in level]})
+        per_view.append(
+            {
+                "view": view.name,
+                "view_index": view.view_index,
+                "iou": [float(v) for v in ious],
+                "accuracy": acc,
+                "levels": [int(v) for v in level],
+            }
+        )
     stacked = np.stack(all_ious)  # [V, C]
     if np.isnan(stacked).all():
         raise InputError(labels.root, "every (view, class) pair has an empty ground truth and prediction")
     with np.errstate(invalid="ignore"):
-        per_class = {name: float(np.nanmean(stacked[:, k])) if not np.isnan(stacked[:, k]).all()
-                     else float("nan") for k, name in enumerate(labels.classes)}
+        per_class = {
+            name: float(np.nanmean(stacked[:, k])) if not np.isnan(stacked[:, k]).all() else float("nan")
+            for k, name in enumerate(labels.classes)
+        }
     return Ovs3dScores(
         classes=list(labels.classes),
         mode=mode,
@@ -231,4 +248,3 @@ def evaluate_ovs3d(
         majority_radii=sorted(radii),
         config={**asdict(config), "empty_union": empty_union},
     )
-

@@ -78,6 +78,7 @@ from ..query.maps import (  # noqa: F401  (re-exported: the protocol's rules, wr
     smoothed_relevancy,
 )
 
+
 @dataclass(frozen=True)
 class ProtocolConfig:
     """Settings of the LangSplat protocol. The defaults are LangSplat's exact values."""
@@ -101,8 +102,9 @@ class ProtocolConfig:
             raise ValueError(f"box_ref_width must be positive, got {self.box_ref_width}")
         if not 0.0 <= self.threshold < 1.0:
             raise ValueError(f"threshold must be in [0, 1), got {self.threshold}")
-        if not (self.majority_radius == "scaled"
-                or (isinstance(self.majority_radius, int) and self.majority_radius >= 0)):
+        if not (
+            self.majority_radius == "scaled" or (isinstance(self.majority_radius, int) and self.majority_radius >= 0)
+        ):
             raise ValueError(f"majority_radius must be an int >= 0 or 'scaled', got {self.majority_radius!r}")
         if self.missing_frames not in ("error", "skip"):
             raise ValueError(f"missing_frames must be 'error' or 'skip', got {self.missing_frames!r}")
@@ -142,8 +144,9 @@ def langsplat_relevancy(
     single = t.dim() == 1
     t = t.reshape(-1, t.shape[-1])
     if neg.dim() != 2 or neg.shape[-1] != f.shape[-1] or t.shape[-1] != f.shape[-1]:
-        raise ValueError(f"embedding sizes differ: features {tuple(f.shape)}, texts "
-                         f"{tuple(t.shape)}, negatives {tuple(neg.shape)}")
+        raise ValueError(
+            f"embedding sizes differ: features {tuple(f.shape)}, texts {tuple(t.shape)}, negatives {tuple(neg.shape)}"
+        )
     t = (t / t.norm(dim=-1, keepdim=True)).to(f.dtype)
     neg = (neg / neg.norm(dim=-1, keepdim=True)).to(f.dtype)
     if normalize_features:
@@ -227,9 +230,15 @@ def evaluate_frame_category(
     # Localization: box(R) without the mix; the level with the highest filtered maximum.
     loc_level = int(np.argmax(filtered.reshape(len(rel), -1).max(axis=1)))
     hit = points_in_boxes(max_locations(filtered[loc_level]), boxes)
-    return PairResult(iou=ious[seg_level], hit=hit, seg_level=seg_level, loc_level=loc_level,
-                      iou_per_level=[float(v) for v in ious], box_size=int(box_size),
-                      majority_radius=int(majority_radius))
+    return PairResult(
+        iou=ious[seg_level],
+        hit=hit,
+        seg_level=seg_level,
+        loc_level=loc_level,
+        iou_per_level=[float(v) for v in ious],
+        box_size=int(box_size),
+        majority_radius=int(majority_radius),
+    )
 
 
 # ------------------------------------------------------------------------------ labels
@@ -260,8 +269,7 @@ def frame_targets(
     scale = (1.0, 1.0)
     if shape != label_hw:
         if not rescale:
-            raise ValueError(f"labels are {label_hw[1]}x{label_hw[0]} but the relevancy maps are "
-                             f"{shape[1]}x{shape[0]}")
+            raise ValueError(f"labels are {label_hw[1]}x{label_hw[0]} but the relevancy maps are {shape[1]}x{shape[0]}")
         scale = (shape[1] / label_hw[1], shape[0] / label_hw[0])
     from ..data.labels import polygon_to_mask  # LangSplat's fill: int32 vertices, cv2.fillPoly
 
@@ -373,8 +381,10 @@ def evaluate_scene(
             if config.missing_frames == "skip":
                 skipped_frames.append(name)
                 continue
-            raise InputError(label_dir, f"label {name!r} refers to view {idx}, but the scene has "
-                                        f"{num_views} views (frame_00001 is view 0)")
+            raise InputError(
+                label_dir,
+                f"label {name!r} refers to view {idx}, but the scene has {num_views} views (frame_00001 is view 0)",
+            )
         categories = list(dict.fromkeys(o.category for o in frame.objects))
         if not categories:
             continue
@@ -382,8 +392,9 @@ def evaluate_scene(
         if rel.ndim == 3:  # [K, H, W]: a single level
             rel = rel[None]
         if rel.ndim != 4 or rel.shape[1] != len(categories):
-            raise ValueError(f"relevancy_fn must return [L, {len(categories)}, H, W] for view "
-                             f"{idx}, got shape {rel.shape}")
+            raise ValueError(
+                f"relevancy_fn must return [L, {len(categories)}, H, W] for view {idx}, got shape {rel.shape}"
+            )
         h, w = rel.shape[-2:]
         try:
             targets, dropped = frame_targets(frame, (h, w), config.rescale_labels)
@@ -398,12 +409,16 @@ def evaluate_scene(
         for t in targets:
             k = categories.index(t.category)
             r = evaluate_frame_category(rel[:, k], t.mask, t.boxes, size, config.threshold, radius)
-            pairs.append(PairRecord(name, idx, t.category, r.iou, r.hit, r.seg_level, r.loc_level,
-                                    r.iou_per_level, size, radius))
+            pairs.append(
+                PairRecord(name, idx, t.category, r.iou, r.hit, r.seg_level, r.loc_level, r.iou_per_level, size, radius)
+            )
     if not pairs:
-        raise InputError(label_dir, "no (frame, category) pair left to score "
-                                    f"({len(skipped_frames)} frames skipped, {skipped_objects} "
-                                    "objects outside their image)")
+        raise InputError(
+            label_dir,
+            "no (frame, category) pair left to score "
+            f"({len(skipped_frames)} frames skipped, {skipped_objects} "
+            "objects outside their image)",
+        )
     return SceneScores(
         pairs=pairs,
         miou=float(np.mean([p.iou for p in pairs])),

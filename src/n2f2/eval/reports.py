@@ -16,7 +16,6 @@ import numpy as np
 
 from ..io import atomic_path
 
-
 # What `n2f2 eval` writes into OUT (n2f2.eval.runner.write_eval_outputs), plots by pattern.
 RESULT_NAMES = ("eval.json", "eval.md", "relevancy", "scores.png", "simple_compound.png", "recall_at_k.png")
 RESULT_PATTERNS = ("scales_*.png", "delta_*.png")
@@ -61,8 +60,7 @@ def markdown_table(
         raise ValueError(f"every row needs {n} cells")
     align = list(align) if align is not None else ["l"] + ["r"] * (n - 1)
     rule = {"l": ":---", "r": "---:", "c": ":---:"}
-    lines = ["| " + " | ".join(_cell(h) for h in headers) + " |",
-             "| " + " | ".join(rule[a] for a in align) + " |"]
+    lines = ["| " + " | ".join(_cell(h) for h in headers) + " |", "| " + " | ".join(rule[a] for a in align) + " |"]
     lines += ["| " + " | ".join(_cell(c) for c in r) + " |" for r in rows]
     return "\n".join(lines) + "\n"
 
@@ -75,28 +73,65 @@ def scene_scores_table(
     used, skips. The mean row averages scenes (as the paper's tables do)."""
     rows = []
     for scene, s in scores.items():
-        rows.append([scene, _fmt(s.miou, percent=True), _fmt(s.loc_accuracy, percent=True),
-                     _fmt(s.oracle_miou, percent=True), s.num_pairs,
-                     ",".join(str(b) for b in s.box_sizes),
-                     ",".join(str(r) for r in s.majority_radii),
-                     len(s.skipped_frames), s.skipped_objects])
+        rows.append(
+            [
+                scene,
+                _fmt(s.miou, percent=True),
+                _fmt(s.loc_accuracy, percent=True),
+                _fmt(s.oracle_miou, percent=True),
+                s.num_pairs,
+                ",".join(str(b) for b in s.box_sizes),
+                ",".join(str(r) for r in s.majority_radii),
+                len(s.skipped_frames),
+                s.skipped_objects,
+            ]
+        )
     if mean_row and len(scores) > 1:
         vals = list(scores.values())
-        rows.append(["**mean**", _fmt(sum(v.miou for v in vals) / len(vals), percent=True),
-                     _fmt(sum(v.loc_accuracy for v in vals) / len(vals), percent=True),
-                     _fmt(sum(v.oracle_miou for v in vals) / len(vals), percent=True),
-                     sum(v.num_pairs for v in vals), "", "", "", ""])
-    return markdown_table(["scene", "mIoU %", "loc. acc. %", "oracle-level mIoU %", "pairs",
-                           "box px", "majority radius", "skipped frames", "skipped objects"], rows)
+        rows.append(
+            [
+                "**mean**",
+                _fmt(sum(v.miou for v in vals) / len(vals), percent=True),
+                _fmt(sum(v.loc_accuracy for v in vals) / len(vals), percent=True),
+                _fmt(sum(v.oracle_miou for v in vals) / len(vals), percent=True),
+                sum(v.num_pairs for v in vals),
+                "",
+                "",
+                "",
+                "",
+            ]
+        )
+    return markdown_table(
+        [
+            "scene",
+            "mIoU %",
+            "loc. acc. %",
+            "oracle-level mIoU %",
+            "pairs",
+            "box px",
+            "majority radius",
+            "skipped frames",
+            "skipped objects",
+        ],
+        rows,
+    )
 
 
 def pairs_table(scores: object) -> str:  # protocol.SceneScores
     """Every (frame, category) pair: IoU, hit, chosen levels."""
-    rows = [[p.frame, p.category, _fmt(p.iou, percent=True), _fmt(p.hit), p.seg_level,
-             p.loc_level, " ".join(_fmt(v, percent=True) for v in p.iou_per_level)]
-            for p in scores.pairs]
-    return markdown_table(["frame", "category", "IoU %", "hit", "seg level", "loc level",
-                           "IoU % per level"], rows)
+    rows = [
+        [
+            p.frame,
+            p.category,
+            _fmt(p.iou, percent=True),
+            _fmt(p.hit),
+            p.seg_level,
+            p.loc_level,
+            " ".join(_fmt(v, percent=True) for v in p.iou_per_level),
+        ]
+        for p in scores.pairs
+    ]
+    return markdown_table(["frame", "category", "IoU %", "hit", "seg level", "loc level", "IoU % per level"], rows)
 
 
 def deltas_table(deltas: object, name_a: str = "a", name_b: str = "b", percent: bool = True) -> str:
@@ -104,18 +139,27 @@ def deltas_table(deltas: object, name_a: str = "a", name_b: str = "b", percent: 
     rows = []
     for tag, items in (("top", deltas.top), ("bottom", deltas.bottom)):
         for d in items:
-            rows.append([tag, d.query, _fmt(d.a, percent=percent), _fmt(d.b, percent=percent),
-                         ("+" if d.delta >= 0 else "") + _fmt(d.delta, percent=percent)])
+            rows.append(
+                [
+                    tag,
+                    d.query,
+                    _fmt(d.a, percent=percent),
+                    _fmt(d.b, percent=percent),
+                    ("+" if d.delta >= 0 else "") + _fmt(d.delta, percent=percent),
+                ]
+            )
     return markdown_table(["", "query", name_a, name_b, "delta"], rows, ["l", "l", "r", "r", "r"])
 
 
 def retrieval_table(results: Mapping[str, object]) -> str:  # name -> metrics.RetrievalScores
     ks = sorted({k for r in results.values() for k in r.ks})
-    rows = [[name] + [_fmt(r.recall.get(k), percent=True) for k in ks]
-            + [_fmt(r.mean_first_rank), len(r.per_query), len(r.skipped)]
-            for name, r in results.items()]
-    return markdown_table(["run"] + [f"R@{k} %" for k in ks]
-                          + ["mean first rank", "queries", "skipped"], rows)
+    rows = [
+        [name]
+        + [_fmt(r.recall.get(k), percent=True) for k in ks]
+        + [_fmt(r.mean_first_rank), len(r.per_query), len(r.skipped)]
+        for name, r in results.items()
+    ]
+    return markdown_table(["run"] + [f"R@{k} %" for k in ks] + ["mean first rank", "queries", "skipped"], rows)
 
 
 # ------------------------------------------------------------------------------ plots
@@ -198,8 +242,7 @@ def plot_query_deltas(
     ax = fig.add_subplot(1, 1, 1)
     scale = 100.0 if percent else 1.0
     ys = list(range(len(items)))[::-1]
-    ax.barh(ys, [scale * d.delta for d in items],
-            color=["tab:green" if d.delta >= 0 else "tab:red" for d in items])
+    ax.barh(ys, [scale * d.delta for d in items], color=["tab:green" if d.delta >= 0 else "tab:red" for d in items])
     ax.set_yticks(ys)
     ax.set_yticklabels([d.query for d in items], fontsize="small")
     ax.axvline(0.0, color="black", linewidth=0.8)

@@ -70,7 +70,8 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import asdict, dataclass, field as dc_field, replace
+from dataclasses import asdict, dataclass, replace
+from dataclasses import field as dc_field
 from pathlib import Path
 from typing import Any, Callable, Mapping, Optional, Sequence, Union
 
@@ -78,9 +79,19 @@ import numpy as np
 
 from ..errors import InputError
 from .metrics import average_precision, per_query_scores, query_deltas, recall_at_k, segment_mean_relevancy
-from .protocol import (PairRecord, ProtocolConfig, SceneScores, box_filter, evaluate_frame_category,
-                       evaluate_scene, frame_targets, max_locations, points_in_boxes,
-                       resolve_box_size, resolve_majority_radius)
+from .protocol import (
+    PairRecord,
+    ProtocolConfig,
+    SceneScores,
+    box_filter,
+    evaluate_frame_category,
+    evaluate_scene,
+    frame_targets,
+    max_locations,
+    points_in_boxes,
+    resolve_box_size,
+    resolve_majority_radius,
+)
 
 BOXES = ("exact", "scaled")  # LangSplat's 30 px box, and the box scaled to the image width
 DEFAULT_KS = (1, 2, 3, 4, 5)
@@ -180,7 +191,7 @@ def read_query_types(path: Union[str, Path]) -> dict[str, str]:
     elif isinstance(data, dict):
         items = list(data.items())
     else:
-        raise InputError(path, "query types must be {\"queries\": [...]} or {query: type}")
+        raise InputError(path, 'query types must be {"queries": [...]} or {query: type}')
     out = {}
     for query, kind in items:
         if kind not in QUERY_TYPES:
@@ -207,8 +218,10 @@ def read_query_kinds(path: Union[str, Path]) -> dict[str, str]:
         try:
             regions = json.loads(regions_path.read_text())
             names = list(regions.get("levels", ["part", "object", "group"]))
-            levels = {int(r["id"]): (names[int(r["level"])] if int(r["level"]) < len(names) else "unknown")
-                      for r in regions.get("regions", [])}
+            levels = {
+                int(r["id"]): (names[int(r["level"])] if int(r["level"]) < len(names) else "unknown")
+                for r in regions.get("regions", [])
+            }
         except (OSError, json.JSONDecodeError, KeyError, TypeError, ValueError) as e:
             raise InputError(regions_path, f"cannot read the region levels ({e})") from None
     out = {}
@@ -239,14 +252,18 @@ class ExactMasks:
         if self.gt is None:
             return
         try:
-            self.region_ids = {q["query"]: [int(r) for r in q["region_ids"]] for q in self.gt.queries
-                               if isinstance(q, dict) and q.get("region_ids")}
+            self.region_ids = {
+                q["query"]: [int(r) for r in q["region_ids"]]
+                for q in self.gt.queries
+                if isinstance(q, dict) and q.get("region_ids")
+            }
             self.regions = list(self.gt.regions["regions"])
         except (OSError, json.JSONDecodeError, KeyError, TypeError, ValueError):
             self.region_ids, self.regions = {}, []
 
-    def masks(self, view_index: int, queries: Sequence[str],
-              shape: tuple[int, int]) -> dict[str, np.ndarray]:  # query -> [H, W] bool
+    def masks(
+        self, view_index: int, queries: Sequence[str], shape: tuple[int, int]
+    ) -> dict[str, np.ndarray]:  # query -> [H, W] bool
         wanted = [q for q in queries if q in self.region_ids]
         if not wanted or self.gt is None:
             return {}
@@ -261,8 +278,9 @@ class ExactMasks:
         return {q: query_mask(reg, self.regions, self.region_ids[q]) for q in wanted}
 
 
-def check_label_frames(labels: Sequence[Any], num_views: int, label_dir: Path,
-                       missing_frames: str) -> tuple[list[Any], list[str]]:
+def check_label_frames(
+    labels: Sequence[Any], num_views: int, label_dir: Path, missing_frames: str
+) -> tuple[list[Any], list[str]]:
     """(frames to render, names of skipped frames). Fails before any rendering, naming the label
     file, on a frame outside the scene (unless ``missing_frames="skip"``) or two labels for one
     view; the protocol applies the same rules again when it scores."""
@@ -277,9 +295,12 @@ def check_label_frames(labels: Sequence[Any], num_views: int, label_dir: Path,
             if missing_frames == "skip":
                 skipped.append(frame.frame_name)
                 continue
-            raise InputError(path, f"label {frame.frame_name!r} refers to view {idx}, but the scene has "
-                                   f"{num_views} views (frame_00001 is view 0); pass --skip-missing-frames "
-                                   "to leave it out")
+            raise InputError(
+                path,
+                f"label {frame.frame_name!r} refers to view {idx}, but the scene has "
+                f"{num_views} views (frame_00001 is view 0); pass --skip-missing-frames "
+                "to leave it out",
+            )
         keep.append(frame)
     return keep, skipped
 
@@ -297,15 +318,24 @@ class _ViewMaps:
     all_scales: Optional[np.ndarray] = None  # [K, S, H, W] for a levels field's npy output
 
 
-def _scale_maps(engine: Any, view: Any, categories: list[str], targets: dict, modes: list[str],
-                protocols: dict[str, ProtocolConfig], keep_all: bool) -> tuple[dict, dict, Optional[np.ndarray]]:
+def _scale_maps(
+    engine: Any,
+    view: Any,
+    categories: list[str],
+    targets: dict,
+    modes: list[str],
+    protocols: dict[str, ProtocolConfig],
+    keep_all: bool,
+) -> tuple[dict, dict, Optional[np.ndarray]]:
     """Score every scale of every labelled category once (through the engine's oracle scorer
     hook, which hands over the ``[S, H, W]`` maps of one query) and keep each mode's chosen maps."""
     H, W = view.height, view.width
     K = len(categories)
     wanted = [m for m in modes if m in SCALE_MODES]
-    maps = {m: {b: {"seg": np.zeros((K, H, W), np.float32), "loc": np.zeros((K, H, W), np.float32)}
-                for b in protocols} for m in wanted}
+    maps = {
+        m: {b: {"seg": np.zeros((K, H, W), np.float32), "loc": np.zeros((K, H, W), np.float32)} for b in protocols}
+        for m in wanted
+    }
     choices: dict = {m: {b: {} for b in protocols} for m in wanted}
     stacks: list = [None] * K
 
@@ -321,9 +351,11 @@ def _scale_maps(engine: Any, view: Any, categories: list[str], targets: dict, mo
             radius = resolve_majority_radius(cfg.majority_radius, W, cfg.box_ref_width)
             res = evaluate_frame_category(r, target.mask, target.boxes, size, cfg.threshold, radius)
             hits = [points_in_boxes(max_locations(f), target.boxes) for f in box_filter(r, size)]
-            picks = {"explicit": (res.seg_level, res.loc_level), "levels": (res.seg_level, res.loc_level),
-                     "oracle": (int(np.argmax(res.iou_per_level)),
-                                hits.index(True) if any(hits) else res.loc_level)}
+            picks = {
+                "explicit": (res.seg_level, res.loc_level),
+                "levels": (res.seg_level, res.loc_level),
+                "oracle": (int(np.argmax(res.iou_per_level)), hits.index(True) if any(hits) else res.loc_level),
+            }
             for m in wanted:
                 seg, loc = picks[m]
                 maps[m][b]["seg"][qi] = r[seg]
@@ -359,9 +391,16 @@ class _RetrievalAcc:
     skipped: list[str] = dc_field(default_factory=list)
     pool_sizes: dict[str, int] = dc_field(default_factory=dict)
 
-    def add(self, frame: str, relevancy: np.ndarray,  # [K, H, W]
-            categories: list[str], positives: list[list[int]], layers: np.ndarray, num_segments: int,
-            ks: Sequence[int]) -> None:
+    def add(
+        self,
+        frame: str,
+        relevancy: np.ndarray,  # [K, H, W]
+        categories: list[str],
+        positives: list[list[int]],
+        layers: np.ndarray,
+        num_segments: int,
+        ks: Sequence[int],
+    ) -> None:
         scores, areas = segment_mean_relevancy(relevancy, layers, num_segments)  # [K, S]
         names = [f"{frame}/{c}" for c in categories]
         r = recall_at_k(scores, positives, ks=ks, queries=names)
@@ -372,22 +411,32 @@ class _RetrievalAcc:
     def summary(self, ks: Sequence[int], iou: float) -> RetrievalSummary:
         ranks = np.asarray(list(self.first_ranks.values()), dtype=np.float64)
         recall = {int(k): (float((ranks <= k).mean()) if ranks.size else math.nan) for k in ks}
-        return RetrievalSummary(list(map(int, ks)), recall,
-                                float(ranks.mean()) if ranks.size else math.nan, int(ranks.size),
-                                dict(self.first_ranks), list(self.skipped), iou, dict(self.pool_sizes))
+        return RetrievalSummary(
+            list(map(int, ks)),
+            recall,
+            float(ranks.mean()) if ranks.size else math.nan,
+            int(ranks.size),
+            dict(self.first_ranks),
+            list(self.skipped),
+            iou,
+            dict(self.pool_sizes),
+        )
 
 
 # ------------------------------------------------------------------------------ scoring
 def _stored(per_view: Mapping[int, _ViewMaps], mode: str, box: str, kind: str):
     """The protocol's ``relevancy_fn`` over the kept maps: (view, categories) -> [1, K, H, W]."""
+
     def relevancy_fn(i: int, categories: list) -> np.ndarray:
         vm = per_view[i]
         return vm.maps[mode][box][kind][[vm.categories.index(c) for c in categories]][None]
+
     return relevancy_fn
 
 
-def _combine(seg: SceneScores, loc: SceneScores,
-             choices: Optional[dict[tuple[str, str], tuple[int, int, list[float]]]]) -> SceneScores:
+def _combine(
+    seg: SceneScores, loc: SceneScores, choices: Optional[dict[tuple[str, str], tuple[int, int, list[float]]]]
+) -> SceneScores:
     """One mode's scores: IoU from the segmentation-map pass, hit from the localization-map pass;
     the levels recorded are the chosen scales (and every scale's IoU) of the mode."""
     pairs = []
@@ -408,15 +457,18 @@ def split_scores(pairs: Sequence[PairRecord], types: Mapping[str, str]) -> dict[
     out = {}
     for kind in QUERY_TYPES:
         sel = [p for p in pairs if types.get(p.category, "unknown") == kind]
-        out[kind] = {"pairs": len(sel),
-                     "queries": sorted({p.category for p in sel}),
-                     "miou": float(np.mean([p.iou for p in sel])) if sel else math.nan,
-                     "loc_accuracy": float(np.mean([p.hit for p in sel])) if sel else math.nan}
+        out[kind] = {
+            "pairs": len(sel),
+            "queries": sorted({p.category for p in sel}),
+            "miou": float(np.mean([p.iou for p in sel])) if sel else math.nan,
+            "loc_accuracy": float(np.mean([p.hit for p in sel])) if sel else math.nan,
+        }
     return out
 
 
-def _per_query(pairs: Sequence[PairRecord], types: Mapping[str, str],
-               ap_pairs: Sequence[Mapping] = ()) -> dict[str, dict]:
+def _per_query(
+    pairs: Sequence[PairRecord], types: Mapping[str, str], ap_pairs: Sequence[Mapping] = ()
+) -> dict[str, dict]:
     iou = per_query_scores(pairs, "iou")
     hit = per_query_scores(pairs, "hit")
     frames: dict[str, int] = {}
@@ -425,9 +477,16 @@ def _per_query(pairs: Sequence[PairRecord], types: Mapping[str, str],
     aps: dict[str, list[float]] = {}
     for p in ap_pairs:
         aps.setdefault(p["query"], []).append(p["ap"])
-    return {q: {"iou": iou[q], "hit": hit[q], "frames": frames[q], "type": types.get(q, "unknown"),
-                "ap": float(np.mean(aps[q])) if q in aps else math.nan}
-            for q in iou}
+    return {
+        q: {
+            "iou": iou[q],
+            "hit": hit[q],
+            "frames": frames[q],
+            "type": types.get(q, "unknown"),
+            "ap": float(np.mean(aps[q])) if q in aps else math.nan,
+        }
+        for q in iou
+    }
 
 
 # ------------------------------------------------------------------------------ the runner
@@ -472,14 +531,18 @@ def evaluate_run(
     modes = list(dict.fromkeys(config.modes or supported))
     for m in modes:
         if m not in supported:
-            raise InputError(run_dir / "field.pt", f"mode {m!r} does not apply to this {engine.variant!r} field "
-                                                   f"(it supports {', '.join(supported)})")
+            raise InputError(
+                run_dir / "field.pt",
+                f"mode {m!r} does not apply to this {engine.variant!r} field (it supports {', '.join(supported)})",
+            )
     protocols = config.protocols()
     frames, skipped_frames = check_label_frames(labels, num_views, label_dir, config.missing_frames)
     notes: list[str] = []
     if skipped_frames:
-        notes.append(f"{len(skipped_frames)} label frame(s) refer to views not in the scene and were "
-                     f"skipped: {', '.join(skipped_frames)}")
+        notes.append(
+            f"{len(skipped_frames)} label frame(s) refer to views not in the scene and were "
+            f"skipped: {', '.join(skipped_frames)}"
+        )
 
     # Query types: the scene's queries.json, a given file / mapping, else "unknown".
     types: dict[str, str] = {}
@@ -493,8 +556,9 @@ def evaluate_run(
     # Query kinds (part / object / group): the same file's "kind" or region levels.
     kinds: dict[str, str] = {}
     kinds_source = "none (all queries 'unknown')"
-    for candidate in ([query_types] if isinstance(query_types, (str, Path)) else []) + \
-            [Path(scene_obj.root) / "queries.json"]:
+    for candidate in ([query_types] if isinstance(query_types, (str, Path)) else []) + [
+        Path(scene_obj.root) / "queries.json"
+    ]:
         if Path(candidate).is_file():
             kinds = read_query_kinds(candidate)
             if kinds:
@@ -519,8 +583,9 @@ def evaluate_run(
     all_categories = list(dict.fromkeys(c for f in frames for c in f.categories))
     slugs = dict(zip(all_categories, unique_slugs(all_categories)))
     npy_mode = "composite" if "composite" in modes else ("levels" if "levels" in modes else None)
-    render_modes = (["composite"] if "composite" in modes else []) + \
-        (["oracle"] if any(m in SCALE_MODES for m in modes) else [])
+    render_modes = (["composite"] if "composite" in modes else []) + (
+        ["oracle"] if any(m in SCALE_MODES for m in modes) else []
+    )
     heldout = set(int(v) for v in engine.meta.get("heldout_views", []) or [])
     train_views = engine.meta.get("train_views")
 
@@ -534,11 +599,11 @@ def evaluate_run(
     for frame in frames:
         camera = engine.camera(frame.view_index)[0]
         try:
-            frame_gt[frame.frame_name] = frame_targets(frame, (camera.height, camera.width),
-                                                       config.rescale_labels)[0]
+            frame_gt[frame.frame_name] = frame_targets(frame, (camera.height, camera.width), config.rescale_labels)[0]
         except ValueError as e:
-            raise InputError(label_dir / f"{frame.frame_name}.json",
-                             f"{e} (render size; pass --rescale-labels to scale the labels)") from None
+            raise InputError(
+                label_dir / f"{frame.frame_name}.json", f"{e} (render size; pass --rescale-labels to scale the labels)"
+            ) from None
     if on_ready is not None:
         on_ready()
     for frame in tqdm(frames, desc="eval views", unit="view", disable=not config.progress):
@@ -558,8 +623,15 @@ def evaluate_run(
             maps["composite"] = {b: {"seg": rel, "loc": rel} for b in protocols}
         all_scales = None
         if any(m in SCALE_MODES for m in modes):
-            smaps, choices, all_scales = _scale_maps(engine, view, categories, targets, modes, protocols,
-                                                     keep_all=(npy_mode == "levels" and relevancy_dir is not None))
+            smaps, choices, all_scales = _scale_maps(
+                engine,
+                view,
+                categories,
+                targets,
+                modes,
+                protocols,
+                keep_all=(npy_mode == "levels" and relevancy_dir is not None),
+            )
             maps.update(smaps)
         t2 = time.perf_counter()
         per_view[idx] = _ViewMaps(frame.frame_name, categories, maps, choices)
@@ -569,8 +641,9 @@ def evaluate_run(
         for k, c in enumerate(categories):
             if c not in targets:
                 continue
-            mask, kind = (exact_masks[c], "exact") if c in exact_masks and exact_masks[c].any() \
-                else (targets[c].mask, "polygon")
+            mask, kind = (
+                (exact_masks[c], "exact") if c in exact_masks and exact_masks[c].any() else (targets[c].mask, "polygon")
+            )
             for m in modes:
                 done: dict[int, float] = {}  # the same map under both boxes is ranked once
                 for b in protocols:
@@ -592,21 +665,34 @@ def evaluate_run(
             rec = bank_obj.record(bank_obj.index(scene_obj.image_names[idx]))
             layers = np.asarray(rec.layers)
             if layers.shape[1:] != (view.height, view.width):
-                raise InputError(Path(bank_path) / "bank.json",
-                                 f"segments of {view.name} are {layers.shape[2]}x{layers.shape[1]} but the "
-                                 f"render is {view.width}x{view.height}")
+                raise InputError(
+                    Path(bank_path) / "bank.json",
+                    f"segments of {view.name} are {layers.shape[2]}x{layers.shape[1]} but the "
+                    f"render is {view.width}x{view.height}",
+                )
             S = rec.num_segments
             scored = [c for c in categories if c in targets]
-            positives = [np.flatnonzero(segment_label_iou(layers, targets[c].mask, S) >= config.retrieval_iou).tolist()
-                         for c in scored]
+            positives = [
+                np.flatnonzero(segment_label_iou(layers, targets[c].mask, S) >= config.retrieval_iou).tolist()
+                for c in scored
+            ]
             rows = [categories.index(c) for c in scored]
             for m in modes:
                 for b in protocols:
-                    retrieval[m][b].add(frame.frame_name, maps[m][b]["seg"][rows], scored, positives,
-                                        layers, S, config.ks)
-        view_info.append({"view_index": idx, "frame": frame.frame_name, "name": view.name,
-                          "heldout": (idx in heldout) if train_views is not None else None,
-                          "categories": len(categories), "render_s": t1 - t0, "query_s": t2 - t1})
+                    retrieval[m][b].add(
+                        frame.frame_name, maps[m][b]["seg"][rows], scored, positives, layers, S, config.ks
+                    )
+        view_info.append(
+            {
+                "view_index": idx,
+                "frame": frame.frame_name,
+                "name": view.name,
+                "heldout": (idx in heldout) if train_views is not None else None,
+                "categories": len(categories),
+                "render_s": t1 - t0,
+                "query_s": t2 - t1,
+            }
+        )
 
     # Protocol passes: segmentation maps -> IoU, localization maps -> hits, per mode and box.
     scores: dict[str, dict[str, SceneScores]] = {}
@@ -621,57 +707,99 @@ def evaluate_run(
             scores[m][b] = _combine(seg, loc, ch)
 
     any_scores = scores[modes[0]]
-    boxes = {b: {"box_sizes": any_scores[b].box_sizes, "majority_radii": any_scores[b].majority_radii,
-                 "config": asdict(protocols[b])} for b in protocols}
+    boxes = {
+        b: {
+            "box_sizes": any_scores[b].box_sizes,
+            "majority_radii": any_scores[b].majority_radii,
+            "config": asdict(protocols[b]),
+        }
+        for b in protocols
+    }
     ref = any_scores["exact"]
     if ref.skipped_objects:
-        notes.append(f"{ref.skipped_objects} labelled object(s) have a polygon outside the image and were "
-                     f"dropped; {ref.skipped_categories} (frame, category) pair(s) were left empty and not scored")
+        notes.append(
+            f"{ref.skipped_objects} labelled object(s) have a polygon outside the image and were "
+            f"dropped; {ref.skipped_categories} (frame, category) pair(s) were left empty and not scored"
+        )
     held = [v for v in view_info if v["heldout"]]
     if train_views is not None:
-        notes.append(f"{len(held)} of {len(view_info)} labelled views were held out from field training "
-                     "(the others were training views)")
+        notes.append(
+            f"{len(held)} of {len(view_info)} labelled views were held out from field training "
+            "(the others were training views)"
+        )
     enc_spec = dict(engine.meta.get("encoder_spec") or {})
-    description = enc_spec.get("description") or getattr(encoder, "description", None) or \
-        (bank_obj.encoder_spec.get("description") if bank_obj is not None else None) or "unknown"
+    description = (
+        enc_spec.get("description")
+        or getattr(encoder, "description", None)
+        or (bank_obj.encoder_spec.get("description") if bank_obj is not None else None)
+        or "unknown"
+    )
     if enc_spec.get("name") == "captions":
-        notes.append("Teacher: ground-truth captions embedded by MiniLM (not CLIP). Relevancy at temperature "
-                     "10 saturates for related captions, and part queries score low even for the teacher; "
-                     "the protocol is not tuned to hide it.")
+        notes.append(
+            "Teacher: ground-truth captions embedded by MiniLM (not CLIP). Relevancy at temperature "
+            "10 saturates for related captions, and part queries score low even for the teacher; "
+            "the protocol is not tuned to hide it."
+        )
     labels_of_scales = _scale_labels(engine)
     result = EvalResult(
-        scene=Path(scene_obj.root).name, run_dir=str(run_dir), scene_dir=str(scene_obj.root),
-        label_dir=str(label_dir), bank_dir=bank_path,
-        encoder={"name": enc_spec.get("name", getattr(encoder, "name", None)), "description": description,
-                 "spec": enc_spec},
-        field={"variant": engine.variant, "dim": engine.dim, "step": engine.step,
-               "num_scales": len(labels_of_scales), "scale_labels": labels_of_scales},
-        modes=modes, boxes=boxes, scores=scores,
+        scene=Path(scene_obj.root).name,
+        run_dir=str(run_dir),
+        scene_dir=str(scene_obj.root),
+        label_dir=str(label_dir),
+        bank_dir=bank_path,
+        encoder={
+            "name": enc_spec.get("name", getattr(encoder, "name", None)),
+            "description": description,
+            "spec": enc_spec,
+        },
+        field={
+            "variant": engine.variant,
+            "dim": engine.dim,
+            "step": engine.step,
+            "num_scales": len(labels_of_scales),
+            "scale_labels": labels_of_scales,
+        },
+        modes=modes,
+        boxes=boxes,
+        scores=scores,
         split={m: {b: split_scores(s.pairs, types) for b, s in by.items()} for m, by in scores.items()},
-        retrieval=({m: {b: acc.summary(config.ks, config.retrieval_iou) for b, acc in by.items()}
-                    for m, by in retrieval.items()} if bank_obj is not None else {}),
-        per_query={m: {b: _per_query(s.pairs, types, ap_pairs[m][b]) for b, s in by.items()}
-                   for m, by in scores.items()},
-        query_types={c: types.get(c, "unknown") for c in all_categories}, query_types_source=types_source,
-        views=view_info, relevancy_files=relevancy_files,
+        retrieval=(
+            {
+                m: {b: acc.summary(config.ks, config.retrieval_iou) for b, acc in by.items()}
+                for m, by in retrieval.items()
+            }
+            if bank_obj is not None
+            else {}
+        ),
+        per_query={
+            m: {b: _per_query(s.pairs, types, ap_pairs[m][b]) for b, s in by.items()} for m, by in scores.items()
+        },
+        query_types={c: types.get(c, "unknown") for c in all_categories},
+        query_types_source=types_source,
+        views=view_info,
+        relevancy_files=relevancy_files,
         relevancy_mode=npy_mode if relevancy_dir is not None else None,
         ap={m: {b: ap_summary(v) for b, v in by.items()} for m, by in ap_pairs.items()},
-        kinds={m: {b: kind_scores(s.pairs, ap_pairs[m][b], kinds) for b, s in by.items()}
-               for m, by in scores.items()},
-        query_kinds={c: kinds.get(c, "unknown") for c in all_categories}, query_kinds_source=kinds_source,
-        notes=notes, seconds=time.perf_counter() - t_start)
+        kinds={m: {b: kind_scores(s.pairs, ap_pairs[m][b], kinds) for b, s in by.items()} for m, by in scores.items()},
+        query_kinds={c: kinds.get(c, "unknown") for c in all_categories},
+        query_kinds_source=kinds_source,
+        notes=notes,
+        seconds=time.perf_counter() - t_start,
+    )
     return result
 
 
 def ap_summary(pairs: Sequence[Mapping]) -> dict:
     """mAP over pairs, how many used the exact mask, and the per-pair records."""
-    return {"map": float(np.mean([p["ap"] for p in pairs])) if pairs else math.nan,
-            "exact_masks": sum(p["mask"] == "exact" for p in pairs), "num_pairs": len(pairs),
-            "pairs": list(pairs)}
+    return {
+        "map": float(np.mean([p["ap"] for p in pairs])) if pairs else math.nan,
+        "exact_masks": sum(p["mask"] == "exact" for p in pairs),
+        "num_pairs": len(pairs),
+        "pairs": list(pairs),
+    }
 
 
-def kind_scores(pairs: Sequence[PairRecord], ap_pairs: Sequence[Mapping],
-                kinds: Mapping[str, str]) -> dict[str, dict]:
+def kind_scores(pairs: Sequence[PairRecord], ap_pairs: Sequence[Mapping], kinds: Mapping[str, str]) -> dict[str, dict]:
     """mIoU, localization accuracy and mAP per query kind (part / object / group / ...); kinds
     with no pair are listed with ``pairs: 0`` and NaN scores."""
     ap = {(p["frame"], p["query"]): p["ap"] for p in ap_pairs}
@@ -679,10 +807,13 @@ def kind_scores(pairs: Sequence[PairRecord], ap_pairs: Sequence[Mapping],
     for kind in QUERY_KINDS:
         sel = [p for p in pairs if kinds.get(p.category, "unknown") == kind]
         aps = [ap[(p.frame, p.category)] for p in sel if (p.frame, p.category) in ap]
-        out[kind] = {"pairs": len(sel), "queries": sorted({p.category for p in sel}),
-                     "miou": float(np.mean([p.iou for p in sel])) if sel else math.nan,
-                     "loc_accuracy": float(np.mean([p.hit for p in sel])) if sel else math.nan,
-                     "map": float(np.mean(aps)) if aps else math.nan}
+        out[kind] = {
+            "pairs": len(sel),
+            "queries": sorted({p.category for p in sel}),
+            "miou": float(np.mean([p.iou for p in sel])) if sel else math.nan,
+            "loc_accuracy": float(np.mean([p.hit for p in sel])) if sel else math.nan,
+            "map": float(np.mean(aps)) if aps else math.nan,
+        }
     return out
 
 
@@ -720,8 +851,9 @@ def compare_evals(reference: Mapping, current: Mapping, n: int = 3) -> dict[str,
             ref = reference["per_query"].get(m, {}).get(b)
             if ref is None:
                 continue
-            out.setdefault(m, {})[b] = query_deltas({q: v["iou"] for q, v in ref.items()},
-                                                    {q: v["iou"] for q, v in queries.items()}, n=n)
+            out.setdefault(m, {})[b] = query_deltas(
+                {q: v["iou"] for q, v in ref.items()}, {q: v["iou"] for q, v in queries.items()}, n=n
+            )
     return out
 
 
@@ -733,7 +865,7 @@ def _pct(v: Any) -> str:
 
 
 def _box_title(result: Mapping, box: str) -> str:
-    """"exact 30 px" / "scaled 5 px" (sizes actually used, from the protocol's record)."""
+    """ "exact 30 px" / "scaled 5 px" (sizes actually used, from the protocol's record)."""
     return f"{box} {','.join(str(s) for s in result['boxes'][box]['box_sizes'])} px"
 
 
@@ -753,22 +885,26 @@ def markdown_report(result: Mapping, deltas: Optional[Mapping] = None, reference
     title = {b: _box_title(result, b) for b in boxes}
     radii = {b: _radii(result, b) for b in boxes}
     modes = result["modes"]
-    out = [f"# n2f2 eval: {result['scene']}\n",
-           f"- run: `{result['run_dir']}`\n- labels: `{result['label_dir']}`\n"
-           f"- field: {result['field']['variant']}, D = {result['field']['dim']}, k = {result['field']['step']} "
-           f"({result['field']['num_scales']} scales)\n"
-           f"- text encoder / teacher: {result['encoder']['description']}\n"
-           f"- protocol: LangSplat's LERF-OVS rules. Box sizes, always both: **{title['exact']}** "
-           f"(LangSplat's, sized for ~986 px-wide images; majority radius {radii['exact']}) and "
-           f"**{title['scaled']}** (round(30 W / 986); majority radius {radii['scaled']}).\n"]
+    out = [
+        f"# n2f2 eval: {result['scene']}\n",
+        f"- run: `{result['run_dir']}`\n- labels: `{result['label_dir']}`\n"
+        f"- field: {result['field']['variant']}, D = {result['field']['dim']}, k = {result['field']['step']} "
+        f"({result['field']['num_scales']} scales)\n"
+        f"- text encoder / teacher: {result['encoder']['description']}\n"
+        f"- protocol: LangSplat's LERF-OVS rules. Box sizes, always both: **{title['exact']}** "
+        f"(LangSplat's, sized for ~986 px-wide images; majority radius {radii['exact']}) and "
+        f"**{title['scaled']}** (round(30 W / 986); majority radius {radii['scaled']}).\n",
+    ]
     n_scales = result["field"]["num_scales"]
-    about = {"composite": "one composite-embedding map per query (paper Sec. 3.3)",
-             "explicit": f"LangSplat's level choice over the {n_scales} scales (max R' for segmentation, "
-                         "max box(R) for localization)",
-             "levels": "LangSplat's level choice over the 3 levels of the baseline field",
-             "oracle": f"per pair the best of the {n_scales} scales for each task (best IoU; any scale that "
-                       "localizes): an upper bound of the explicit choice, not of composite; with many "
-                       "scales the localization bound is loose"}
+    about = {
+        "composite": "one composite-embedding map per query (paper Sec. 3.3)",
+        "explicit": f"LangSplat's level choice over the {n_scales} scales (max R' for segmentation, "
+        "max box(R) for localization)",
+        "levels": "LangSplat's level choice over the 3 levels of the baseline field",
+        "oracle": f"per pair the best of the {n_scales} scales for each task (best IoU; any scale that "
+        "localizes): an upper bound of the explicit choice, not of composite; with many "
+        "scales the localization bound is loose",
+    }
     for m in modes:
         out.append(f"- mode {m}: {about[m]}\n")
     for note in result.get("notes", []):
@@ -780,21 +916,37 @@ def markdown_report(result: Mapping, deltas: Optional[Mapping] = None, reference
     rows = []
     for m in modes:
         s = result["scores"][m]
-        rows.append([m] + [_pct(s[b]["loc_accuracy"]) for b in boxes] + [_pct(s[b]["miou"]) for b in boxes]
-                    + [_pct(ap[m][b]["map"]) if m in ap else "-" for b in boxes] + [s["exact"]["num_pairs"]])
-    out.append(markdown_table(["mode"] + [f"loc. % ({title[b]})" for b in boxes]
-                              + [f"mIoU % ({title[b]})" for b in boxes]
-                              + [f"mAP % ({title[b]} choice)" for b in boxes] + ["pairs"], rows))
+        rows.append(
+            [m]
+            + [_pct(s[b]["loc_accuracy"]) for b in boxes]
+            + [_pct(s[b]["miou"]) for b in boxes]
+            + [_pct(ap[m][b]["map"]) if m in ap else "-" for b in boxes]
+            + [s["exact"]["num_pairs"]]
+        )
+    out.append(
+        markdown_table(
+            ["mode"]
+            + [f"loc. % ({title[b]})" for b in boxes]
+            + [f"mIoU % ({title[b]})" for b in boxes]
+            + [f"mAP % ({title[b]} choice)" for b in boxes]
+            + ["pairs"],
+            rows,
+        )
+    )
     if ap:
         a = next(iter(next(iter(ap.values())).values()))
-        out.append(f"\nmAP: average precision of ranking each labelled view's pixels by the mode's segmentation "
-                   f"map (ties as one threshold), mean over pairs; against the exact mask in {a['exact_masks']} "
-                   f"of {a['num_pairs']} pairs, the label polygons otherwise. The box only changes which scale "
-                   "explicit / levels / oracle take.\n")
-    out.append(f"\nScene {result['scene']}: {first['exact']['num_frames']} labelled frames, "
-               f"{first['exact']['num_pairs']} (frame, query) pairs; skipped frames: "
-               f"{len(first['exact']['skipped_frames'])}, objects outside the image: "
-               f"{first['exact']['skipped_objects']}, empty pairs: {first['exact']['skipped_categories']}.\n")
+        out.append(
+            f"\nmAP: average precision of ranking each labelled view's pixels by the mode's segmentation "
+            f"map (ties as one threshold), mean over pairs; against the exact mask in {a['exact_masks']} "
+            f"of {a['num_pairs']} pairs, the label polygons otherwise. The box only changes which scale "
+            "explicit / levels / oracle take.\n"
+        )
+    out.append(
+        f"\nScene {result['scene']}: {first['exact']['num_frames']} labelled frames, "
+        f"{first['exact']['num_pairs']} (frame, query) pairs; skipped frames: "
+        f"{len(first['exact']['skipped_frames'])}, objects outside the image: "
+        f"{first['exact']['skipped_objects']}, empty pairs: {first['exact']['skipped_categories']}.\n"
+    )
 
     out.append("\n## Simple vs compound queries (paper Table 7)\n\n")
     out.append(f"Query types from {result['query_types_source']}.\n\n")
@@ -802,12 +954,29 @@ def markdown_report(result: Mapping, deltas: Optional[Mapping] = None, reference
     for m in modes:
         for b in boxes:
             sp = result["split"][m][b]
-            rows.append([m, title[b]] + [_pct(sp[k]["miou"]) for k in ("simple", "compound")]
-                        + [_pct(sp[k]["loc_accuracy"]) for k in ("simple", "compound")]
-                        + [sp[k]["pairs"] for k in QUERY_TYPES])
-    out.append(markdown_table(["mode", "box", "simple mIoU %", "compound mIoU %", "simple loc. %",
-                               "compound loc. %", "simple pairs", "compound pairs", "unknown pairs"], rows,
-                              ["l", "l"] + ["r"] * 7))
+            rows.append(
+                [m, title[b]]
+                + [_pct(sp[k]["miou"]) for k in ("simple", "compound")]
+                + [_pct(sp[k]["loc_accuracy"]) for k in ("simple", "compound")]
+                + [sp[k]["pairs"] for k in QUERY_TYPES]
+            )
+    out.append(
+        markdown_table(
+            [
+                "mode",
+                "box",
+                "simple mIoU %",
+                "compound mIoU %",
+                "simple loc. %",
+                "compound loc. %",
+                "simple pairs",
+                "compound pairs",
+                "unknown pairs",
+            ],
+            rows,
+            ["l", "l"] + ["r"] * 7,
+        )
+    )
 
     if result.get("kinds"):
         out.append("\n## By query kind\n\n")
@@ -817,11 +986,16 @@ def markdown_report(result: Mapping, deltas: Optional[Mapping] = None, reference
         for m in modes:
             for b in boxes:
                 kd = result["kinds"][m][b]
-                rows.append([m, title[b]] + [f"{_pct(kd[k]['miou'])} / {_pct(kd[k]['loc_accuracy'])} / "
-                                             f"{_pct(kd[k]['map'])}" for k in shown])
+                rows.append(
+                    [m, title[b]]
+                    + [f"{_pct(kd[k]['miou'])} / {_pct(kd[k]['loc_accuracy'])} / {_pct(kd[k]['map'])}" for k in shown]
+                )
         counts = ", ".join(f"{k} {result['kinds'][modes[0]]['exact'][k]['pairs']}" for k in shown)
-        out.append(markdown_table(["mode", "box"] + [f"{k}: mIoU / loc. / mAP %" for k in shown], rows,
-                                  ["l", "l"] + ["r"] * len(shown)))
+        out.append(
+            markdown_table(
+                ["mode", "box"] + [f"{k}: mIoU / loc. / mAP %" for k in shown], rows, ["l", "l"] + ["r"] * len(shown)
+            )
+        )
         out.append(f"\nPairs per kind: {counts}.\n")
 
     if result.get("budget"):
@@ -833,27 +1007,38 @@ def markdown_report(result: Mapping, deltas: Optional[Mapping] = None, reference
     if result["retrieval"]:
         any_r = next(iter(next(iter(result["retrieval"].values())).values()))
         ks = any_r["ks"]
-        out.append(f"Pool: the segment bank's segments of each labelled view ({result['bank_dir']}); a segment "
-                   f"matches when its IoU with the label mask is >= {any_r['iou_threshold']}; a pair is "
-                   "retrieved at K when a matching segment ranks in the top K by mean relevancy (ties count "
-                   "against it). Pairs with no matching segment are skipped and counted.\n\n")
+        out.append(
+            f"Pool: the segment bank's segments of each labelled view ({result['bank_dir']}); a segment "
+            f"matches when its IoU with the label mask is >= {any_r['iou_threshold']}; a pair is "
+            "retrieved at K when a matching segment ranks in the top K by mean relevancy (ties count "
+            "against it). Pairs with no matching segment are skipped and counted.\n\n"
+        )
         rows = []
         for m in modes:
             for b in boxes:
                 r = result["retrieval"][m][b]
-                rows.append([m, title[b] if m != "composite" else "any"]
-                            + [_pct(_at(r["recall"], k)) for k in ks]
-                            + [_fmt_num(r["mean_first_rank"]), r["num_pairs"], len(r["skipped"])])
+                rows.append(
+                    [m, title[b] if m != "composite" else "any"]
+                    + [_pct(_at(r["recall"], k)) for k in ks]
+                    + [_fmt_num(r["mean_first_rank"]), r["num_pairs"], len(r["skipped"])]
+                )
                 if m == "composite":
                     break  # the composite map does not depend on the box
-        out.append(markdown_table(["mode", "box"] + [f"R@{k} %" for k in ks]
-                                  + ["mean first rank", "pairs", "skipped (no matching segment)"], rows,
-                                  ["l", "l"] + ["r"] * (len(ks) + 3)))
+        out.append(
+            markdown_table(
+                ["mode", "box"]
+                + [f"R@{k} %" for k in ks]
+                + ["mean first rank", "pairs", "skipped (no matching segment)"],
+                rows,
+                ["l", "l"] + ["r"] * (len(ks) + 3),
+            )
+        )
     else:
         out.append("Not computed (no segment bank).\n")
 
-    out.append("\n## Per query (IoU %, and AP % of the exact box's choice; mean over the frames a query is "
-               "labelled in)\n\n")
+    out.append(
+        "\n## Per query (IoU %, and AP % of the exact box's choice; mean over the frames a query is labelled in)\n\n"
+    )
     queries = sorted(result["query_types"], key=lambda q: (result["query_types"][q], q))
     rows = []
     for q in queries:
@@ -869,22 +1054,34 @@ def markdown_report(result: Mapping, deltas: Optional[Mapping] = None, reference
             row.append(_pct(v.get("ap", math.nan)) if v else "-")
         kind = (result.get("query_kinds") or {}).get(q, "unknown")
         rows.append(row[:2] + [kind, frames if frames is not None else 0] + row[2:])
-    out.append(markdown_table(["query", "type", "kind", "frames"] + [f"{m} {title[b]}" for m in modes for b in boxes]
-                              + [f"{m} AP" for m in modes],
-                              rows, ["l", "l", "l"] + ["r"] * (1 + len(modes) * (len(boxes) + 1))))
+    out.append(
+        markdown_table(
+            ["query", "type", "kind", "frames"]
+            + [f"{m} {title[b]}" for m in modes for b in boxes]
+            + [f"{m} AP" for m in modes],
+            rows,
+            ["l", "l", "l"] + ["r"] * (1 + len(modes) * (len(boxes) + 1)),
+        )
+    )
 
     if deltas:
         from .reports import deltas_table
 
-        out.append("\n## Per-query IoU delta: this run - reference (paper Table 8: top and bottom 3)\n\n"
-                   f"Reference: {reference}.\n")
+        out.append(
+            "\n## Per-query IoU delta: this run - reference (paper Table 8: top and bottom 3)\n\n"
+            f"Reference: {reference}.\n"
+        )
         for m, by in deltas.items():
             for b, d in by.items():
-                out.append(f"\n### {m}, {title[b]}: mean delta {_signed(d.mean_delta)} points over "
-                           f"{len(d.deltas)} shared queries\n\n")
+                out.append(
+                    f"\n### {m}, {title[b]}: mean delta {_signed(d.mean_delta)} points over "
+                    f"{len(d.deltas)} shared queries\n\n"
+                )
                 out.append(deltas_table(d, name_a="reference IoU %", name_b="this run IoU %"))
                 if d.only_a or d.only_b:
-                    out.append(f"\nQueries only in the reference: {len(d.only_a)}; only in this run: {len(d.only_b)}.\n")
+                    out.append(
+                        f"\nQueries only in the reference: {len(d.only_a)}; only in this run: {len(d.only_b)}.\n"
+                    )
     return "".join(out)
 
 
@@ -898,8 +1095,7 @@ def _signed(v: float) -> str:
     return "n/a" if not np.isfinite(v) else f"{100 * v:+.1f}"
 
 
-def plot_recall_curves(path: Union[str, Path], curves: Mapping[str, Mapping[int, float]],
-                       title: str = "R@K") -> Path:
+def plot_recall_curves(path: Union[str, Path], curves: Mapping[str, Mapping[int, float]], title: str = "R@K") -> Path:
     """R@K against K, one line per (mode, box), written as PNG."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -923,8 +1119,9 @@ def plot_recall_curves(path: Union[str, Path], curves: Mapping[str, Mapping[int,
     return Path(path)
 
 
-def write_eval_outputs(result: EvalResult, out_dir: Union[str, Path],
-                       compare: Optional[Union[str, Path]] = None) -> dict[str, Path]:
+def write_eval_outputs(
+    result: EvalResult, out_dir: Union[str, Path], compare: Optional[Union[str, Path]] = None
+) -> dict[str, Path]:
     """Write ``eval.json``, ``eval.md`` and the PNG plots into ``out_dir``; returns the paths."""
     from ..io import write_json, write_text
     from .reports import plot_grouped_bars, plot_level_histogram, plot_query_deltas
@@ -936,8 +1133,11 @@ def write_eval_outputs(result: EvalResult, out_dir: Union[str, Path],
         other = load_eval(compare)
         reference = f"`{compare}` (run `{other.get('run_dir')}`)"
         deltas = compare_evals(other, data)
-        data["compare"] = {"reference": str(compare), "reference_run": other.get("run_dir"),
-                           "iou_deltas": {m: {b: d.to_dict() for b, d in by.items()} for m, by in deltas.items()}}
+        data["compare"] = {
+            "reference": str(compare),
+            "reference_run": other.get("run_dir"),
+            "iou_deltas": {m: {b: d.to_dict() for b, d in by.items()} for m, by in deltas.items()},
+        }
     paths = {"json": out / "eval.json", "md": out / "eval.md"}
     title = {b: _box_title(data, b) for b in data["boxes"]}
     modes = result.modes
@@ -946,8 +1146,11 @@ def write_eval_outputs(result: EvalResult, out_dir: Union[str, Path],
         bars[f"loc. ({title[b]})"] = {m: result.scores[m][b].loc_accuracy for m in modes}
         bars[f"mIoU ({title[b]})"] = {m: result.scores[m][b].miou for m in modes}
     paths["scores_png"] = plot_grouped_bars(out / "scores.png", bars, title=f"{result.scene}: per mode")
-    split = {k: {f"{m} {title[b]}": result.split[m][b][k]["miou"] for m in modes for b in data["boxes"]}
-             for k in ("simple", "compound") if any(result.split[m][b][k]["pairs"] for m in modes for b in data["boxes"])}
+    split = {
+        k: {f"{m} {title[b]}": result.split[m][b][k]["miou"] for m in modes for b in data["boxes"]}
+        for k in ("simple", "compound")
+        if any(result.split[m][b][k]["pairs"] for m in modes for b in data["boxes"])
+    }
     if split:
         paths["split_png"] = plot_grouped_bars(out / "simple_compound.png", split, title="mIoU by query type")
     if result.retrieval:
@@ -960,13 +1163,15 @@ def write_eval_outputs(result: EvalResult, out_dir: Union[str, Path],
         if m in SCALE_MODES:
             for b in data["boxes"]:
                 paths[f"levels_{m}_{b}"] = plot_level_histogram(
-                    out / f"scales_{m}_{b}.png", result.scores[m][b], title=f"{m}: chosen scale ({title[b]})")
+                    out / f"scales_{m}_{b}.png", result.scores[m][b], title=f"{m}: chosen scale ({title[b]})"
+                )
     if deltas:
         for m, by in deltas.items():
             for b, d in by.items():
                 if d.deltas:
-                    paths[f"delta_{m}_{b}"] = plot_query_deltas(out / f"delta_{m}_{b}.png", d,
-                                                                title=f"IoU delta vs reference: {m}, {title[b]}")
+                    paths[f"delta_{m}_{b}"] = plot_query_deltas(
+                        out / f"delta_{m}_{b}.png", d, title=f"IoU delta vs reference: {m}, {title[b]}"
+                    )
     write_text(paths["md"], markdown_report(data, deltas, reference))
     write_json(paths["json"], data)  # last: its presence marks a finished evaluation
     return paths

@@ -14,16 +14,19 @@ from __future__ import annotations
 
 from .._lazy import lazy_exports
 
-__getattr__, __all__ = lazy_exports(__name__, {
-    "BenchConfig": "bench",
-    "BenchData": "bench",
-    "run_bench": "bench",
-    "VARIANTS": "variants",
-    "VariantSpec": "variants",
-    "run_name": "variants",
-    "scaled_step": "variants",
-    "train_variant": "training",
-    "ActivationMeter": "memory",
-    "paired_difference": "claims",
-    "convergence": "claims",
-})
+__getattr__, __all__ = lazy_exports(
+    __name__,
+    {
+        "BenchConfig": "bench",
+        "BenchData": "bench",
+        "run_bench": "bench",
+        "VARIANTS": "variants",
+        "VariantSpec": "variants",
+        "run_name": "variants",
+        "scaled_step": "variants",
+        "train_variant": "training",
+        "ActivationMeter": "memory",
+        "paired_difference": "claims",
+        "convergence": "claims",
+    },
+)

@@ -31,7 +31,8 @@ import json
 import os
 import shutil
 import time
-from dataclasses import asdict, dataclass, field as dc_field, replace
+from dataclasses import asdict, dataclass, replace
+from dataclasses import field as dc_field
 from pathlib import Path
 from typing import Any, Callable, Mapping, Optional, Sequence, Union
 
@@ -93,8 +94,16 @@ class BenchConfig:
     @staticmethod
     def quick(**overrides: Any) -> "BenchConfig":
         """A few minutes: small generated scene, D = 32, short training, fewer timing repeats."""
-        base = dict(iterations=150, dim=32, pixels_per_step=2048, timing_repeats=2, scene_views=16,
-                    scene_width=96, scene_height=72, fit_steps=300)
+        base = dict(
+            iterations=150,
+            dim=32,
+            pixels_per_step=2048,
+            timing_repeats=2,
+            scene_views=16,
+            scene_width=96,
+            scene_height=72,
+            fit_steps=300,
+        )
         base.update(overrides)
         return BenchConfig(**base)
 
@@ -112,9 +121,14 @@ class BenchData:
 
 
 # ------------------------------------------------------------------------------ data
-def prepare_data(out: Path, config: BenchConfig, scene: Optional[Union[str, Path]] = None,
-                 gaussians: Optional[Union[str, Path]] = None,
-                 bank: Optional[Union[str, Path]] = None, log: Callable[[str], None] = print) -> BenchData:
+def prepare_data(
+    out: Path,
+    config: BenchConfig,
+    scene: Optional[Union[str, Path]] = None,
+    gaussians: Optional[Union[str, Path]] = None,
+    bank: Optional[Union[str, Path]] = None,
+    log: Callable[[str], None] = print,
+) -> BenchData:
     """Generate the demo scene, fit its Gaussians (the cpu preset sized to the scene) and build
     its segment bank (ground-truth segments, caption embeddings) under ``out/data`` unless given,
     each with the pipeline's stages under the stage cache of ``out/data``."""
@@ -131,8 +145,9 @@ def prepare_data(out: Path, config: BenchConfig, scene: Optional[Union[str, Path
     t0 = time.perf_counter()
     if scene is None:
         scene_dir = data / "scene"
-        spec = DemoScene(views=config.scene_views, width=config.scene_width, height=config.scene_height,
-                         seed=config.seed)
+        spec = DemoScene(
+            views=config.scene_views, width=config.scene_width, height=config.scene_height, seed=config.seed
+        )
         built["scene"] = cached_demo_scene(cache, scene_dir, spec, progress=config.progress, log=log)
     else:
         scene_dir = Path(scene)
@@ -141,8 +156,11 @@ def prepare_data(out: Path, config: BenchConfig, scene: Optional[Union[str, Path
     if not scene_dir.is_dir():
         raise InputError(scene_dir, "scene folder does not exist")
     if not (scene_dir / "regions.json").is_file():
-        raise InputError(scene_dir, "the bench needs the built-in demo scene (regions.json with ground-truth "
-                                    "regions and captions); generate one with `n2f2 demo --scene-only`")
+        raise InputError(
+            scene_dir,
+            "the bench needs the built-in demo scene (regions.json with ground-truth "
+            "regions and captions); generate one with `n2f2 demo --scene-only`",
+        )
     label_dir = scene_dir / "label"
     if not label_dir.is_dir():
         raise InputError(label_dir, "the scene has no LangSplat labels (label/frame_*.json)")
@@ -160,9 +178,21 @@ def prepare_data(out: Path, config: BenchConfig, scene: Optional[Union[str, Path
         ply = fit_dir / "gaussians.ply"
         key = stage_key(scene=sdig, preset="cpu", steps=config.fit_steps, seed=config.seed)
         built["gaussians"] = cache.run(
-            "fit-gaussians", key, [ply],
-            lambda: stages.fit_gaussians(scene_dir, fit_dir, _CPU, config.fit_steps, seed=config.seed,
-                                         device=config.device, progress=config.progress, log=log), log)
+            "fit-gaussians",
+            key,
+            [ply],
+            lambda: stages.fit_gaussians(
+                scene_dir,
+                fit_dir,
+                _CPU,
+                config.fit_steps,
+                seed=config.seed,
+                device=config.device,
+                progress=config.progress,
+                log=log,
+            ),
+            log,
+        )
     seconds["gaussians"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -173,16 +203,29 @@ def prepare_data(out: Path, config: BenchConfig, scene: Optional[Union[str, Path
         built["bank"] = False
     else:
         bank_dir = data / "bank"
-        key = stage_key(scene=sdig, regions=tree_digest(scene_dir, ("regions.json", "regions/*")),
-                        gaussians=file_digest(ply), segmenter="ground-truth", encoder="captions",
-                        scale_measure=config.scale_measure)
+        key = stage_key(
+            scene=sdig,
+            regions=tree_digest(scene_dir, ("regions.json", "regions/*")),
+            gaussians=file_digest(ply),
+            segmenter="ground-truth",
+            encoder="captions",
+            scale_measure=config.scale_measure,
+        )
 
         def build() -> None:
             if bank_dir.exists():  # other inputs: a resumed bank would mix them
                 shutil.rmtree(bank_dir)
-            stages.build_segment_bank(scene_dir, bank_dir, ply, segmenter="ground-truth", encoder="captions",
-                                      lift=replace(_CPU.lift, scale_measure=config.scale_measure),
-                                      device=config.device, progress=config.progress, log=log)
+            stages.build_segment_bank(
+                scene_dir,
+                bank_dir,
+                ply,
+                segmenter="ground-truth",
+                encoder="captions",
+                lift=replace(_CPU.lift, scale_measure=config.scale_measure),
+                device=config.device,
+                progress=config.progress,
+                log=log,
+            )
 
         built["bank"] = cache.run("segments", key, [bank_dir / "bank.json"], build, log)
     seconds["bank"] = time.perf_counter() - t0
@@ -190,9 +233,15 @@ def prepare_data(out: Path, config: BenchConfig, scene: Optional[Union[str, Path
 
 
 # ------------------------------------------------------------------------------ the bench
-def run_bench(out: Union[str, Path], config: Optional[BenchConfig] = None, *,
-              scene: Optional[Union[str, Path]] = None, gaussians: Optional[Union[str, Path]] = None,
-              bank: Optional[Union[str, Path]] = None, log: Callable[[str], None] = print) -> dict:
+def run_bench(
+    out: Union[str, Path],
+    config: Optional[BenchConfig] = None,
+    *,
+    scene: Optional[Union[str, Path]] = None,
+    gaussians: Optional[Union[str, Path]] = None,
+    bank: Optional[Union[str, Path]] = None,
+    log: Callable[[str], None] = print,
+) -> dict:
     """Run every requested variant (see the module docstring); writes ``OUT/bench.json``,
     ``OUT/bench.md`` and ``OUT/*.png`` and returns the bench.json content."""
     from ..io import write_json, write_text
@@ -225,8 +274,17 @@ def run_bench(out: Union[str, Path], config: Optional[BenchConfig] = None, *,
         name = run_name(spec, config.dim)
         variant_runs[spec.name] = name
         run_dir = out / "runs" / name
-        entry = runs.setdefault(name, {"evals": {}, "cosine": None, "modes": [], "cosine_wanted": False,
-                                       "variant": spec.variant, "backbone": spec.backbone})
+        entry = runs.setdefault(
+            name,
+            {
+                "evals": {},
+                "cosine": None,
+                "modes": [],
+                "cosine_wanted": False,
+                "variant": spec.variant,
+                "backbone": spec.backbone,
+            },
+        )
         entry["modes"] = list(dict.fromkeys(entry["modes"] + list(spec.modes)))
         entry["cosine_wanted"] |= spec.cosine
         if "train" not in entry:
@@ -251,12 +309,14 @@ def run_bench(out: Union[str, Path], config: Optional[BenchConfig] = None, *,
         t0 = time.perf_counter()
         main_dir = out / "runs" / main_name
         for T in config.temperatures:
-            engine = QueryEngine.from_run(main_dir, device=config.device, scene=data.scene_dir,
-                                          config=QueryConfig(temperature=T), encoder=encoder)
+            engine = QueryEngine.from_run(
+                main_dir, device=config.device, scene=data.scene_dir, config=QueryConfig(temperature=T), encoder=encoder
+            )
             gamma.append(gamma_statistics(engine, T))
             if T != 1.0:
                 runs[main_name]["evals"][tag(T)] = evaluate_variant(
-                    main_dir, data, ["composite"], main_dir / f"eval_{tag(T)}", config, T, log, encoder)
+                    main_dir, data, ["composite"], main_dir / f"eval_{tag(T)}", config, T, log, encoder
+                )
         stage_s["temperature"] = time.perf_counter() - t0
 
     paper_params = None
@@ -277,15 +337,24 @@ def run_bench(out: Union[str, Path], config: Optional[BenchConfig] = None, *,
     result = {
         "format": "n2f2-bench-v1",
         "config": asdict(config),
-        "data": {"scene": str(data.scene_dir), "gaussians": str(data.gaussians), "bank": str(data.bank_dir),
-                 "labels": str(data.label_dir), "built": data.built,
-                 # what the bank was built with (a given --bank need not match config.scale_measure)
-                 "scale_measure": json.loads((data.bank_dir / "bank.json").read_text())["lifting"].get(
-                     "scale_measure", "eigenvalue")},
+        "data": {
+            "scene": str(data.scene_dir),
+            "gaussians": str(data.gaussians),
+            "bank": str(data.bank_dir),
+            "labels": str(data.label_dir),
+            "built": data.built,
+            # what the bank was built with (a given --bank need not match config.scale_measure)
+            "scale_measure": json.loads((data.bank_dir / "bank.json").read_text())["lifting"].get(
+                "scale_measure", "eigenvalue"
+            ),
+        },
         "environment": _environment(),
         "variant_runs": variant_runs,
-        "steps": {name: scaled_step(VARIANTS[v].paper_step, config.dim) for v, name in variant_runs.items()
-                  if VARIANTS[v].variant == "nested"},
+        "steps": {
+            name: scaled_step(VARIANTS[v].paper_step, config.dim)
+            for v, name in variant_runs.items()
+            if VARIANTS[v].variant == "nested"
+        },
         "runs": {name: _run_summary(entry) for name, entry in runs.items()},
         "gamma": gamma,
         "timing": timing,
@@ -310,8 +379,6 @@ def encoder_dim(data: BenchData) -> int:
     return int(SegmentBank.open(data.bank_dir).embed_dim)
 
 
-
-
 def _mode_order(modes: Sequence[str]) -> list[str]:
     from ..query.engine import MODES
 
@@ -323,15 +390,30 @@ def _environment() -> dict:
 
     import torch
 
-    return {"torch": torch.__version__, "threads": torch.get_num_threads(), "cpus": os.cpu_count(),
-            "python": platform.python_version(), "machine": platform.machine()}
+    return {
+        "torch": torch.__version__,
+        "threads": torch.get_num_threads(),
+        "cpus": os.cpu_count(),
+        "python": platform.python_version(),
+        "machine": platform.machine(),
+    }
 
 
 def _run_summary(entry: Mapping) -> dict:
     t = entry["train"]
-    return {"variant": entry["variant"], "backbone": entry["backbone"],
-            "field_config": t.get("field_config"), "steps": t.get("steps"), "final_loss": t.get("final_loss"),
-            "train_time_s": t.get("train_time_s"), "time_per_iteration_s": t.get("time_per_iteration_s"),
-            "cpu_time_per_iteration_s": t.get("cpu_time_per_iteration_s"), "reused": t.get("reused"),
-            "num_gaussians": t.get("num_gaussians"), "memory": t.get("memory"), "curve": t.get("curve"),
-            "cosine": entry.get("cosine"), "evals": sorted(entry["evals"])}
+    return {
+        "variant": entry["variant"],
+        "backbone": entry["backbone"],
+        "field_config": t.get("field_config"),
+        "steps": t.get("steps"),
+        "final_loss": t.get("final_loss"),
+        "train_time_s": t.get("train_time_s"),
+        "time_per_iteration_s": t.get("time_per_iteration_s"),
+        "cpu_time_per_iteration_s": t.get("cpu_time_per_iteration_s"),
+        "reused": t.get("reused"),
+        "num_gaussians": t.get("num_gaussians"),
+        "memory": t.get("memory"),
+        "curve": t.get("curve"),
+        "cosine": entry.get("cosine"),
+        "evals": sorted(entry["evals"]),
+    }

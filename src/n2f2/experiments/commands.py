@@ -17,42 +17,86 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
 
     full, quick = BenchConfig(), BenchConfig.quick()
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (bench.md, bench.json, runs/, data/)")
-    p.add_argument("--scene", default=None, metavar="DIR",
-                   help="demo scene folder (default: generate the default demo scene into OUT/data/scene)")
-    p.add_argument("--gaussians", default=None, metavar="PLY",
-                   help="fitted Gaussians of the scene (default: fit them into OUT/data/gaussians)")
-    p.add_argument("--bank", default=None, metavar="DIR",
-                   help="segment bank of the scene (default: build it into OUT/data/bank: ground-truth "
-                        "segments, caption embeddings)")
-    p.add_argument("--iterations", type=positive_int, default=None,
-                   help=f"training steps per variant (default {full.iterations}; quick {quick.iterations})")
-    p.add_argument("--dim", type=positive_int, default=None,
-                   help=f"feature dims D of every field (default {full.dim}; quick {quick.dim}; paper {PAPER_DIM}). "
-                        "k is scaled to keep each paper setting's number of scales")
-    p.add_argument("--variants", nargs="+", choices=list(VARIANTS), default=None, metavar="NAME",
-                   help=f"variants to run (default all: {' '.join(VARIANTS)})")
-    p.add_argument("--temperatures", nargs="+", type=positive_float, default=None, metavar="T",
-                   help=f"composite temperatures evaluated on the N2F2 run (default "
-                        f"{' '.join(f'{t:g}' for t in full.temperatures)}; 1 = paper)")
-    p.add_argument("--scale-measure", choices=list(SCALE_MEASURES), default=None,
-                   help=f"segment scale measure of the bank the bench builds (default {full.scale_measure}, as the "
-                        "cpu preset; eigenvalue = the paper's)")
-    p.add_argument("--scale-jitter", type=nonneg_float, default=None,
-                   help=f"TrainConfig.scale_jitter of every run (default {full.scale_jitter:g}, as the cpu preset; "
-                        "0 = the paper)")
-    p.add_argument("--quick", action="store_true",
-                   help=f"a few minutes: small generated scene, D = {quick.dim}, {quick.iterations} steps")
+    p.add_argument(
+        "--scene",
+        default=None,
+        metavar="DIR",
+        help="demo scene folder (default: generate the default demo scene into OUT/data/scene)",
+    )
+    p.add_argument(
+        "--gaussians",
+        default=None,
+        metavar="PLY",
+        help="fitted Gaussians of the scene (default: fit them into OUT/data/gaussians)",
+    )
+    p.add_argument(
+        "--bank",
+        default=None,
+        metavar="DIR",
+        help="segment bank of the scene (default: build it into OUT/data/bank: ground-truth "
+        "segments, caption embeddings)",
+    )
+    p.add_argument(
+        "--iterations",
+        type=positive_int,
+        default=None,
+        help=f"training steps per variant (default {full.iterations}; quick {quick.iterations})",
+    )
+    p.add_argument(
+        "--dim",
+        type=positive_int,
+        default=None,
+        help=f"feature dims D of every field (default {full.dim}; quick {quick.dim}; paper {PAPER_DIM}). "
+        "k is scaled to keep each paper setting's number of scales",
+    )
+    p.add_argument(
+        "--variants",
+        nargs="+",
+        choices=list(VARIANTS),
+        default=None,
+        metavar="NAME",
+        help=f"variants to run (default all: {' '.join(VARIANTS)})",
+    )
+    p.add_argument(
+        "--temperatures",
+        nargs="+",
+        type=positive_float,
+        default=None,
+        metavar="T",
+        help=f"composite temperatures evaluated on the N2F2 run (default "
+        f"{' '.join(f'{t:g}' for t in full.temperatures)}; 1 = paper)",
+    )
+    p.add_argument(
+        "--scale-measure",
+        choices=list(SCALE_MEASURES),
+        default=None,
+        help=f"segment scale measure of the bank the bench builds (default {full.scale_measure}, as the "
+        "cpu preset; eigenvalue = the paper's)",
+    )
+    p.add_argument(
+        "--scale-jitter",
+        type=nonneg_float,
+        default=None,
+        help=f"TrainConfig.scale_jitter of every run (default {full.scale_jitter:g}, as the cpu preset; 0 = the paper)",
+    )
+    p.add_argument(
+        "--quick",
+        action="store_true",
+        help=f"a few minutes: small generated scene, D = {quick.dim}, {quick.iterations} steps",
+    )
     p.add_argument("--device", default="cpu", help="torch device (default %(default)s)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
-        "bench", help="reproduce the paper's ablations on the demo scene (bench.md)",
+        "bench",
+        help="reproduce the paper's ablations on the demo scene (bench.md)",
         description="Train N2F2 and its ablations (non-nested, 3-level LangSplat-like, step sizes k, MLP "
-                    "backbone) on the built-in demo scene, evaluate them with LangSplat's protocol (exact and "
-                    "scaled box), time the query modes, and write OUT/bench.md, OUT/bench.json and plots. "
-                    "Reruns reuse finished runs and evaluations.")
+        "backbone) on the built-in demo scene, evaluate them with LangSplat's protocol (exact and "
+        "scaled box), time the query modes, and write OUT/bench.md, OUT/bench.json and plots. "
+        "Reruns reuse finished runs and evaluations.",
+    )
     _add_arguments(p)
     p.set_defaults(func=_cmd_bench)
 
@@ -78,7 +122,13 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         config = BenchConfig.quick(**over) if args.quick else BenchConfig(**over)
     except ValueError as e:
         raise InputError(None, str(e)) from None
-    run_bench(args.out, config, scene=args.scene, gaussians=args.gaussians, bank=args.bank,
-              log=(lambda s: None) if args.quiet else print)
+    run_bench(
+        args.out,
+        config,
+        scene=args.scene,
+        gaussians=args.gaussians,
+        bank=args.bank,
+        log=(lambda s: None) if args.quiet else print,
+    )
     print(f"bench: {Path(args.out) / 'bench.md'}")
     return 0

@@ -34,9 +34,16 @@ class MemoEncoder:
         return torch.stack([self._cache[t] for t in texts])
 
 
-def evaluate_variant(run_dir: Path, data: "BenchData", modes: Sequence[str], out_dir: Path,
-                     config: "BenchConfig", temperature: float = 1.0,
-                     log: Callable[[str], None] = print, encoder: Any = None) -> dict:
+def evaluate_variant(
+    run_dir: Path,
+    data: "BenchData",
+    modes: Sequence[str],
+    out_dir: Path,
+    config: "BenchConfig",
+    temperature: float = 1.0,
+    log: Callable[[str], None] = print,
+    encoder: Any = None,
+) -> dict:
     """``evaluate_run`` of one run (both box sizes), written to ``out_dir`` (eval.json and eval.md;
     the bench draws its own plots); reused while the field, the labels, the modes and T are
     unchanged."""
@@ -44,25 +51,47 @@ def evaluate_variant(run_dir: Path, data: "BenchData", modes: Sequence[str], out
     from ..pipeline.cache import StageCache, file_digest, stage_key, tree_digest
 
     eval_json = out_dir / "eval.json"
-    key = stage_key(field=file_digest(run_dir / "field.pt"), labels=tree_digest(data.label_dir),
-                    bank=file_digest(data.bank_dir / "bank.json"), modes=list(modes), temperature=temperature)
+    key = stage_key(
+        field=file_digest(run_dir / "field.pt"),
+        labels=tree_digest(data.label_dir),
+        bank=file_digest(data.bank_dir / "bank.json"),
+        modes=list(modes),
+        temperature=temperature,
+    )
     cache = StageCache.open(run_dir)
-    cache.run(out_dir.name, key, [eval_json],
-              lambda: _evaluate(run_dir, data, modes, out_dir, config, temperature, encoder),
-              log=lambda s: log(f"[bench] {run_dir.name}: {s}"))
+    cache.run(
+        out_dir.name,
+        key,
+        [eval_json],
+        lambda: _evaluate(run_dir, data, modes, out_dir, config, temperature, encoder),
+        log=lambda s: log(f"[bench] {run_dir.name}: {s}"),
+    )
     return load_eval(eval_json)
 
 
-def _evaluate(run_dir: Path, data: "BenchData", modes: Sequence[str], out_dir: Path, config: "BenchConfig",
-              temperature: float, encoder: Any) -> None:
+def _evaluate(
+    run_dir: Path,
+    data: "BenchData",
+    modes: Sequence[str],
+    out_dir: Path,
+    config: "BenchConfig",
+    temperature: float,
+    encoder: Any,
+) -> None:
     from ..eval.runner import EvalConfig, evaluate_run, markdown_report
     from ..io import write_json, write_text
     from ..query.engine import QueryConfig
 
-    result = evaluate_run(run_dir, data.label_dir, scene=data.scene_dir, bank=data.bank_dir,
-                          config=EvalConfig(modes=tuple(modes), progress=config.progress),
-                          query_config=QueryConfig(temperature=temperature), device=config.device,
-                          encoder=encoder)
+    result = evaluate_run(
+        run_dir,
+        data.label_dir,
+        scene=data.scene_dir,
+        bank=data.bank_dir,
+        config=EvalConfig(modes=tuple(modes), progress=config.progress),
+        query_config=QueryConfig(temperature=temperature),
+        device=config.device,
+        encoder=encoder,
+    )
     result.notes.append(f"bench: composite temperature T = {temperature:g}")
     # eval.md and eval.json as `n2f2 eval` writes them; the JSON round trip gives the same dict a
     # reused evaluation has.
@@ -72,16 +101,20 @@ def _evaluate(run_dir: Path, data: "BenchData", modes: Sequence[str], out_dir: P
     write_json(out_dir / "eval.json", d)
 
 
-def cosine_variant(run_dir: Path, data: "BenchData", config: "BenchConfig",
-                   log: Callable[[str], None] = print) -> dict:
+def cosine_variant(run_dir: Path, data: "BenchData", config: "BenchConfig", log: Callable[[str], None] = print) -> dict:
     """Per-level cosine to the teacher on the run's held-out views (``eval_field.json``, reused
     while the field and the bank are unchanged)."""
     from ..pipeline.cache import StageCache, file_digest, stage_key
 
     path = run_dir / "eval_field.json"
     key = stage_key(field=file_digest(run_dir / "field.pt"), bank=file_digest(data.bank_dir / "bank.json"))
-    StageCache.open(run_dir).run("eval-field", key, [path], lambda: _cosine(run_dir, data, config, path),
-                                 log=lambda s: log(f"[bench] {run_dir.name}: {s}"))
+    StageCache.open(run_dir).run(
+        "eval-field",
+        key,
+        [path],
+        lambda: _cosine(run_dir, data, config, path),
+        log=lambda s: log(f"[bench] {run_dir.name}: {s}"),
+    )
     return json.loads(path.read_text())
 
 
@@ -95,8 +128,14 @@ def _cosine(run_dir: Path, data: "BenchData", config: "BenchConfig", path: Path)
 
     field, meta = load_field(run_dir / "field.pt", device=config.device)
     views = meta.get("heldout_views") or list(range(len(meta.get("train_views", []))))
-    result = evaluate_cosine_by_level(field, read_ply(run_dir / "gaussians.ply"), load_scene(data.scene_dir),
-                                      SegmentBank.open(data.bank_dir), views, device=config.device)
+    result = evaluate_cosine_by_level(
+        field,
+        read_ply(run_dir / "gaussians.ply"),
+        load_scene(data.scene_dir),
+        SegmentBank.open(data.bank_dir),
+        views,
+        device=config.device,
+    )
     write_json(path, result)
 
 
@@ -121,11 +160,19 @@ def gamma_statistics(engine: Any, temperature: float) -> dict:
         at = sorted({0, engine.dim // 4, engine.dim // 2, (3 * engine.dim) // 4, engine.dim - 1})
         argmax = gamma.argmax(dim=1)
     q = lambda t, p: float(torch.quantile(t.double(), p))  # noqa: E731
-    return {"temperature": temperature, "scales": S, "gaussians": N, "uniform": 1.0 / S,
-            "max_gamma_mean": float(mx.mean()), "max_gamma_median": q(mx, 0.5), "max_gamma_p95": q(mx, 0.95),
-            "max_gamma_max": float(mx.max()), "max_gamma_x_scales_mean": float(mx.mean()) * S,
-            "effective_scales_mean": float(torch.exp(ent).mean()),
-            "mass_centre_mean": float(centre.mean()),
-            "argmax_first_scale": float((argmax == 0).double().mean()),
-            "argmax_last_scale": float((argmax == S - 1).double().mean()),
-            "prefix_weight_at": {str(j + 1): float(ramp[j]) for j in at}}
+    return {
+        "temperature": temperature,
+        "scales": S,
+        "gaussians": N,
+        "uniform": 1.0 / S,
+        "max_gamma_mean": float(mx.mean()),
+        "max_gamma_median": q(mx, 0.5),
+        "max_gamma_p95": q(mx, 0.95),
+        "max_gamma_max": float(mx.max()),
+        "max_gamma_x_scales_mean": float(mx.mean()) * S,
+        "effective_scales_mean": float(torch.exp(ent).mean()),
+        "mass_centre_mean": float(centre.mean()),
+        "argmax_first_scale": float((argmax == 0).double().mean()),
+        "argmax_last_scale": float((argmax == S - 1).double().mean()),
+        "prefix_weight_at": {str(j + 1): float(ramp[j]) for j in at},
+    }

@@ -10,6 +10,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+
 class ActivationMeter:
     """Bytes of the tensors autograd saves for backward, per optimisation step (the activation
     memory of training), measured with ``torch.autograd.graph.saved_tensors_hooks``.
@@ -79,7 +80,6 @@ def _parameter_count(config_json: str, embed_dim: int) -> int:
 
     field = NestedField(FieldConfig.from_dict(json.loads(config_json)), embed_dim, np.zeros(3), np.ones(3))
     return int(sum(p.numel() for p in field.parameters() if p.requires_grad))
-
 
 
 def rasterized_channels(field_config: Any) -> int:

@@ -24,8 +24,9 @@ def write_plots(out: Path, result: Mapping, runs: Mapping[str, dict], variant_ru
     methods = _method_rows(runs, variant_runs)
     if methods:
         values = {f"mIoU ({b})": {label: score(e, m, b) for label, e, m in methods} for b in BOXES}
-        values.update({f"loc. ({b})": {label: score(e, m, b, "loc_accuracy") for label, e, m in methods}
-                       for b in BOXES})
+        values.update(
+            {f"loc. ({b})": {label: score(e, m, b, "loc_accuracy") for label, e, m in methods} for b in BOXES}
+        )
         plots["methods"] = plot_grouped_bars(out / "methods.png", values, title="demo scene: per method")
     ks = _k_rows(runs, variant_runs, result)
     if len(ks) > 1:
@@ -35,22 +36,32 @@ def write_plots(out: Path, result: Mapping, runs: Mapping[str, dict], variant_ru
                 pts = [(k, score(e, mode, b)) for k, _, e in ks if mode in e["scores"]]
                 if pts:
                     curves[f"{mode} ({b})"] = ([p[0] for p in pts], [100 * p[1] for p in pts])
-        plots["k_sweep"] = plot_lines(out / "k_sweep.png", curves, "paper step size k (log scale of scales)",
-                                      "mIoU %", "step size k (Table 6)")
-    curves = {name: (r["curve"]["step"], r["curve"]["loss"]) for name, r in result["runs"].items()
-              if r.get("curve") and r["curve"].get("loss")}
+        plots["k_sweep"] = plot_lines(
+            out / "k_sweep.png", curves, "paper step size k (log scale of scales)", "mIoU %", "step size k (Table 6)"
+        )
+    curves = {
+        name: (r["curve"]["step"], r["curve"]["loss"])
+        for name, r in result["runs"].items()
+        if r.get("curve") and r["curve"].get("loss")
+    }
     if curves:
-        plots["loss"] = plot_lines(out / "loss_curves.png", curves, "step", "training loss (L2 + 0.001 cos)",
-                                   "training loss", logy=True)
+        plots["loss"] = plot_lines(
+            out / "loss_curves.png", curves, "step", "training loss (L2 + 0.001 cos)", "training loss", logy=True
+        )
     return plots
 
 
 def _method_rows(runs: Mapping[str, dict], variant_runs: Mapping[str, str]) -> list[tuple[str, Mapping, str]]:
     rows = []
-    wanted = [("nested", "composite", "N2F2 composite"), ("nested", "explicit", "N2F2 explicit"),
-              ("nested", "oracle", "N2F2 oracle"), ("flat", "composite", "flat composite"),
-              ("levels", "levels", "3-level"), ("levels", "oracle", "3-level oracle"),
-              ("mlp", "composite", "MLP-backbone composite")]
+    wanted = [
+        ("nested", "composite", "N2F2 composite"),
+        ("nested", "explicit", "N2F2 explicit"),
+        ("nested", "oracle", "N2F2 oracle"),
+        ("flat", "composite", "flat composite"),
+        ("levels", "levels", "3-level"),
+        ("levels", "oracle", "3-level oracle"),
+        ("mlp", "composite", "MLP-backbone composite"),
+    ]
     for variant, mode, label in wanted:
         name = variant_runs.get(variant)
         if name and mode in runs[name]["evals"]["T1"]["scores"]:
@@ -58,7 +69,9 @@ def _method_rows(runs: Mapping[str, dict], variant_runs: Mapping[str, str]) -> l
     return rows
 
 
-def _k_rows(runs: Mapping[str, dict], variant_runs: Mapping[str, str], result: Mapping) -> list[tuple[int, str, Mapping]]:
+def _k_rows(
+    runs: Mapping[str, dict], variant_runs: Mapping[str, str], result: Mapping
+) -> list[tuple[int, str, Mapping]]:
     rows = []
     for k in PAPER_STEPS:
         v = "nested" if k == 1 else f"k{k}"
@@ -78,8 +91,11 @@ def markdown_bench(result: Mapping, runs: Mapping[str, dict], variant_runs: Mapp
     first = next(iter(result["runs"].values()))
     out: list[str] = ["# n2f2 bench: the paper's ablations on the demo scene\n\n"]
     steps = result["steps"]
-    k_map = ", ".join(f"k={VARIANTS[v].paper_step} -> {steps[n]}" for v, n in variant_runs.items()
-                      if VARIANTS[v].variant == "nested" and VARIANTS[v].backbone == "triplane")
+    k_map = ", ".join(
+        f"k={VARIANTS[v].paper_step} -> {steps[n]}"
+        for v, n in variant_runs.items()
+        if VARIANTS[v].variant == "nested" and VARIANTS[v].backbone == "triplane"
+    )
     out.append(
         f"- scene: `{result['data']['scene']}` ({any_ev['scene']}), Gaussians `{result['data']['gaussians']}` "
         f"({first['num_gaussians']} Gaussians), segment bank `{result['data']['bank']}`; "
@@ -96,11 +112,12 @@ def markdown_bench(result: Mapping, runs: Mapping[str, dict], variant_runs: Mapp
         f"erases small parts.\n"
         f"- {any_ev['scores'][any_ev['modes'][0]]['exact']['num_pairs']} (frame, query) pairs on "
         f"{any_ev['scores'][any_ev['modes'][0]]['exact']['num_frames']} labelled frames. Deltas are paired over "
-        f"these pairs, shown as mean ± standard error in points; \"within noise\" = |delta| < 2 SE.\n"
+        f'these pairs, shown as mean ± standard error in points; "within noise" = |delta| < 2 SE.\n'
         f"- machine: {result['environment']['cpus']} CPUs, torch {result['environment']['torch']} "
         f"({result['environment']['threads']} threads); load average at start "
         f"{result['load_average']['start'][0]:.1f}, at end {result['load_average']['end'][0]:.1f}; "
-        f"bench wall time {result['seconds'] / 60:.1f} min\n")
+        f"bench wall time {result['seconds'] / 60:.1f} min\n"
+    )
     for note in any_ev.get("notes", []):
         if "Teacher" in note:
             out.append(f"- note: {note}\n")
@@ -108,26 +125,39 @@ def markdown_bench(result: Mapping, runs: Mapping[str, dict], variant_runs: Mapp
     # Claims.
     out.append("\n## Verdicts: which of the paper's claims hold here\n\n")
     rows = [[c["claim"], c["paper"], c["box"], c["metric"], c["here"], c["verdict"]] for c in result["claims"]]
-    out.append(markdown_table(["claim", "paper", "box", "metric", "here", "verdict"], rows,
-                              ["l", "l", "l", "l", "r", "l"]))
+    out.append(
+        markdown_table(["claim", "paper", "box", "metric", "here", "verdict"], rows, ["l", "l", "l", "l", "r", "l"])
+    )
 
     # Table 3.
     nested = runs[variant_runs["nested"]]["evals"]["T1"] if "nested" in variant_runs else None
     if nested is not None:
         out.append("\n## Composite vs explicit vs oracle (paper Table 3)\n\n")
         out.append(f"N2F2 field ({variant_runs['nested']}), {nested['field']['num_scales']} scales.\n\n")
-        out.append(_mode_table([("composite", nested, "composite"), ("explicit", nested, "explicit"),
-                                ("oracle (upper bound of explicit)", nested, "oracle")], bt))
-        out.append("\nScales chosen per (frame, query) pair (prefix length d of the chosen scale, D = "
-                   f"{nested['field']['dim']}):\n\n")
+        out.append(
+            _mode_table(
+                [
+                    ("composite", nested, "composite"),
+                    ("explicit", nested, "explicit"),
+                    ("oracle (upper bound of explicit)", nested, "oracle"),
+                ],
+                bt,
+            )
+        )
+        out.append(
+            "\nScales chosen per (frame, query) pair (prefix length d of the chosen scale, D = "
+            f"{nested['field']['dim']}):\n\n"
+        )
         out.append(_choice_table(nested, ["explicit", "oracle"]))
 
     # 3-level baseline.
     if "levels" in variant_runs:
         lv = runs[variant_runs["levels"]]["evals"]["T1"]
         out.append("\n## N2F2 vs the 3-level LangSplat-like field (same data)\n\n")
-        out.append("The 3-level field splits theta into 3 blocks, each supervised by one tercile of the "
-                   "quantized scale, and answers a query with LangSplat's level choice.\n\n")
+        out.append(
+            "The 3-level field splits theta into 3 blocks, each supervised by one tercile of the "
+            "quantized scale, and answers a query with LangSplat's level choice.\n\n"
+        )
         rows = [("3-level (levels mode)", lv, "levels"), ("3-level oracle", lv, "oracle")]
         if nested is not None:
             rows = [("N2F2 composite", nested, "composite"), ("N2F2 explicit", nested, "explicit")] + rows
@@ -145,11 +175,18 @@ def markdown_bench(result: Mapping, runs: Mapping[str, dict], variant_runs: Mapp
         if nested is not None:
             rows.append(("nested composite", nested, "composite"))
         if "flat" in variant_runs:
-            rows.append(("flat composite (= explicit = oracle: 1 scale)",
-                         runs[variant_runs["flat"]]["evals"]["T1"], "composite"))
+            rows.append(
+                (
+                    "flat composite (= explicit = oracle: 1 scale)",
+                    runs[variant_runs["flat"]]["evals"]["T1"],
+                    "composite",
+                )
+            )
         out.append(_mode_table(rows, bt))
-        out.append("\nMean cosine between phi(u, s) and the teacher embedding of the ground-truth segment "
-                   "covering u, on held-out views (`evaluate_cosine_by_level`; each variant's own mask B(s)):\n\n")
+        out.append(
+            "\nMean cosine between phi(u, s) and the teacher embedding of the ground-truth segment "
+            "covering u, on held-out views (`evaluate_cosine_by_level`; each variant's own mask B(s)):\n\n"
+        )
         out.append(_cosine_table(result, variant_runs))
 
     # k sweep.
@@ -158,43 +195,78 @@ def markdown_bench(result: Mapping, runs: Mapping[str, dict], variant_runs: Mapp
         out.append("\n## Step size k (paper Table 6: 69.2, 68.7, 68.1, 67.2, 66.4 mIoU on teatime)\n\n")
         rows = []
         for k, name, e in ks:
-            rows.append([k, steps.get(name, "-"), e["field"]["num_scales"]]
-                        + [pct(score(e, m, b)) for m in ("composite", "explicit", "oracle") for b in BOXES]
-                        + [pct(score(e, "composite", b, "loc_accuracy")) for b in BOXES])
-        out.append(markdown_table(["paper k", "k here", "scales"]
-                                  + [f"{m} mIoU % ({bt[b]})" for m in ("composite", "explicit", "oracle") for b in BOXES]
-                                  + [f"composite loc. % ({bt[b]})" for b in BOXES], rows))
+            rows.append(
+                [k, steps.get(name, "-"), e["field"]["num_scales"]]
+                + [pct(score(e, m, b)) for m in ("composite", "explicit", "oracle") for b in BOXES]
+                + [pct(score(e, "composite", b, "loc_accuracy")) for b in BOXES]
+            )
+        out.append(
+            markdown_table(
+                ["paper k", "k here", "scales"]
+                + [f"{m} mIoU % ({bt[b]})" for m in ("composite", "explicit", "oracle") for b in BOXES]
+                + [f"composite loc. % ({bt[b]})" for b in BOXES],
+                rows,
+            )
+        )
 
     # Temperature.
     if result["gamma"]:
         out.append("\n## Composite temperature T: gamma = softmax(score / T) (T = 1 is the paper)\n\n")
-        out.append("max gamma x scales = 1 means uniform weights; effective scales = exp(entropy of gamma); "
-                   "mass centre = gamma-weighted prefix length / D; prefix weight r_j = sum_{d >= j} gamma_d "
-                   "(paper Eq. 7) averaged over the Gaussians.\n\n")
+        out.append(
+            "max gamma x scales = 1 means uniform weights; effective scales = exp(entropy of gamma); "
+            "mass centre = gamma-weighted prefix length / D; prefix weight r_j = sum_{d >= j} gamma_d "
+            "(paper Eq. 7) averaged over the Gaussians.\n\n"
+        )
         g0 = result["gamma"][0]
         at = list(g0["prefix_weight_at"])
         rows = []
         main = runs[variant_runs["nested"]]["evals"]
         for g in result["gamma"]:
             e = main.get(tag(g["temperature"]) if g["temperature"] != 1.0 else "T1")
-            rows.append([f"{g['temperature']:g}", g["scales"], f"{g['max_gamma_mean']:.4g}",
-                         f"{g['max_gamma_x_scales_mean']:.2f}", f"{g['max_gamma_p95'] * g['scales']:.2f}",
-                         f"{g['effective_scales_mean']:.1f}", f"{g['mass_centre_mean']:.2f}"]
-                        + [f"{g['prefix_weight_at'][j]:.2f}" for j in at]
-                        + ([pct(score(e, "composite", b)) for b in BOXES]
-                           + [pct(score(e, "composite", b, "loc_accuracy")) for b in BOXES]
-                           + [pct(e["split"]["composite"]["scaled"][k]["miou"]) for k in ("simple", "compound")]
-                           if e else ["-"] * 6))
-        out.append(markdown_table(["T", "scales", "mean max gamma", "mean max gamma x scales",
-                                   "p95 max gamma x scales", "effective scales", "mass centre"]
-                                  + [f"r_{j}" for j in at]
-                                  + [f"mIoU % ({bt[b]})" for b in BOXES] + [f"loc. % ({bt[b]})" for b in BOXES]
-                                  + ["simple mIoU % (scaled)", "compound mIoU % (scaled)"], rows))
+            rows.append(
+                [
+                    f"{g['temperature']:g}",
+                    g["scales"],
+                    f"{g['max_gamma_mean']:.4g}",
+                    f"{g['max_gamma_x_scales_mean']:.2f}",
+                    f"{g['max_gamma_p95'] * g['scales']:.2f}",
+                    f"{g['effective_scales_mean']:.1f}",
+                    f"{g['mass_centre_mean']:.2f}",
+                ]
+                + [f"{g['prefix_weight_at'][j]:.2f}" for j in at]
+                + (
+                    [pct(score(e, "composite", b)) for b in BOXES]
+                    + [pct(score(e, "composite", b, "loc_accuracy")) for b in BOXES]
+                    + [pct(e["split"]["composite"]["scaled"][k]["miou"]) for k in ("simple", "compound")]
+                    if e
+                    else ["-"] * 6
+                )
+            )
+        out.append(
+            markdown_table(
+                [
+                    "T",
+                    "scales",
+                    "mean max gamma",
+                    "mean max gamma x scales",
+                    "p95 max gamma x scales",
+                    "effective scales",
+                    "mass centre",
+                ]
+                + [f"r_{j}" for j in at]
+                + [f"mIoU % ({bt[b]})" for b in BOXES]
+                + [f"loc. % ({bt[b]})" for b in BOXES]
+                + ["simple mIoU % (scaled)", "compound mIoU % (scaled)"],
+                rows,
+            )
+        )
 
     # Backbone.
     if "mlp" in variant_runs and "nested" in variant_runs:
-        out.append("\n## TriPlane+MLP vs MLP backbone (appendix: similar accuracy, TriPlane 20x faster "
-                   "convergence, MLP 2.3x less memory)\n\n")
+        out.append(
+            "\n## TriPlane+MLP vs MLP backbone (appendix: similar accuracy, TriPlane 20x faster "
+            "convergence, MLP 2.3x less memory)\n\n"
+        )
         names = {"TriPlane+MLP": variant_runs["nested"], "PE+MLP": variant_runs["mlp"]}
         conv = convergence({n: result["runs"][r]["curve"] for n, r in names.items()})
         rows = []
@@ -202,50 +274,135 @@ def markdown_bench(result: Mapping, runs: Mapping[str, dict], variant_runs: Mapp
             r = result["runs"][name]
             mem = r.get("memory") or {}
             e = runs[name]["evals"]["T1"]
-            rows.append([label, mem.get("parameters", "-"), _mb(mem.get("parameter_adam_grad_mb")),
-                         _mb(mem.get("activation_peak_mb")), mem.get("rasterized_channels", "-"),
-                         _millions((result.get("paper_size_parameters") or {}).get(r["backbone"])),
-                         _ms(r.get("time_per_iteration_s")), _ms(r.get("cpu_time_per_iteration_s")),
-                         f"{r['final_loss']:.5f}", conv.get(label, "-") if conv.get(label) is not None else "not reached",
-                         pct(score(e, "composite", "exact")), pct(score(e, "composite", "scaled"))]
-                        + _cos_cells(r.get("cosine")))
+            rows.append(
+                [
+                    label,
+                    mem.get("parameters", "-"),
+                    _mb(mem.get("parameter_adam_grad_mb")),
+                    _mb(mem.get("activation_peak_mb")),
+                    mem.get("rasterized_channels", "-"),
+                    _millions((result.get("paper_size_parameters") or {}).get(r["backbone"])),
+                    _ms(r.get("time_per_iteration_s")),
+                    _ms(r.get("cpu_time_per_iteration_s")),
+                    f"{r['final_loss']:.5f}",
+                    conv.get(label, "-") if conv.get(label) is not None else "not reached",
+                    pct(score(e, "composite", "exact")),
+                    pct(score(e, "composite", "scaled")),
+                ]
+                + _cos_cells(r.get("cosine"))
+            )
         cos_names = _cos_names(result)
-        out.append(markdown_table(["backbone", "parameters", "params+grad+Adam MB", "activations / step MB",
-                                   "rasterized channels", "parameters at paper size", "ms / step (wall)",
-                                   "ms / step (CPU)", "final loss",
-                                   f"steps to loss {conv.get('target_loss', math.nan):.5f}",
-                                   f"composite mIoU % ({bt['exact']})", f"composite mIoU % ({bt['scaled']})"]
-                                  + [f"cos {n}" for n in cos_names], rows))
-        out.append("\nActivations: bytes autograd saved for backward in one training step (peak over steps; "
-                   "parameters excluded). The paper's memory numbers are GPU totals at paper size (TriPlane "
-                   "512^2 x 64); the parameter column at paper size shows where that ratio comes from. The "
-                   "process RSS on CPU is dominated by torch, the scene and the bank and is not compared.\n")
+        out.append(
+            markdown_table(
+                [
+                    "backbone",
+                    "parameters",
+                    "params+grad+Adam MB",
+                    "activations / step MB",
+                    "rasterized channels",
+                    "parameters at paper size",
+                    "ms / step (wall)",
+                    "ms / step (CPU)",
+                    "final loss",
+                    f"steps to loss {conv.get('target_loss', math.nan):.5f}",
+                    f"composite mIoU % ({bt['exact']})",
+                    f"composite mIoU % ({bt['scaled']})",
+                ]
+                + [f"cos {n}" for n in cos_names],
+                rows,
+            )
+        )
+        out.append(
+            "\nActivations: bytes autograd saved for backward in one training step (peak over steps; "
+            "parameters excluded). The paper's memory numbers are GPU totals at paper size (TriPlane "
+            "512^2 x 64); the parameter column at paper size shows where that ratio comes from. The "
+            "process RSS on CPU is dominated by torch, the scene and the bank and is not compared.\n"
+        )
 
     # Timing.
     if result["timing"]:
         tm = result["timing"]
         n = tm["rows"][0]["num_queries"]
-        out.append(f"\n## Query time breakdown (paper Table 4; one {tm['size'][0]}x{tm['size'][1]} view, "
-                   f"D = {tm['dim']}, {tm['threads']} torch thread(s), medians of {tm['repeats']})\n\n")
-        rows = [[r["method"], r["scales"], _ms(r["render_s"]), _ms(r["cache_s"]), _ms(r["query_1_s"]),
-                 _ms(r["per_query_s"]), _ms(r[f"queries_{n}_s"]), _ms(r["total_1_s"]), _ms(r[f"total_{n}_s"])]
-                for r in tm["rows"]]
-        out.append(markdown_table(["method", "maps per query", "render ms", "cache ms", "1 query ms",
-                                   f"per query ms (at {n})", f"{n} queries ms", "total 1 query ms",
-                                   f"total {n} queries ms"], rows))
-        out.append(f"\nOnce per field: Theta~ = revcumsum(gamma^3D) * Theta for {tm['once']['gaussians']} "
-                   f"Gaussians in {_ms(tm['once']['theta_tilde_s'])} ms. Explicit / levels pick a scale per "
-                   "query with LangSplat's smoothed maximum (the protocol's rule). Unlike LangSplat, the "
-                   "3-level field renders D channels (no 3-d latent + decoder).\n")
+        out.append(
+            f"\n## Query time breakdown (paper Table 4; one {tm['size'][0]}x{tm['size'][1]} view, "
+            f"D = {tm['dim']}, {tm['threads']} torch thread(s), medians of {tm['repeats']})\n\n"
+        )
+        rows = [
+            [
+                r["method"],
+                r["scales"],
+                _ms(r["render_s"]),
+                _ms(r["cache_s"]),
+                _ms(r["query_1_s"]),
+                _ms(r["per_query_s"]),
+                _ms(r[f"queries_{n}_s"]),
+                _ms(r["total_1_s"]),
+                _ms(r[f"total_{n}_s"]),
+            ]
+            for r in tm["rows"]
+        ]
+        out.append(
+            markdown_table(
+                [
+                    "method",
+                    "maps per query",
+                    "render ms",
+                    "cache ms",
+                    "1 query ms",
+                    f"per query ms (at {n})",
+                    f"{n} queries ms",
+                    "total 1 query ms",
+                    f"total {n} queries ms",
+                ],
+                rows,
+            )
+        )
+        out.append(
+            f"\nOnce per field: Theta~ = revcumsum(gamma^3D) * Theta for {tm['once']['gaussians']} "
+            f"Gaussians in {_ms(tm['once']['theta_tilde_s'])} ms. Explicit / levels pick a scale per "
+            "query with LangSplat's smoothed maximum (the protocol's rule). Unlike LangSplat, the "
+            "3-level field renders D channels (no 3-d latent + decoder).\n"
+        )
 
     out.append("\n## Runs\n\n")
-    rows = [[name, r["variant"], r["backbone"], r["field_config"]["step_size"], r["steps"],
-             f"{r['final_loss']:.5f}", f"{r['train_time_s']:.0f}", "yes" if r["reused"] else "no",
-             ", ".join(r["evals"])] for name, r in result["runs"].items()]
-    out.append(markdown_table(["run", "variant", "backbone", "k", "steps", "final loss", "train s (this session)",
-                               "reused", "evaluations"], rows, ["l", "l", "l", "r", "r", "r", "r", "l", "l"]))
-    out.append("\nStage wall times: " + ", ".join(f"{k} {v:.0f} s" for k, v in result["stage_seconds"].items())
-               + ".\n\nPlots: " + ", ".join(f"`{Path(p).name}`" for p in result.get("plots", {}).values()) + ".\n")
+    rows = [
+        [
+            name,
+            r["variant"],
+            r["backbone"],
+            r["field_config"]["step_size"],
+            r["steps"],
+            f"{r['final_loss']:.5f}",
+            f"{r['train_time_s']:.0f}",
+            "yes" if r["reused"] else "no",
+            ", ".join(r["evals"]),
+        ]
+        for name, r in result["runs"].items()
+    ]
+    out.append(
+        markdown_table(
+            [
+                "run",
+                "variant",
+                "backbone",
+                "k",
+                "steps",
+                "final loss",
+                "train s (this session)",
+                "reused",
+                "evaluations",
+            ],
+            rows,
+            ["l", "l", "l", "r", "r", "r", "r", "l", "l"],
+        )
+    )
+    out.append(
+        "\nStage wall times: "
+        + ", ".join(f"{k} {v:.0f} s" for k, v in result["stage_seconds"].items())
+        + ".\n\nPlots: "
+        + ", ".join(f"`{Path(p).name}`" for p in result.get("plots", {}).values())
+        + ".\n"
+    )
     return "".join(out)
 
 
@@ -267,10 +424,13 @@ def _mb(v: Any) -> str:
 def _mode_table(rows: Sequence[tuple[str, Mapping, str]], bt: Mapping[str, str]) -> str:
     from ..eval.reports import markdown_table
 
-    body = [[label] + [pct(score(e, m, b, "loc_accuracy")) for b in BOXES] + [pct(score(e, m, b)) for b in BOXES]
-            for label, e, m in rows]
-    return markdown_table(["method"] + [f"loc. % ({bt[b]})" for b in BOXES] + [f"mIoU % ({bt[b]})" for b in BOXES],
-                          body)
+    body = [
+        [label] + [pct(score(e, m, b, "loc_accuracy")) for b in BOXES] + [pct(score(e, m, b)) for b in BOXES]
+        for label, e, m in rows
+    ]
+    return markdown_table(
+        ["method"] + [f"loc. % ({bt[b]})" for b in BOXES] + [f"mIoU % ({bt[b]})" for b in BOXES], body
+    )
 
 
 def _split_table(rows: Sequence[tuple[str, Mapping, str]], bt: Mapping[str, str]) -> str:
@@ -280,11 +440,32 @@ def _split_table(rows: Sequence[tuple[str, Mapping, str]], bt: Mapping[str, str]
     for label, e, m in rows:
         for b in BOXES:
             sp = e["split"][m][b]
-            body.append([label, bt[b], pct(sp["simple"]["miou"]), pct(sp["compound"]["miou"]),
-                         pct(sp["simple"]["loc_accuracy"]), pct(sp["compound"]["loc_accuracy"]),
-                         sp["simple"]["pairs"], sp["compound"]["pairs"]])
-    return markdown_table(["method", "box", "simple mIoU %", "compound mIoU %", "simple loc. %",
-                           "compound loc. %", "simple pairs", "compound pairs"], body, ["l", "l"] + ["r"] * 6)
+            body.append(
+                [
+                    label,
+                    bt[b],
+                    pct(sp["simple"]["miou"]),
+                    pct(sp["compound"]["miou"]),
+                    pct(sp["simple"]["loc_accuracy"]),
+                    pct(sp["compound"]["loc_accuracy"]),
+                    sp["simple"]["pairs"],
+                    sp["compound"]["pairs"],
+                ]
+            )
+    return markdown_table(
+        [
+            "method",
+            "box",
+            "simple mIoU %",
+            "compound mIoU %",
+            "simple loc. %",
+            "compound loc. %",
+            "simple pairs",
+            "compound pairs",
+        ],
+        body,
+        ["l", "l"] + ["r"] * 6,
+    )
 
 
 def _delta_tables(ref: Mapping, ref_mode: str, cur: Mapping, cur_mode: str, bt: Mapping[str, str]) -> str:
@@ -297,11 +478,17 @@ def _delta_tables(ref: Mapping, ref_mode: str, cur: Mapping, cur_mode: str, bt: 
         c = {q: v["iou"] for q, v in cur["per_query"][cur_mode][b].items()}
         d = query_deltas(a, c, n=3)
         types = cur.get("query_types", {})
-        rows = [[tag, x.query, types.get(x.query, "unknown"), pct(x.a), pct(x.b), signed_pts(x.delta)]
-                for tag, items in (("top", d.top), ("bottom", d.bottom)) for x in items]
+        rows = [
+            [tag, x.query, types.get(x.query, "unknown"), pct(x.a), pct(x.b), signed_pts(x.delta)]
+            for tag, items in (("top", d.top), ("bottom", d.bottom))
+            for x in items
+        ]
         out.append(f"{bt[b]}: mean delta {signed_pts(d.mean_delta)} points over {len(d.deltas)} queries\n\n")
-        out.append(markdown_table(["", "query", "type", "3-level IoU %", "N2F2 IoU %", "delta"], rows,
-                                  ["l", "l", "l", "r", "r", "r"]))
+        out.append(
+            markdown_table(
+                ["", "query", "type", "3-level IoU %", "N2F2 IoU %", "delta"], rows, ["l", "l", "l", "r", "r", "r"]
+            )
+        )
         out.append("\n")
     return "".join(out)
 
@@ -315,10 +502,21 @@ def _choice_table(ev: Mapping, modes: Sequence[str]) -> str:
         for b in BOXES:
             pairs = ev["scores"][m][b]["pairs"]
             seg = np.array([dims[p["seg_level"]] for p in pairs])
-            rows.append([m, b, f"{np.median(seg):.0f}", f"{np.mean(seg == dims[-1]) * 100:.0f}",
-                         f"{np.mean(seg == dims[0]) * 100:.0f}", f"{np.percentile(seg, 25):.0f}-{np.percentile(seg, 75):.0f}"])
-    return markdown_table(["mode", "box", "median d (segmentation)", "% pairs at d = D", "% pairs at the first scale",
-                           "interquartile d"], rows, ["l", "l", "r", "r", "r", "r"])
+            rows.append(
+                [
+                    m,
+                    b,
+                    f"{np.median(seg):.0f}",
+                    f"{np.mean(seg == dims[-1]) * 100:.0f}",
+                    f"{np.mean(seg == dims[0]) * 100:.0f}",
+                    f"{np.percentile(seg, 25):.0f}-{np.percentile(seg, 75):.0f}",
+                ]
+            )
+    return markdown_table(
+        ["mode", "box", "median d (segmentation)", "% pairs at d = D", "% pairs at the first scale", "interquartile d"],
+        rows,
+        ["l", "l", "r", "r", "r", "r"],
+    )
 
 
 def _cos_names(result: Mapping) -> list[str]:
@@ -343,11 +541,20 @@ def _cosine_table(result: Mapping, variant_runs: Mapping[str, str]) -> str:
     for v, name in variant_runs.items():
         r = result["runs"][name]
         if r.get("cosine") and v in ("nested", "flat", "levels", "mlp"):
-            rows.append([VARIANTS[v].title] + _cos_cells(r["cosine"]) + _cos_cells(r["cosine"], "region_cosine")
-                        + [f"{r['final_loss']:.5f}"])
+            rows.append(
+                [VARIANTS[v].title]
+                + _cos_cells(r["cosine"])
+                + _cos_cells(r["cosine"], "region_cosine")
+                + [f"{r['final_loss']:.5f}"]
+            )
     if not rows:
         return "Not computed.\n"
     # Pixel means weigh a level's regions by their area (at the group level the room, floor and
     # wall, is most of the image); region means weigh every (view, region) alike. Both are shown.
-    return markdown_table(["variant"] + [f"cos {n} (pixels)" for n in names]
-                          + [f"cos {n} (regions)" for n in names] + ["final train loss"], rows)
+    return markdown_table(
+        ["variant"]
+        + [f"cos {n} (pixels)" for n in names]
+        + [f"cos {n} (regions)" for n in names]
+        + ["final train loss"],
+        rows,
+    )

@@ -15,8 +15,9 @@ if TYPE_CHECKING:
     from .bench import BenchConfig, BenchData
 
 
-def timing_breakdown(nested_run: Path, levels_run: Optional[Path], data: "BenchData", config: "BenchConfig",
-                     encoder: Any = None) -> dict:
+def timing_breakdown(
+    nested_run: Path, levels_run: Optional[Path], data: "BenchData", config: "BenchConfig", encoder: Any = None
+) -> dict:
     """Paper Table 4 on one labelled view: render-and-cache time, time per query at 1 and at 10
     queries, and totals, for composite and explicit (N2F2 field) and levels (3-level field).
 
@@ -49,14 +50,26 @@ def timing_breakdown(nested_run: Path, levels_run: Optional[Path], data: "BenchD
             per = {}
             for n in (1, len(queries)):
                 engine.query(vc, queries[:n], mode)  # warm-up
-                per[n] = float(np.median([engine.query(vc, queries[:n], mode).seconds
-                                          for _ in range(config.timing_repeats)]))
+                per[n] = float(
+                    np.median([engine.query(vc, queries[:n], mode).seconds for _ in range(config.timing_repeats)])
+                )
             r, c = float(np.median(render)), float(np.median(cache))
             n = len(queries)
-            rows.append({"method": label, "mode": mode, "scales": _num_scales(engine, mode),
-                         "render_s": r, "cache_s": c, "query_1_s": per[1], "per_query_s": per[n] / n,
-                         f"queries_{n}_s": per[n], "total_1_s": r + c + per[1], f"total_{n}_s": r + c + per[n],
-                         "num_queries": n})
+            rows.append(
+                {
+                    "method": label,
+                    "mode": mode,
+                    "scales": _num_scales(engine, mode),
+                    "render_s": r,
+                    "cache_s": c,
+                    "query_1_s": per[1],
+                    "per_query_s": per[n] / n,
+                    f"queries_{n}_s": per[n],
+                    "total_1_s": r + c + per[1],
+                    f"total_{n}_s": r + c + per[n],
+                    "num_queries": n,
+                }
+            )
 
         engine = QueryEngine.from_run(nested_run, device=config.device, scene=scene, encoder=encoder)
         t0 = time.perf_counter()
@@ -69,8 +82,16 @@ def timing_breakdown(nested_run: Path, levels_run: Optional[Path], data: "BenchD
             lv = QueryEngine.from_run(levels_run, device=config.device, scene=scene, encoder=encoder)
             measure(lv, "levels", "3-level field (LangSplat-like)")
         cam = scene.cameras[view]
-        return {"rows": rows, "once": once, "view": view, "size": [cam.width, cam.height], "dim": engine.dim,
-                "threads": torch.get_num_threads(), "repeats": config.timing_repeats, "queries": queries}
+        return {
+            "rows": rows,
+            "once": once,
+            "view": view,
+            "size": [cam.width, cam.height],
+            "dim": engine.dim,
+            "threads": torch.get_num_threads(),
+            "repeats": config.timing_repeats,
+            "queries": queries,
+        }
     finally:
         torch.set_num_threads(threads)
 

@@ -35,8 +35,7 @@ VARIANTS: dict[str, VariantSpec] = {
     "nested": VariantSpec("nested", "N2F2 (nested, TriPlane+MLP, k=1)", "nested"),
     "flat": VariantSpec("flat", "non-nested (flat)", "flat"),
     "levels": VariantSpec("levels", "3-level (LangSplat-like)", "levels", modes=("levels", "oracle")),
-    **{f"k{k}": VariantSpec(f"k{k}", f"N2F2, k={k}", "nested", paper_step=k, cosine=False)
-       for k in PAPER_STEPS[1:]},
+    **{f"k{k}": VariantSpec(f"k{k}", f"N2F2, k={k}", "nested", paper_step=k, cosine=False) for k in PAPER_STEPS[1:]},
     "mlp": VariantSpec("mlp", "N2F2 with MLP backbone (PE+MLP)", "nested", backbone="mlp", modes=("composite",)),
 }
 DEFAULT_VARIANTS = tuple(VARIANTS)
@@ -59,7 +58,6 @@ def run_name(spec: VariantSpec, dim: int) -> str:
         return spec.variant + ("" if spec.backbone == "triplane" else f"-{spec.backbone}")
     k = scaled_step(spec.paper_step, dim)
     return f"nested-k{k}" + ("" if spec.backbone == "triplane" else f"-{spec.backbone}")
-
 
 
 def variant_field_config(spec: VariantSpec, dim: int) -> "FieldConfig":

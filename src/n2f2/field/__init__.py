@@ -4,17 +4,20 @@ the Gaussian centres, and the zero-initialised scale-aware projection ``W [E, D]
 
 from .._lazy import lazy_exports
 
-__getattr__, __all__ = lazy_exports(__name__, {
-    "FieldConfig": "model",
-    "NestedField": "model",
-    "bbox_from_points": "model",
-    "build_field": "model",
-    "check_embed_dim": "model",
-    "gaussian_features": "model",
-    "level_blocks": "model",
-    "load_field": "model",
-    "prefix_mask": "model",
-    "save_field": "model",
-    "PositionalEncoding": "triplane",
-    "TriPlane": "triplane",
-})
+__getattr__, __all__ = lazy_exports(
+    __name__,
+    {
+        "FieldConfig": "model",
+        "NestedField": "model",
+        "bbox_from_points": "model",
+        "build_field": "model",
+        "check_embed_dim": "model",
+        "gaussian_features": "model",
+        "level_blocks": "model",
+        "load_field": "model",
+        "prefix_mask": "model",
+        "save_field": "model",
+        "PositionalEncoding": "triplane",
+        "TriPlane": "triplane",
+    },
+)

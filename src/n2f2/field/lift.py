@@ -30,7 +30,8 @@ a pixel taking the smallest covering segment of each tercile. Segments the bank 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field as dc_field
+from dataclasses import dataclass
+from dataclasses import field as dc_field
 from typing import Any, Optional, Sequence
 
 import numpy as np
@@ -122,9 +123,17 @@ def save_lift(path: Any, lift: Lift, meta: Optional[dict] = None) -> None:
     from ..io import save_torch
     from ..validate import check_finite
 
-    blob = {"format": LIFT_FORMAT, "version": LIFT_VERSION, "features": lift.features.half(),
-            "weights": lift.weights.float(), "views": list(lift.views), "rule": lift.rule,
-            "seconds": dict(lift.seconds), "num_gaussians": int(lift.features.shape[0]), "meta": dict(meta or {})}
+    blob = {
+        "format": LIFT_FORMAT,
+        "version": LIFT_VERSION,
+        "features": lift.features.half(),
+        "weights": lift.weights.float(),
+        "views": list(lift.views),
+        "rule": lift.rule,
+        "seconds": dict(lift.seconds),
+        "num_gaussians": int(lift.features.shape[0]),
+        "meta": dict(meta or {}),
+    }
     check_finite(path, {"features": blob["features"], "weights": blob["weights"]})
     save_torch(path, blob)
 
@@ -144,8 +153,13 @@ def load_lift(path: Any, num_gaussians: Optional[int] = None) -> Lift:
     feats = blob["features"].float()
     if num_gaussians is not None and int(feats.shape[0]) != int(num_gaussians):
         raise InputError(path, f"the lift holds {feats.shape[0]} Gaussians, the run has {num_gaussians}")
-    return Lift(feats, blob["weights"].float(), [int(v) for v in blob["views"]], str(blob["rule"]),
-                {k: float(v) for k, v in blob.get("seconds", {}).items()})
+    return Lift(
+        feats,
+        blob["weights"].float(),
+        [int(v) for v in blob["views"]],
+        str(blob["rule"]),
+        {k: float(v) for k, v in blob.get("seconds", {}).items()},
+    )
 
 
 def lift_features(
@@ -162,8 +176,10 @@ def lift_features(
         raise InputError(getattr(bank, "root", None), "no views to lift features from")
     sizes = bank.sizes
     if len(cache.sizes) != len(views) or any(tuple(cache.sizes[k]) != tuple(sizes[v]) for k, v in enumerate(views)):
-        raise ValueError(f"the blend cache holds {len(cache.sizes)} views of sizes {sorted(set(cache.sizes))}; "
-                         f"the lift needs the {len(views)} given views at the bank's size")
+        raise ValueError(
+            f"the blend cache holds {len(cache.sizes)} views of sizes {sorted(set(cache.sizes))}; "
+            f"the lift needs the {len(views)} given views at the bank's size"
+        )
     N = int(num_gaussians)
     rule = bank_level_rule(bank)
     num, den = _weighted_sums(cache, views, bank, rule, N)
@@ -206,16 +222,23 @@ def _compiled_kernel() -> Optional[Any]:
         except ImportError:  # pragma: no cover - numba is a declared dependency
             _KERNEL = False
         else:
-            _KERNEL = numba.njit("int64(int64[:], int32[:], float32[:], int64[:, :], int64, float64[:], int64[:])",
-                                 cache=True, nogil=True)(_triple_sums_kernel)
+            _KERNEL = numba.njit(
+                "int64(int64[:], int32[:], float32[:], int64[:, :], int64, float64[:], int64[:])",
+                cache=True,
+                nogil=True,
+            )(_triple_sums_kernel)
     return _KERNEL or None
 
 
-def _view_triples(crow: Tensor,  # [P + 1] long entry offsets of the view's pixels (from 0)
-                  gid: Tensor,  # [nnz] int32 Gaussian of each entry
-                  weight: Tensor,  # [nnz] float32 blending weight
-                  seg: Tensor,  # [3, P] long segment per level, -1 = none
-                  S: int, N: int, buffer: dict) -> tuple[Tensor, Tensor]:  # keys [T] long, sums [T] float64
+def _view_triples(
+    crow: Tensor,  # [P + 1] long entry offsets of the view's pixels (from 0)
+    gid: Tensor,  # [nnz] int32 Gaussian of each entry
+    weight: Tensor,  # [nnz] float32 blending weight
+    seg: Tensor,  # [3, P] long segment per level, -1 = none
+    S: int,
+    N: int,
+    buffer: dict,
+) -> tuple[Tensor, Tensor]:  # keys [T] long, sums [T] float64
     """The summed weight of every (Gaussian, level, segment) triple the view's entries hit, keyed
     ``(g * 3 + level) * S + segment``."""
     bins = N * NUM_LEVELS * S
@@ -243,8 +266,9 @@ def _view_triples(crow: Tensor,  # [P + 1] long entry offsets of the view's pixe
     return uniq, torch.zeros(uniq.shape[0], dtype=torch.float64).index_add_(0, inv, torch.cat(ws))
 
 
-def _weighted_sums(cache: Any, views: Sequence[int], bank: Any, rule: tuple, N: int
-                   ) -> tuple[Tensor, Tensor]:  # num [3N, E] float32, den [3N] float64
+def _weighted_sums(
+    cache: Any, views: Sequence[int], bank: Any, rule: tuple, N: int
+) -> tuple[Tensor, Tensor]:  # num [3N, E] float32, den [3N] float64
     """``sum_p w f`` and ``sum_p w`` per (Gaussian, level) over the cached views.
 
     Per view, the weights of each (Gaussian, level, segment) triple are summed first, so the
@@ -267,8 +291,15 @@ def _weighted_sums(cache: Any, views: Sequence[int], bank: Any, rule: tuple, N: 
         r0 = cache.offsets[k]
         e0, e1 = int(crow[r0]), int(crow[r0 + P])
         if S and e1 > e0:
-            key, total = _view_triples((crow[r0:r0 + P + 1] - e0).contiguous(), gid_all[e0:e1].contiguous(),
-                                       w_all[e0:e1].contiguous(), seg.contiguous(), S, N, buffer)
+            key, total = _view_triples(
+                (crow[r0 : r0 + P + 1] - e0).contiguous(),
+                gid_all[e0:e1].contiguous(),
+                w_all[e0:e1].contiguous(),
+                seg.contiguous(),
+                S,
+                N,
+                buffer,
+            )
             rows.append(torch.div(key, S, rounding_mode="floor"))
             cols.append(key % S + first)
             vals.append(total)
@@ -305,7 +336,5 @@ class LevelBlocks:
         E = self.embed_dim
         out = torch.zeros(NUM_LEVELS, E, NUM_LEVELS * E, device=self.W.device)
         for level in range(NUM_LEVELS):
-            out[level, :, level * E:(level + 1) * E] = torch.eye(E, device=self.W.device)
+            out[level, :, level * E : (level + 1) * E] = torch.eye(E, device=self.W.device)
         return out
-
-

@@ -128,10 +128,13 @@ class NestedField(nn.Module):
         bbox_min, bbox_max: ``[3]`` world-space box that is mapped to ``[-1, 1]^3``.
     """
 
-    def __init__(self, config: FieldConfig, embed_dim: int,
-                 bbox_min: Tensor | np.ndarray,  # [3]
-                 bbox_max: Tensor | np.ndarray,  # [3]
-                 ) -> None:
+    def __init__(
+        self,
+        config: FieldConfig,
+        embed_dim: int,
+        bbox_min: Tensor | np.ndarray,  # [3]
+        bbox_max: Tensor | np.ndarray,  # [3]
+    ) -> None:
         super().__init__()
         if embed_dim < 1:
             raise ValueError(f"embedding dim E must be positive, got {embed_dim}")
@@ -222,14 +225,14 @@ class NestedField(nn.Module):
         return prefix_mask(self.dims_for_scale(s), self.dim)
 
     def level_mask(self, level: Tensor) -> Tensor:  # level [B] in {0, 1, 2} -> [B, D] float
-        """"levels" variant: ones on the block of hierarchy level ``level`` (0 = part)."""
+        """ "levels" variant: ones on the block of hierarchy level ``level`` (0 = part)."""
         blocks = torch.tensor(level_blocks(self.dim), device=level.device)  # [3, 2]
         start_end = blocks[level_to_block(level)]  # [B, 2]
         d = torch.arange(self.dim, device=level.device)
         return ((d >= start_end[:, :1]) & (d < start_end[:, 1:])).float()
 
     def level_features(self, theta: Tensor) -> Tensor:  # theta [..., D] -> [..., 3, E]
-        """"levels" variant: the three level features, index 0 = part, 1 = object, 2 = group."""
+        """ "levels" variant: the three level features, index 0 = part, 1 = object, 2 = group."""
         out = []
         for level in range(NUM_LEVELS):
             a, b = level_blocks(self.dim)[level_to_block(level)]
@@ -248,23 +251,28 @@ class NestedField(nn.Module):
 
 # ---------------------------------------------------------------------------------- test time
 @torch.no_grad()
-def gaussian_features(field: NestedField,
-                      means: Tensor,  # [N, 3] world-space Gaussian centres (or a Gaussians model)
-                      chunk: int = 65536) -> Tensor:  # -> Theta [N, D]
+def gaussian_features(
+    field: NestedField,
+    means: Tensor,  # [N, 3] world-space Gaussian centres (or a Gaussians model)
+    chunk: int = 65536,
+) -> Tensor:  # -> Theta [N, D]
     """Full D-dim features at the Gaussian centres, no deferral (appendix: at test time the
     MLP runs per Gaussian so features can be pre-multiplied, e.g. by gamma^3D)."""
     if hasattr(means, "means"):  # a Gaussians model
         means = means.means
     means = means.detach()
     device = next(field.parameters()).device
-    out = [field(means[i:i + chunk].to(device)) for i in range(0, means.shape[0], chunk)]
+    out = [field(means[i : i + chunk].to(device)) for i in range(0, means.shape[0], chunk)]
     if not out:
         return torch.zeros(0, field.dim, device=device)
     return torch.cat(out, dim=0)
 
 
-def bbox_from_points(points: Tensor | np.ndarray,  # [N, 3]
-                     quantile: float = 0.001, pad: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+def bbox_from_points(
+    points: Tensor | np.ndarray,  # [N, 3]
+    quantile: float = 0.001,
+    pad: float = 0.05,
+) -> tuple[np.ndarray, np.ndarray]:
     """Axis-aligned box of ``points`` between the ``quantile`` and ``1 - quantile`` marginals,
     padded by ``pad`` of its size per side, so a few floaters do not waste plane resolution
     (points outside are clamped onto the box by :meth:`NestedField.normalize`)."""
@@ -282,21 +290,27 @@ def save_field(path: str | Path, field: NestedField, meta: Optional[dict] = None
     """Write ``field`` (weights, including W) and ``meta`` atomically. ``meta`` is extended with
     config, E, bbox and variant so :func:`load_field` can rebuild the module."""
     meta = dict(meta or {})
-    meta.update({
-        "config": field.config.to_dict(),
-        "embed_dim": field.embed_dim,
-        "variant": field.variant,
-        "bbox_min": field.bbox_min.tolist(),
-        "bbox_max": field.bbox_max.tolist(),
-    })
+    meta.update(
+        {
+            "config": field.config.to_dict(),
+            "embed_dim": field.embed_dim,
+            "variant": field.variant,
+            "bbox_min": field.bbox_min.tolist(),
+            "bbox_max": field.bbox_max.tolist(),
+        }
+    )
     state = {k: v.detach().cpu() for k, v in field.state_dict().items()}
     save_torch(path, {"format": FIELD_FORMAT, "version": FIELD_VERSION, "meta": meta, "state_dict": state})
 
 
 def build_field(meta: dict) -> NestedField:
     """An untrained field with the architecture recorded in ``meta``."""
-    return NestedField(FieldConfig.from_dict(meta["config"]), int(meta["embed_dim"]),
-                       np.asarray(meta["bbox_min"]), np.asarray(meta["bbox_max"]))
+    return NestedField(
+        FieldConfig.from_dict(meta["config"]),
+        int(meta["embed_dim"]),
+        np.asarray(meta["bbox_min"]),
+        np.asarray(meta["bbox_max"]),
+    )
 
 
 def load_field(path: str | Path, device: str | torch.device = "cpu") -> tuple[NestedField, dict]:
@@ -308,14 +322,17 @@ def load_field(path: str | Path, device: str | torch.device = "cpu") -> tuple[Ne
     if not isinstance(blob, dict) or blob.get("format") != FIELD_FORMAT:
         raise InputError(path, "not an n2f2 feature field (expected the field.pt written by `n2f2 train`)")
     if blob.get("version", 0) > FIELD_VERSION:
-        raise InputError(path, f"feature field format version {blob['version']} is newer than this n2f2 "
-                               f"(reads up to {FIELD_VERSION})")
+        raise InputError(
+            path,
+            f"feature field format version {blob['version']} is newer than this n2f2 (reads up to {FIELD_VERSION})",
+        )
     meta = blob.get("meta")
     if not isinstance(meta, dict) or not isinstance(blob.get("state_dict"), dict):
         raise InputError(path, "feature field is incomplete (no meta or state_dict); retrain it with `n2f2 train`")
     # Older versions could save a diverged field; its NaN would surface as a crash mid-query.
-    bad = _non_finite(blob["state_dict"]) or _non_finite({"bbox_min": meta.get("bbox_min"),
-                                                         "bbox_max": meta.get("bbox_max")})
+    bad = _non_finite(blob["state_dict"]) or _non_finite(
+        {"bbox_min": meta.get("bbox_min"), "bbox_max": meta.get("bbox_max")}
+    )
     if bad:
         raise InputError(path, f"feature field holds NaN or infinite values: {bad}; retrain it with `n2f2 train`")
     try:
@@ -330,5 +347,8 @@ def check_embed_dim(meta: dict, embed_dim: int, path: str | Path, what: str = "e
     """Raise a clear error when an ``embed_dim``-sized embedding meets a field trained for
     another E (e.g. a text encoder or segment bank that is not the one used in training)."""
     if int(meta["embed_dim"]) != int(embed_dim):
-        raise InputError(path, f"{what} dim {embed_dim} does not match the feature field's E = "
-                               f"{meta['embed_dim']} (trained with encoder {meta.get('encoder_spec')!r})")
+        raise InputError(
+            path,
+            f"{what} dim {embed_dim} does not match the feature field's E = "
+            f"{meta['embed_dim']} (trained with encoder {meta.get('encoder_spec')!r})",
+        )

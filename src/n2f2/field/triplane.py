@@ -47,8 +47,7 @@ class TriPlane(nn.Module):
     outside the bounding box gets the feature of the nearest box face instead of zero.
     """
 
-    def __init__(self, resolution: int = 512, channels: int = 64, reduce: str = "sum",
-                 init_scale: float = 0.1) -> None:
+    def __init__(self, resolution: int = 512, channels: int = 64, reduce: str = "sum", init_scale: float = 0.1) -> None:
         super().__init__()
         if resolution < 2 or channels < 1:
             raise ValueError(f"TriPlane needs resolution >= 2 and channels >= 1, got {resolution}, {channels}")
@@ -72,8 +71,13 @@ class TriPlane(nn.Module):
     def forward(self, xyz: Tensor) -> Tensor:  # xyz [N, 3] in [-1, 1] -> [N, C]
         # grid_sample reads grid[..., 0] as the column (width) and grid[..., 1] as the row.
         coords = torch.stack([xyz[:, list(a)] for a in PLANE_AXES], dim=0)  # [3, N, 2]
-        samples = F.grid_sample(self.planes, coords.unsqueeze(2).to(self.planes.dtype),
-                                mode="bilinear", padding_mode="border", align_corners=True)  # [3, C, N, 1]
+        samples = F.grid_sample(
+            self.planes,
+            coords.unsqueeze(2).to(self.planes.dtype),
+            mode="bilinear",
+            padding_mode="border",
+            align_corners=True,
+        )  # [3, C, N, 1]
         samples = samples.squeeze(-1)  # [3, C, N]
         out = samples.sum(0) if self.reduce == "sum" else samples.prod(0)  # [C, N]
         return out.t()  # [N, C]
@@ -133,8 +137,9 @@ class PositionalEncoding(nn.Module):
         if num_frequencies < 0:
             raise ValueError(f"number of PE frequencies must be >= 0, got {num_frequencies}")
         self.num_frequencies = int(num_frequencies)
-        self.register_buffer("freqs", math.pi * 2.0 ** torch.arange(num_frequencies, dtype=torch.float32),
-                             persistent=False)
+        self.register_buffer(
+            "freqs", math.pi * 2.0 ** torch.arange(num_frequencies, dtype=torch.float32), persistent=False
+        )
 
     @property
     def out_dim(self) -> int:

@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from ..validate import (finite_float, nonneg_float, nonneg_int, positive_float, positive_int,
-                        unit_interval)
+from ..validate import finite_float, nonneg_float, nonneg_int, positive_float, positive_int, unit_interval
 
 
 def register(subparsers) -> None:
@@ -13,30 +12,63 @@ def register(subparsers) -> None:
         "fit-gaussians",
         help="fit 3D Gaussians to a scene's images (writes gaussians.ply and fit_report.json)",
         description="Fit a 3D Gaussian Splatting model to a COLMAP or nerfstudio scene. Writes "
-                    "DIR/gaussians.ply (INRIA 3DGS layout), DIR/fit_report.json and DIR/checkpoint.pt.",
+        "DIR/gaussians.ply (INRIA 3DGS layout), DIR/fit_report.json and DIR/checkpoint.pt.",
     )
-    p.add_argument("data", metavar="DATA", help="scene folder (COLMAP sparse/0 or nerfstudio transforms.json), "
-                   "or a folder of photos, posed first by `n2f2 sfm` into DIR/sfm")
+    p.add_argument(
+        "data",
+        metavar="DATA",
+        help="scene folder (COLMAP sparse/0 or nerfstudio transforms.json), "
+        "or a folder of photos, posed first by `n2f2 sfm` into DIR/sfm",
+    )
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
-    p.add_argument("--preset", choices=["cpu", "paper"], default="cpu",
-                   help="cpu: a few minutes for small scenes (default); paper: 3DGS's 30k steps")
-    p.add_argument("--steps", type=positive_int, default=None, help="number of optimisation steps (overrides the preset)")
+    p.add_argument(
+        "--preset",
+        choices=["cpu", "paper"],
+        default="cpu",
+        help="cpu: a few minutes for small scenes (default); paper: 3DGS's 30k steps",
+    )
+    p.add_argument(
+        "--steps", type=positive_int, default=None, help="number of optimisation steps (overrides the preset)"
+    )
     p.add_argument("--resume", action="store_true", help="continue from DIR/checkpoint.pt")
-    p.add_argument("--force", action="store_true",
-                   help="replace the results already in DIR (gaussians.ply, checkpoint.pt, fit_report.json, ...)")
-    p.add_argument("--downscale", type=positive_float, default=1.0, help="image downscale factor, as 3DGS -r (default 1)")
-    p.add_argument("--init", default=None, metavar="points|random|PLY",
-                   help="initialisation: the scene's sparse points, random Gaussians in the camera frusta, or "
-                        "an INRIA 3DGS PLY trained elsewhere in the same world frame, fitted further "
-                        "(default: sparse points when the scene has them, else random)")
-    p.add_argument("--checkpoint-every", type=nonneg_int, default=None, metavar="N",
-                   help="write a checkpoint every N steps (default: the preset's; 0: only at the end)")
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="replace the results already in DIR (gaussians.ply, checkpoint.pt, fit_report.json, ...)",
+    )
+    p.add_argument(
+        "--downscale", type=positive_float, default=1.0, help="image downscale factor, as 3DGS -r (default 1)"
+    )
+    p.add_argument(
+        "--init",
+        default=None,
+        metavar="points|random|PLY",
+        help="initialisation: the scene's sparse points, random Gaussians in the camera frusta, or "
+        "an INRIA 3DGS PLY trained elsewhere in the same world frame, fitted further "
+        "(default: sparse points when the scene has them, else random)",
+    )
+    p.add_argument(
+        "--checkpoint-every",
+        type=nonneg_int,
+        default=None,
+        metavar="N",
+        help="write a checkpoint every N steps (default: the preset's; 0: only at the end)",
+    )
     p.add_argument("--max-gaussians", type=positive_int, default=None, metavar="N", help="cap on the Gaussian count")
-    p.add_argument("--depth-spread", type=nonneg_float, default=None, metavar="W", dest="depth_spread_weight",
-                   help="weight of the depth-spread regulariser (cpu preset 1.0, paper 0 = off as 3DGS)")
+    p.add_argument(
+        "--depth-spread",
+        type=nonneg_float,
+        default=None,
+        metavar="W",
+        dest="depth_spread_weight",
+        help="weight of the depth-spread regulariser (cpu preset 1.0, paper 0 = off as 3DGS)",
+    )
     p.add_argument("--seed", type=nonneg_int, default=0, help="random seed (default 0)")
-    p.add_argument("--skip-missing", action="store_true",
-                   help="drop views whose image file is missing (default: a missing image is an error)")
+    p.add_argument(
+        "--skip-missing",
+        action="store_true",
+        help="drop views whose image file is missing (default: a missing image is an error)",
+    )
     p.add_argument("--device", default="cpu", help="torch device (default cpu)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
@@ -51,12 +83,24 @@ def run(args: argparse.Namespace) -> int:
     from ..data.sfm import posed_scene_path
     from ..errors import InputError
     from ..io import claim_out_dir, remove_results
-    from .fit import (BACKGROUND_NAME, CHECKPOINT_NAME, PLY_NAME, REPORT_NAME, TEST_RENDERS_DIR, FitConfig,
-                      fit_gaussians, saved_config)
+    from .fit import (
+        BACKGROUND_NAME,
+        CHECKPOINT_NAME,
+        PLY_NAME,
+        REPORT_NAME,
+        TEST_RENDERS_DIR,
+        FitConfig,
+        fit_gaussians,
+        saved_config,
+    )
     from .ply import read_ply
 
-    for name, flag in (("steps", "--steps"), ("checkpoint_every", "--checkpoint-every"),
-                       ("max_gaussians", "--max-gaussians"), ("depth_spread_weight", "--depth-spread")):
+    for name, flag in (
+        ("steps", "--steps"),
+        ("checkpoint_every", "--checkpoint-every"),
+        ("max_gaussians", "--max-gaussians"),
+        ("depth_spread_weight", "--depth-spread"),
+    ):
         value = getattr(args, name)
         if value is not None and not value >= 0:  # NaN too
             raise InputError(None, f"{flag} must be >= 0, got {value}")
@@ -65,8 +109,11 @@ def run(args: argparse.Namespace) -> int:
     results = (PLY_NAME, CHECKPOINT_NAME, REPORT_NAME, BACKGROUND_NAME, TEST_RENDERS_DIR)
     present = claim_out_dir(args.out, results, resume=args.resume, force=args.force)
     if args.resume and present and CHECKPOINT_NAME not in present:  # a fresh start would replace them
-        raise InputError(Path(args.out), f"--resume: no {CHECKPOINT_NAME} to continue from, but the folder holds "
-                         f"results ({', '.join(present)}); pass --force to replace them, or choose another --out")
+        raise InputError(
+            Path(args.out),
+            f"--resume: no {CHECKPOINT_NAME} to continue from, but the folder holds "
+            f"results ({', '.join(present)}); pass --force to replace them, or choose another --out",
+        )
     # A resumed run keeps the checkpoint's schedule; only explicit flags change it.
     base = saved_config(args.out) if args.resume else None
     data = posed_scene_path(Path(args.data), Path(args.out) / "sfm", progress=not args.quiet)  # photos: pose them
@@ -81,18 +128,26 @@ def run(args: argparse.Namespace) -> int:
         if args.preset == "cpu":  # a --steps keeps the schedule's fractions
             base = base.sized_for(scene, steps=args.steps, init=init)
     config = replace(base, device=args.device)
-    overrides = {k: getattr(args, k) for k in ("steps", "checkpoint_every", "max_gaussians", "depth_spread_weight")
-                 if getattr(args, k) is not None}
+    overrides = {
+        k: getattr(args, k)
+        for k in ("steps", "checkpoint_every", "max_gaussians", "depth_spread_weight")
+        if getattr(args, k) is not None
+    }
     config = replace(config, **overrides)
     if args.force:  # the inputs are read: now the old results go
         remove_results(args.out, present)
     report = fit_gaussians(scene, config, args.out, resume=args.resume, init=init, progress=not args.quiet)
     test = "n/a" if report.test_psnr is None else f"{report.test_psnr:.2f} dB"
-    depth = "" if report.depth_median_rel_extent is None else \
-        f", median depth error {100 * report.depth_median_rel_extent:.2f}% of extent"
-    print(f"fit-gaussians: {report.steps} steps, {report.num_gaussians} Gaussians, "
-          f"train PSNR {report.train_psnr:.2f} dB, test PSNR {test}{depth}, "
-          f"{report.wall_time_s:.0f} s -> {args.out}")
+    depth = (
+        ""
+        if report.depth_median_rel_extent is None
+        else f", median depth error {100 * report.depth_median_rel_extent:.2f}% of extent"
+    )
+    print(
+        f"fit-gaussians: {report.steps} steps, {report.num_gaussians} Gaussians, "
+        f"train PSNR {report.train_psnr:.2f} dB, test PSNR {test}{depth}, "
+        f"{report.wall_time_s:.0f} s -> {args.out}"
+    )
     return 0
 
 
@@ -101,21 +156,34 @@ def _register_render(subparsers) -> None:
         "render",
         help="render a Gaussian PLY (n2f2's or one trained elsewhere) from a ring of orbit cameras",
         description="Render an INRIA 3DGS PLY (written by n2f2, 3DGS, gsplat or nerfstudio) from NUM cameras "
-                    "evenly spaced around the Gaussians' robust centre, without the capture's poses. Writes "
-                    "DIR/orbit_XX.png and the float32 renders DIR/orbit_XX.npy, plus DIR/cameras.json.",
+        "evenly spaced around the Gaussians' robust centre, without the capture's poses. Writes "
+        "DIR/orbit_XX.png and the float32 renders DIR/orbit_XX.npy, plus DIR/cameras.json.",
     )
     p.add_argument("ply", metavar="PLY", help="Gaussians in the INRIA 3DGS PLY layout")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--views", type=positive_int, default=8, help="number of orbit views (default 8)")
     p.add_argument("--elevation", type=finite_float, default=20.0, help="degrees above the horizon (default 20)")
-    p.add_argument("--up", type=finite_float, nargs=3, default=(0.0, -1.0, 0.0), metavar=("X", "Y", "Z"),
-                   help="world up vector (default 0 -1 0: COLMAP worlds, whose cameras look down +z with y down)")
+    p.add_argument(
+        "--up",
+        type=finite_float,
+        nargs=3,
+        default=(0.0, -1.0, 0.0),
+        metavar=("X", "Y", "Z"),
+        help="world up vector (default 0 -1 0: COLMAP worlds, whose cameras look down +z with y down)",
+    )
     p.add_argument("--size", type=positive_int, nargs=2, default=(512, 384), metavar=("W", "H"), help="image size")
     p.add_argument("--fov", type=positive_float, default=50.0, help="horizontal field of view in degrees (default 50)")
-    p.add_argument("--background", type=unit_interval, nargs=3, default=(1.0, 1.0, 1.0), metavar=("R", "G", "B"),
-                   help="background colour in [0, 1] (default white)")
-    p.add_argument("--force", action="store_true",
-                   help="replace the renders already in DIR (orbit_XX.png / .npy, cameras.json)")
+    p.add_argument(
+        "--background",
+        type=unit_interval,
+        nargs=3,
+        default=(1.0, 1.0, 1.0),
+        metavar=("R", "G", "B"),
+        help="background colour in [0, 1] (default white)",
+    )
+    p.add_argument(
+        "--force", action="store_true", help="replace the renders already in DIR (orbit_XX.png / .npy, cameras.json)"
+    )
     p.set_defaults(func=run_render)
 
 
@@ -142,19 +210,26 @@ def run_render(args: argparse.Namespace) -> int:
         raise InputError(None, f"--background must be in [0, 1], got {args.background}")
     out = Path(args.out)
     # Every orbit render there, also those of an earlier run with more --views.
-    old = sorted(p.name for p in out.glob("orbit_*") if re.fullmatch(r"orbit_\d+\.(png|npy)", p.name)) \
-        if out.is_dir() else []
+    old = (
+        sorted(p.name for p in out.glob("orbit_*") if re.fullmatch(r"orbit_\d+\.(png|npy)", p.name))
+        if out.is_dir()
+        else []
+    )
     present = claim_out_dir(out, ["cameras.json", *old], force=args.force, resume_flag=None)
     g = read_ply(args.ply)
     g.sh_degree = g.max_sh_degree
-    cameras = orbit_cameras(g, args.views, elevation=args.elevation, up=tuple(args.up), width=w, height=h,
-                            fov=args.fov)
+    cameras = orbit_cameras(g, args.views, elevation=args.elevation, up=tuple(args.up), width=w, height=h, fov=args.fov)
     if args.force:  # the PLY is read: now the old renders go
         remove_results(out, present)
     for k, (cam, image) in enumerate(zip(cameras, render_views(g, cameras, tuple(args.background)))):
         write_npy(out / f"orbit_{k:02d}.npy", image)
         write_png(out / f"orbit_{k:02d}.png", image)
-    write_json(out / "cameras.json", [{"K": c.K.tolist(), "world_to_camera": c.world_to_camera.tolist(),
-                                       "width": c.width, "height": c.height} for c in cameras])
+    write_json(
+        out / "cameras.json",
+        [
+            {"K": c.K.tolist(), "world_to_camera": c.world_to_camera.tolist(), "width": c.width, "height": c.height}
+            for c in cameras
+        ],
+    )
     print(f"render: {len(cameras)} orbit views of {g.num} Gaussians -> {out}")
     return 0

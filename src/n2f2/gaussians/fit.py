@@ -33,8 +33,14 @@ from ..data.scene import Scene
 from ..errors import InputError
 from ..io import load_torch, save_torch, write_json
 from ..validate import MAX_BAD_STEPS, NonFiniteError
-from .init import (background_shell, init_from_points, init_random_in_frusta, random_points_in_frusta,
-                   random_points_seen, uncovered_cells)
+from .init import (
+    background_shell,
+    init_from_points,
+    init_random_in_frusta,
+    random_points_in_frusta,
+    random_points_seen,
+    uncovered_cells,
+)
 from .model import Gaussians, inverse_sigmoid, quat_to_rotmat, rgb_to_sh
 from .ply import write_ply
 
@@ -151,8 +157,9 @@ class FitConfig(ConfigDict):
         """The 30k-step schedule of the 3DGS paper (for GPU users)."""
         return FitConfig()
 
-    def sized_for(self, scene: Scene, steps: Optional[int] = None,
-                  init: Union[None, str, Gaussians] = None) -> "FitConfig":
+    def sized_for(
+        self, scene: Scene, steps: Optional[int] = None, init: Union[None, str, Gaussians] = None
+    ) -> "FitConfig":
         """This schedule with its scene-dependent constants derived from ``scene`` (the cpu
         preset's rule; the constants above give the demo scene's 1500 steps and 12k cap):
 
@@ -313,7 +320,7 @@ class FitReport:
 # ------------------------------------------------------------------------------------ losses
 def _gaussian_1d(size: int, sigma: float, device, dtype) -> Tensor:  # [size], sums to 1
     x = torch.arange(size, dtype=dtype, device=device) - (size - 1) / 2
-    g = torch.exp(-x ** 2 / (2 * sigma ** 2))
+    g = torch.exp(-(x**2) / (2 * sigma**2))
     return g / g.sum()
 
 
@@ -340,7 +347,7 @@ def ssim(
     mu1, mu2, e11, e22, e12 = maps[0].split(c)
     mu1_sq, mu2_sq, mu12 = mu1 * mu1, mu2 * mu2, mu1 * mu2
     s1, s2, s12 = e11 - mu1_sq, e22 - mu2_sq, e12 - mu12
-    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    c1, c2 = 0.01**2, 0.03**2
     m = ((2 * mu12 + c1) * (2 * s12 + c2)) / ((mu1_sq + mu2_sq + c1) * (s1 + s2 + c2))
     return m.mean()
 
@@ -392,7 +399,7 @@ class GaussianAdam:
             self.step_count[name] = t
             m.mul_(b1).add_(g, alpha=1 - b1)
             v.mul_(b2).addcmul_(g, g, value=1 - b2)
-            bc1, bc2 = 1 - b1 ** t, 1 - b2 ** t
+            bc1, bc2 = 1 - b1**t, 1 - b2**t
             # torch.optim.Adam: p -= lr / bc1 * m / (sqrt(v) / sqrt(bc2) + eps)
             update = m / v.sqrt().div_(math.sqrt(bc2)).add_(self.eps)
             lr = lrs[name]
@@ -423,8 +430,13 @@ class GaussianAdam:
                 d[name] = torch.zeros_like(d[name])
 
     def state_dict(self) -> dict:
-        return {"exp_avg": dict(self.exp_avg), "exp_avg_sq": dict(self.exp_avg_sq),
-                "step_count": dict(self.step_count), "betas": self.betas, "eps": self.eps}
+        return {
+            "exp_avg": dict(self.exp_avg),
+            "exp_avg_sq": dict(self.exp_avg_sq),
+            "step_count": dict(self.step_count),
+            "betas": self.betas,
+            "eps": self.eps,
+        }
 
     def load_state_dict(self, s: dict, device) -> None:
         self.exp_avg = {k: v.to(device) for k, v in s["exp_avg"].items()}
@@ -442,8 +454,13 @@ def means_lr(config: FitConfig, step: int, extent: float) -> float:
 def learning_rates(config: FitConfig, step: int, extent: float, k: int, device) -> dict[str, Union[float, Tensor]]:
     sh_lr = torch.full((1, k, 1), config.sh_rest_lr, device=device)
     sh_lr[:, 0] = config.sh_dc_lr
-    return {"means": means_lr(config, step, extent), "quats": config.rotation_lr,
-            "log_scales": config.scaling_lr, "opacity_logits": config.opacity_lr, "sh": sh_lr}
+    return {
+        "means": means_lr(config, step, extent),
+        "quats": config.rotation_lr,
+        "log_scales": config.scaling_lr,
+        "opacity_logits": config.opacity_lr,
+        "sh": sh_lr,
+    }
 
 
 # ------------------------------------------------------------------------------------ densification
@@ -458,8 +475,7 @@ class DensifyStats:
 
     @staticmethod
     def zeros(n: int, device) -> "DensifyStats":
-        return DensifyStats(torch.zeros(n, device=device), torch.zeros(n, device=device),
-                            torch.zeros(n, device=device))
+        return DensifyStats(torch.zeros(n, device=device), torch.zeros(n, device=device), torch.zeros(n, device=device))
 
     @torch.no_grad()
     def add(self, means2d_grad: Tensor, radii: Tensor, width: int, height: int) -> None:  # [N, 2], [N]
@@ -494,8 +510,9 @@ def densify_and_prune(
     candidates = grads >= config.densify_grad_threshold
     # gsplat's ``grow_scale2d``: also split whatever covers too much of the screen, whatever its
     # gradient (ranked after every gradient candidate when the cap bites).
-    screen_big = (stats.max_radii > config.split_screen_size) if config.split_screen_size else \
-        torch.zeros_like(candidates)
+    screen_big = (
+        (stats.max_radii > config.split_screen_size) if config.split_screen_size else torch.zeros_like(candidates)
+    )
     priority = torch.where(candidates, grads, torch.where(screen_big, torch.zeros_like(grads), -torch.ones_like(grads)))
     candidates = candidates | screen_big
     if config.max_gaussians is not None:
@@ -517,8 +534,9 @@ def densify_and_prune(
         scales = g.scales[split].repeat(2, 1)  # [2S, 3]
         samples = torch.normal(torch.zeros_like(scales, device="cpu"), scales.cpu(), generator=generator)
         rots = quat_to_rotmat(p["quats"][split]).repeat(2, 1, 1)
-        new["means"].append(torch.bmm(rots, samples.to(scales.device)[..., None])[..., 0]
-                            + p["means"][split].repeat(2, 1))
+        new["means"].append(
+            torch.bmm(rots, samples.to(scales.device)[..., None])[..., 0] + p["means"][split].repeat(2, 1)
+        )
         new["log_scales"].append(torch.log(scales / (0.8 * 2)))
         for name in ("quats", "opacity_logits", "sh"):
             t = p[name][split]
@@ -613,22 +631,45 @@ def _initial_gaussians(scene: Scene, config: FitConfig, init: Union[None, str]) 
             n_extra = int(round(config.init_extra_random * len(points) * np.mean([c.mean() for c in cells])))
             if n_extra > 0:
                 # near/far are unused: the shell sets each point's depth
-                extra, extra_colors = random_points_in_frusta(cameras, n_extra, 1.0, 2.0, seed=config.seed,
-                                                              images=image, cells=cells,
-                                                              shell=background_shell(cameras, points))
+                extra, extra_colors = random_points_in_frusta(
+                    cameras,
+                    n_extra,
+                    1.0,
+                    2.0,
+                    seed=config.seed,
+                    images=image,
+                    cells=cells,
+                    shell=background_shell(cameras, points),
+                )
                 points, colors = np.concatenate([points, extra]), np.concatenate([colors, extra_colors])
         if config.init_extra_seen > 0:
             near, far = (d * scene.extent() for d in config.random_init_depth)
-            extra, extra_colors = random_points_seen(cameras, config.init_extra_seen, near, far, seed=config.seed,
-                                                     images=image, min_seen=config.random_init_min_seen)
+            extra, extra_colors = random_points_seen(
+                cameras,
+                config.init_extra_seen,
+                near,
+                far,
+                seed=config.seed,
+                images=image,
+                min_seen=config.random_init_min_seen,
+            )
             points, colors = np.concatenate([points, extra]), np.concatenate([colors, extra_colors])
         return init_from_points(points, colors, sh_degree=config.sh_degree, device=config.device)
     if kind == "random":
         ext = scene.extent()
         near, far = (d * ext for d in config.random_init_depth)
-        return init_random_in_frusta(cameras, config.random_init_count, near, far, seed=config.seed,
-                                     sh_degree=config.sh_degree, device=config.device, images=image,
-                                     shell_fraction=config.random_init_shell, min_seen=config.random_init_min_seen)
+        return init_random_in_frusta(
+            cameras,
+            config.random_init_count,
+            near,
+            far,
+            seed=config.seed,
+            sh_degree=config.sh_degree,
+            device=config.device,
+            images=image,
+            shell_fraction=config.random_init_shell,
+            min_seen=config.random_init_min_seen,
+        )
     raise ValueError(f"unknown init {kind!r}: use 'points', 'random' or a Gaussians model")
 
 
@@ -693,9 +734,12 @@ class Environment(torch.nn.Module):
         return eval_sh(self.sh[None].expand(flat.shape[0], -1, -1), flat, self.degree).reshape(h, w, 3)
 
     def to_dict(self) -> dict:
-        return {"kind": "spherical-harmonics", "degree": self.degree,
-                "convention": "rgb = max(sum_k sh[k] * Y_k(unit ray direction, world) + 0.5, 0), 3DGS's SH basis",
-                "sh": self.sh.detach().cpu().tolist()}
+        return {
+            "kind": "spherical-harmonics",
+            "degree": self.degree,
+            "convention": "rgb = max(sum_k sh[k] * Y_k(unit ray direction, world) + 0.5, 0), 3DGS's SH basis",
+            "sh": self.sh.detach().cpu().tolist(),
+        }
 
 
 BACKGROUND_NAME = "background.json"
@@ -705,8 +749,12 @@ def _render(g: Gaussians, camera, config: FitConfig, env: Optional[Environment] 
     from ..render import render_rgb
 
     if env is None:
-        return render_rgb(g, camera, sh_degree=g.sh_degree,
-                          background=torch.tensor(config.background, dtype=torch.float32, device=config.device))
+        return render_rgb(
+            g,
+            camera,
+            sh_degree=g.sh_degree,
+            background=torch.tensor(config.background, dtype=torch.float32, device=config.device),
+        )
     out = render_rgb(g, camera, sh_degree=g.sh_degree, background=None)
     out.features = out.features + (1.0 - out.alpha) * env(camera)
     return out
@@ -717,8 +765,9 @@ def depth_spread_penalty(spread: Tensor) -> Tensor:  # spread [H, W] from _rende
     return (torch.sqrt(spread + 1e-6) - 1e-3).mean()
 
 
-def _render_with_depth_spread(g: Gaussians, camera, config: FitConfig, extent: float,
-                              env: Optional[Environment] = None):
+def _render_with_depth_spread(
+    g: Gaussians, camera, config: FitConfig, extent: float, env: Optional[Environment] = None
+):
     """Render colours plus the per-pixel depth spread ``sum_i w_i z_i^2 - (sum_i w_i z_i)^2 /
     alpha`` (z / extent), from one extra rasterized channel. Returns (output, spread [H, W])."""
     from ..render import rasterize, view_colors
@@ -727,10 +776,12 @@ def _render_with_depth_spread(g: Gaussians, camera, config: FitConfig, extent: f
     cam = camera.to_torch(device=means.device, dtype=means.dtype)
     colors = view_colors(g, camera)  # [N, 3]
     z = (means @ cam["viewmat"][2, :3] + cam["viewmat"][2, 3]) / extent  # [N] camera z / extent
-    background = None if env is not None else \
-        torch.tensor((*config.background, 0.0), dtype=means.dtype, device=means.device)
-    out = rasterize(means, g.quats, g.scales, g.opacities, torch.cat([colors, (z * z)[:, None]], 1), camera,
-                    background=background)
+    background = (
+        None if env is not None else torch.tensor((*config.background, 0.0), dtype=means.dtype, device=means.device)
+    )
+    out = rasterize(
+        means, g.quats, g.scales, g.opacities, torch.cat([colors, (z * z)[:, None]], 1), camera, background=background
+    )
     if env is not None:
         out.features = torch.cat([out.features[..., :3] + (1.0 - out.alpha) * env(camera), out.features[..., 3:]], -1)
     second = out.features[..., 3]  # sum w z^2
@@ -739,15 +790,31 @@ def _render_with_depth_spread(g: Gaussians, camera, config: FitConfig, extent: f
     return out, spread
 
 
-def _checkpoint(step: int, g: Gaussians, adam: GaussianAdam, stats: DensifyStats, config: FitConfig,
-                generator: torch.Generator, sampler: _ViewSampler, loss_curve: list, skipped: int,
-                train_time: float) -> dict:
+def _checkpoint(
+    step: int,
+    g: Gaussians,
+    adam: GaussianAdam,
+    stats: DensifyStats,
+    config: FitConfig,
+    generator: torch.Generator,
+    sampler: _ViewSampler,
+    loss_curve: list,
+    skipped: int,
+    train_time: float,
+) -> dict:
     return {
-        "format": _CHECKPOINT_FORMAT, "step": step, "sh_degree": g.sh_degree,
+        "format": _CHECKPOINT_FORMAT,
+        "step": step,
+        "sh_degree": g.sh_degree,
         "params": {k: v.detach().cpu().clone() for k, v in g.params().items()},
-        "optimizer": adam.state_dict(), "densify": stats.state_dict(), "config": config.to_dict(),
-        "rng": generator.get_state(), "view_stack": list(sampler.stack), "loss_curve": list(loss_curve),
-        "skipped": skipped, "train_time": train_time,
+        "optimizer": adam.state_dict(),
+        "densify": stats.state_dict(),
+        "config": config.to_dict(),
+        "rng": generator.get_state(),
+        "view_stack": list(sampler.stack),
+        "loss_curve": list(loss_curve),
+        "skipped": skipped,
+        "train_time": train_time,
     }
 
 
@@ -792,8 +859,12 @@ def fit_gaussians(
     if resume and ck is None and progress:
         print(f"fit-gaussians: no checkpoint in {out_dir}, starting from scratch")
     if ck is not None:
-        config = replace(FitConfig.from_dict(ck["config"]), steps=config.steps,
-                         checkpoint_every=config.checkpoint_every, device=config.device)
+        config = replace(
+            FitConfig.from_dict(ck["config"]),
+            steps=config.steps,
+            checkpoint_every=config.checkpoint_every,
+            device=config.device,
+        )
     train_views, test_views = split_views(scene, config.test_every)
     if ck is None and config.background_from_images:
         config = replace(config, background=border_color(scene, train_views), background_from_images=False)
@@ -828,7 +899,9 @@ def fit_gaussians(
     k = g.sh.shape[1]
 
     def save_checkpoint(step: int) -> None:
-        if _state_finite(g, adam) and (env is None or bool(torch.isfinite(env.sh).all())):  # never persist a broken state
+        if _state_finite(g, adam) and (
+            env is None or bool(torch.isfinite(env.sh).all())
+        ):  # never persist a broken state
             state = _checkpoint(step, g, adam, stats, config, generator, sampler, loss_curve, skipped, train_time)
             if env is not None:
                 state["environment"] = {"sh": env.sh.detach().cpu().clone(), "optimizer": env_adam.state_dict()}
@@ -873,7 +946,8 @@ def fit_gaussians(
         loss.backward()
         # Parameter gradients are checked by the optimiser; it refuses non-finite steps.
         grads_ok = bool(torch.isfinite(loss)) and (
-            out.means2d.grad is None or bool(torch.isfinite(out.means2d.grad).all()))
+            out.means2d.grad is None or bool(torch.isfinite(out.means2d.grad).all())
+        )
         env_ok = env is None or (env.sh.grad is not None and bool(torch.isfinite(env.sh.grad).all()))
         ok = grads_ok and env_ok and adam.step(g.params(), learning_rates(config, step, extent, k, device))
         if ok and env is not None:
@@ -894,12 +968,14 @@ def fit_gaussians(
             if step % config.log_every == 0 or step == 1:
                 loss_curve.append((step, lv))
             if step % config.log_every == 0 and progress:
-                bar.set_postfix(loss=f"{ema:.4f}", psnr=f"{psnr(image.detach().clamp(0, 1), target):.2f}",
-                                G=g.num, refresh=False)
+                bar.set_postfix(
+                    loss=f"{ema:.4f}", psnr=f"{psnr(image.detach().clamp(0, 1), target):.2f}", G=g.num, refresh=False
+                )
         if step < config.densify_until:
             if step > config.densify_from and step % config.densify_every == 0:
-                densify_and_prune(g, adam, stats, config, extent,
-                                  prune_big=0 < config.opacity_reset_every < step, generator=generator)
+                densify_and_prune(
+                    g, adam, stats, config, extent, prune_big=0 < config.opacity_reset_every < step, generator=generator
+                )
                 stats = DensifyStats.zeros(g.num, device)
             if config.opacity_reset_every and step % config.opacity_reset_every == 0:
                 reset_opacity(g, adam)
@@ -916,15 +992,22 @@ def fit_gaussians(
     final = max(step, start)
     save_checkpoint(final)
 
-    report = evaluate(g, scene, train_views, test_views, config, extent, renders_dir=out_dir / TEST_RENDERS_DIR,
-                      env=env)
-    report.update(steps=final, train_time_s=train_time, skipped_steps=skipped,
-                  resumed_from=None if ck is None else int(ck["step"]),
-                  loss_curve=_subsample(loss_curve, 200), config=config.to_dict(),
-                  threads=torch.get_num_threads())
+    report = evaluate(
+        g, scene, train_views, test_views, config, extent, renders_dir=out_dir / TEST_RENDERS_DIR, env=env
+    )
+    report.update(
+        steps=final,
+        train_time_s=train_time,
+        skipped_steps=skipped,
+        resumed_from=None if ck is None else int(ck["step"]),
+        loss_curve=_subsample(loss_curve, 200),
+        config=config.to_dict(),
+        threads=torch.get_num_threads(),
+    )
     if step_times:
-        report.update(step_time_median_s=float(np.median(step_times)),
-                      step_time_p95_s=float(np.percentile(step_times, 95)))
+        report.update(
+            step_time_median_s=float(np.median(step_times)), step_time_p95_s=float(np.percentile(step_times, 95))
+        )
     write_ply(out_dir / PLY_NAME, g)  # refuses non-finite values (cannot happen: steps are guarded)
     if env is not None:
         write_json(out_dir / BACKGROUND_NAME, env.to_dict())
@@ -935,9 +1018,12 @@ def fit_gaussians(
 
 
 def _fit_stopped(step: int, which: str) -> NonFiniteError:
-    return NonFiniteError(None, f"fit stopped at step {step}: {which} had a NaN or infinite loss or gradient and "
-                                "were skipped (nothing non-finite was saved); check the images and the options "
-                                "(--depth-spread)")
+    return NonFiniteError(
+        None,
+        f"fit stopped at step {step}: {which} had a NaN or infinite loss or gradient and "
+        "were skipped (nothing non-finite was saved); check the images and the options "
+        "(--depth-spread)",
+    )
 
 
 def _subsample(curve: list, n: int) -> list:
@@ -948,9 +1034,16 @@ def _subsample(curve: list, n: int) -> list:
 
 
 @torch.no_grad()
-def evaluate(g: Gaussians, scene: Scene, train_views: list[int], test_views: list[int],
-             config: FitConfig, extent: float, renders_dir: Optional[Path] = None,
-             env: Optional[Environment] = None) -> dict:
+def evaluate(
+    g: Gaussians,
+    scene: Scene,
+    train_views: list[int],
+    test_views: list[int],
+    config: FitConfig,
+    extent: float,
+    renders_dir: Optional[Path] = None,
+    env: Optional[Environment] = None,
+) -> dict:
     """Mean PSNR over train and test views; with ground truth, the median absolute error of the
     rendered expected depth over pixels with alpha > 0.5 of the test views (train views if none).
     With ``renders_dir``, each held-out view is written there as ``<stem>.png`` (render on the
@@ -992,9 +1085,16 @@ def evaluate(g: Gaussians, scene: Scene, train_views: list[int], test_views: lis
         if len(errors):
             depth_abs = float(np.median(errors))
             depth_rel = depth_abs / extent
-    return {"num_gaussians": g.num, "train_psnr": train_psnr, "test_psnr": test_psnr, "test_views": list(test_views),
-            "test_psnr_per_view": per_view,
-            "extent": extent, "depth_median_abs": depth_abs, "depth_median_rel_extent": depth_rel}
+    return {
+        "num_gaussians": g.num,
+        "train_psnr": train_psnr,
+        "test_psnr": test_psnr,
+        "test_views": list(test_views),
+        "test_psnr_per_view": per_view,
+        "extent": extent,
+        "depth_median_abs": depth_abs,
+        "depth_median_rel_extent": depth_rel,
+    }
 
 
 def _depth_errors(gt: np.ndarray, depth: np.ndarray, alpha: np.ndarray) -> np.ndarray:  # [Hg, Wg], [H, W], [H, W]

@@ -3,9 +3,8 @@ inside the camera frusta (for scenes without points)."""
 
 from __future__ import annotations
 
-from typing import Callable, Optional, Sequence
-
 import math
+from typing import Callable, Optional, Sequence
 
 import numpy as np
 import torch
@@ -30,7 +29,7 @@ def knn_scale(points: np.ndarray, k: int = 3) -> np.ndarray:  # [P, 3] -> [P]
     kk = min(k, p - 1)
     dist, _ = cKDTree(points).query(points, k=kk + 1)  # the first neighbour is the point itself
     dist = np.asarray(dist).reshape(p, kk + 1)[:, 1:]
-    return np.sqrt(np.maximum((dist ** 2).mean(axis=1), 1e-7))
+    return np.sqrt(np.maximum((dist**2).mean(axis=1), 1e-7))
 
 
 def init_from_points(
@@ -50,8 +49,13 @@ def init_from_points(
     if not np.isfinite(points).all():
         raise ValueError("points contain NaN or infinite coordinates")
     rgb = torch.as_tensor(colors.astype(np.float32) / 255.0)
-    return _isotropic(torch.as_tensor(points, dtype=torch.float32), rgb,
-                      torch.as_tensor(knn_scale(points), dtype=torch.float32), sh_degree, device)
+    return _isotropic(
+        torch.as_tensor(points, dtype=torch.float32),
+        rgb,
+        torch.as_tensor(knn_scale(points), dtype=torch.float32),
+        sh_degree,
+        device,
+    )
 
 
 def _in_image(camera: Camera, uv: np.ndarray, z: np.ndarray) -> np.ndarray:  # [M, 2], [M] -> [M] bool
@@ -71,7 +75,9 @@ def uncovered_cells(
     uv, z = camera.project(np.asarray(points, dtype=np.float64))
     ok = _in_image(camera, uv, z)
     covered = np.zeros((gh, gw), dtype=bool)
-    covered[np.minimum((uv[ok, 1] / size).astype(int), gh - 1), np.minimum((uv[ok, 0] / size).astype(int), gw - 1)] = True
+    covered[np.minimum((uv[ok, 1] / size).astype(int), gh - 1), np.minimum((uv[ok, 0] / size).astype(int), gw - 1)] = (
+        True
+    )
     return ~covered
 
 
@@ -129,8 +135,12 @@ def random_points_in_frusta(
     return points, colors
 
 
-def _sphere_exit_depth(camera: Camera, uv: np.ndarray,  # [M, 2] pixels
-                       center: np.ndarray, radius: float) -> np.ndarray:  # [M] z-depth
+def _sphere_exit_depth(
+    camera: Camera,
+    uv: np.ndarray,  # [M, 2] pixels
+    center: np.ndarray,
+    radius: float,
+) -> np.ndarray:  # [M] z-depth
     """z-depth at which each pixel's ray leaves the sphere (the far root; the camera must be
     inside it, which ``background_shell`` guarantees)."""
     o = camera.center
@@ -142,9 +152,10 @@ def _sphere_exit_depth(camera: Camera, uv: np.ndarray,  # [M, 2] pixels
     return (-b + np.sqrt(np.maximum(b * b - 4 * a * c, 0.0))) / (2 * a)
 
 
-def background_shell(cameras: Sequence[Camera],
-                     points: Optional[np.ndarray] = None,  # [P, 3] sparse points, if any
-                     ) -> tuple[np.ndarray, float]:  # (centre [3], radius)
+def background_shell(
+    cameras: Sequence[Camera],
+    points: Optional[np.ndarray] = None,  # [P, 3] sparse points, if any
+) -> tuple[np.ndarray, float]:  # (centre [3], radius)
     """A sphere around the capture, twice as far from the cameras' centroid as the farthest
     camera (and the 95th percentile of the points): Gaussians on it sit behind everything from
     every camera, so they can stand for a backdrop without floating in front of another view
@@ -157,11 +168,12 @@ def background_shell(cameras: Sequence[Camera],
     return center, 2.0 * max(radius, 1e-6)
 
 
-def clear_of_cameras(points: np.ndarray,  # [P, 3]
-                     cameras: Sequence[Camera],
-                     near: float,
-                     min_seen: float = 0.0,  # also needs to be inside this fraction of the views
-                     ) -> np.ndarray:  # [P] bool
+def clear_of_cameras(
+    points: np.ndarray,  # [P, 3]
+    cameras: Sequence[Camera],
+    near: float,
+    min_seen: float = 0.0,  # also needs to be inside this fraction of the views
+) -> np.ndarray:  # [P] bool
     """False for points that some camera sees (inside its image) closer than z-depth ``near``,
     or that fewer than ``min_seen`` of the cameras see at all."""
     ok = np.ones(len(points), dtype=bool)
@@ -220,8 +232,9 @@ def init_random_in_frusta(
     n_shell = int(round(shell_fraction * n))
     points, cols = random_points_seen(cameras, n - n_shell, near, far, seed=seed, images=images, min_seen=min_seen)
     if n_shell:
-        shell_pts, shell_cols = random_points_in_frusta(cameras, n_shell, near, far, seed=seed, images=images,
-                                                        shell=background_shell(cameras))
+        shell_pts, shell_cols = random_points_in_frusta(
+            cameras, n_shell, near, far, seed=seed, images=images, shell=background_shell(cameras)
+        )
         points, cols = np.concatenate([points, shell_pts]), np.concatenate([cols, shell_cols])
     return init_from_points(points, cols, sh_degree=sh_degree, device=device)
 

@@ -52,11 +52,20 @@ def quat_to_rotmat(quats: Tensor) -> Tensor:  # [N, 4] wxyz, any norm -> [N, 3, 
     """Rotation matrices of (normalised) wxyz quaternions, the model's orientation convention.
     (The renderer keeps its own copy in a kernel-friendly [3, 3, N] layout.)"""
     w, x, y, z = torch.nn.functional.normalize(quats, dim=-1).unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ], dim=-1).reshape(quats.shape[:-1] + (3, 3))
+    return torch.stack(
+        [
+            1 - 2 * (y * y + z * z),
+            2 * (x * y - w * z),
+            2 * (x * z + w * y),
+            2 * (x * y + w * z),
+            1 - 2 * (x * x + z * z),
+            2 * (y * z - w * x),
+            2 * (x * z - w * y),
+            2 * (y * z + w * x),
+            1 - 2 * (x * x + y * y),
+        ],
+        dim=-1,
+    ).reshape(quats.shape[:-1] + (3, 3))
 
 
 class Gaussians(nn.Module):
@@ -147,8 +156,7 @@ class Gaussians(nn.Module):
     def subset(self, mask: Tensor) -> "Gaussians":  # [N] bool, or [M] long indices
         """A new, independent model with the selected Gaussians (same active SH degree)."""
         with torch.no_grad():
-            return Gaussians(**{name: p[mask].clone() for name, p in self.params().items()},
-                             sh_degree=self.sh_degree)
+            return Gaussians(**{name: p[mask].clone() for name, p in self.params().items()}, sh_degree=self.sh_degree)
 
     def clone(self) -> "Gaussians":
         return self.subset(torch.arange(self.num, device=self.device))

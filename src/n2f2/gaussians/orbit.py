@@ -65,8 +65,9 @@ def orbit_cameras(
 
 
 @torch.no_grad()
-def render_views(gaussians: Gaussians, cameras: list[Camera],
-                 background: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> list[np.ndarray]:
+def render_views(
+    gaussians: Gaussians, cameras: list[Camera], background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+) -> list[np.ndarray]:
     """RGB renders ``[H, W, 3]`` float32 in [0, 1], one per camera (SH at the model's degree)."""
     from ..render import render_rgb
 

@@ -30,22 +30,50 @@ from .model import Gaussians, num_sh_bases, sh_degree_from_bases
 
 # PLY scalar type names (both spellings) -> numpy dtype character.
 _PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
-    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
-    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+    "char": "i1",
+    "int8": "i1",
+    "uchar": "u1",
+    "uint8": "u1",
+    "short": "i2",
+    "int16": "i2",
+    "ushort": "u2",
+    "uint16": "u2",
+    "int": "i4",
+    "int32": "i4",
+    "uint": "u4",
+    "uint32": "u4",
+    "float": "f4",
+    "float32": "f4",
+    "double": "f8",
+    "float64": "f8",
 }
 _FORMATS = {"binary_little_endian": "<", "binary_big_endian": ">", "ascii": None}
-_REQUIRED = ("x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
-             "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3")
+_REQUIRED = (
+    "x",
+    "y",
+    "z",
+    "f_dc_0",
+    "f_dc_1",
+    "f_dc_2",
+    "opacity",
+    "scale_0",
+    "scale_1",
+    "scale_2",
+    "rot_0",
+    "rot_1",
+    "rot_2",
+    "rot_3",
+)
 
 
 def property_names(sh_degree: int) -> list[str]:
     """The INRIA vertex property names, in the order 3DGS writes them."""
     n_rest = 3 * (num_sh_bases(sh_degree) - 1)
-    return (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
-            + [f"f_rest_{i}" for i in range(n_rest)]
-            + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
+    return (
+        ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+        + [f"f_rest_{i}" for i in range(n_rest)]
+        + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    )
 
 
 # ---------------------------------------------------------------------------------- writing
@@ -57,18 +85,27 @@ def write_ply(path: str | Path, gaussians: Gaussians) -> None:
         k = num_sh_bases(g.max_sh_degree)
         names = property_names(g.max_sh_degree)
         columns = [
-            g.means, torch.zeros(n, 3, device=g.device),
+            g.means,
+            torch.zeros(n, 3, device=g.device),
             g.sh[:, 0, :],
             # [N, K-1, 3] -> [N, 3, K-1] -> channel-major [N, 3 (K-1)], as 3DGS's save_ply.
             g.sh[:, 1:, :].transpose(1, 2).reshape(n, 3 * (k - 1)),
-            g.opacity_logits[:, None], g.log_scales, g.quats,
+            g.opacity_logits[:, None],
+            g.log_scales,
+            g.quats,
         ]
         data = torch.cat([c.detach().float().cpu() for c in columns], dim=1).numpy()
     if not np.isfinite(data).all():
         bad = int((~np.isfinite(data).all(axis=1)).sum())
         raise NonFiniteError(path, f"refusing to write: {bad} of {n} Gaussians have NaN or infinite parameters")
-    header = "\n".join(["ply", "format binary_little_endian 1.0", f"element vertex {n}"]
-                       + [f"property float {name}" for name in names] + ["end_header"]) + "\n"
+    header = (
+        "\n".join(
+            ["ply", "format binary_little_endian 1.0", f"element vertex {n}"]
+            + [f"property float {name}" for name in names]
+            + ["end_header"]
+        )
+        + "\n"
+    )
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
             f.write(header.encode("ascii"))
@@ -132,8 +169,10 @@ def _read_vertices(path: Path) -> np.ndarray:
             if any(t == "list" for _, t in props):
                 # Variable-length rows before the vertices would have to be parsed one by one;
                 # splat files never have them.
-                raise InputError(path, f"PLY element {name!r} has list properties before/in the "
-                                       "vertex element; not a Gaussian splat file")
+                raise InputError(
+                    path,
+                    f"PLY element {name!r} has list properties before/in the vertex element; not a Gaussian splat file",
+                )
         _, count, props = elements[vi]
         if len({p for p, _ in props}) != len(props):
             raise InputError(path, "PLY vertex element has duplicate property names")
@@ -144,8 +183,11 @@ def _read_vertices(path: Path) -> np.ndarray:
             # Every value but the file's last takes at least two bytes ("0 ", "0\n"): a count the
             # file cannot hold is refused before reading.
             if 2 * (lines_before + count * len(props)) - 1 > body:
-                raise InputError(path, f"PLY truncated: header says {count} vertices of {len(props)} values, "
-                                       f"the file holds {body} bytes after the header")
+                raise InputError(
+                    path,
+                    f"PLY truncated: header says {count} vertices of {len(props)} values, "
+                    f"the file holds {body} bytes after the header",
+                )
             for _ in range(lines_before):
                 f.readline()
             dtype = np.dtype([(p, t) for p, t in props])
@@ -153,25 +195,35 @@ def _read_vertices(path: Path) -> np.ndarray:
             for i in range(count):
                 words = f.readline().split()
                 if len(words) < len(props):
-                    raise InputError(path, f"PLY truncated: header says {count} vertices, "
-                                           f"vertex row {i} is missing or short")
+                    raise InputError(
+                        path, f"PLY truncated: header says {count} vertices, vertex row {i} is missing or short"
+                    )
                 try:
                     rows.append(tuple(float(w) for w in words[: len(props)]))
                 except ValueError:
-                    raise InputError(path, f"vertex row {i} holds something that is not a number: "
-                                           f"{b' '.join(words[: len(props)]).decode('ascii', 'replace')[:80]!r}") from None
+                    raise InputError(
+                        path,
+                        f"vertex row {i} holds something that is not a number: "
+                        f"{b' '.join(words[: len(props)]).decode('ascii', 'replace')[:80]!r}",
+                    ) from None
             return np.array(rows, dtype=dtype) if rows else np.zeros(0, dtype)
         endian = _FORMATS[fmt]
         skip = sum(c * np.dtype([(p, endian + t) for p, t in pr]).itemsize for _, c, pr in elements[:vi])
         dtype = np.dtype([(p, endian + t) for p, t in props])
         if skip + count * dtype.itemsize > body:
-            raise InputError(path, f"PLY truncated: header says {count} vertices ({count * dtype.itemsize} bytes), "
-                                   f"the file holds {max(0, body - skip)} bytes for them")
+            raise InputError(
+                path,
+                f"PLY truncated: header says {count} vertices ({count * dtype.itemsize} bytes), "
+                f"the file holds {max(0, body - skip)} bytes for them",
+            )
         f.seek(skip, 1)
         payload = f.read(count * dtype.itemsize)
     if len(payload) < count * dtype.itemsize:
-        raise InputError(path, f"PLY truncated: header says {count} vertices "
-                               f"({count * dtype.itemsize} bytes), file holds {len(payload)} bytes")
+        raise InputError(
+            path,
+            f"PLY truncated: header says {count} vertices "
+            f"({count * dtype.itemsize} bytes), file holds {len(payload)} bytes",
+        )
     return np.frombuffer(payload, dtype=dtype, count=count)
 
 
@@ -191,20 +243,25 @@ def read_ply(path: str | Path, device: torch.device | str | None = None) -> Gaus
         gaps = sorted(set(range(max(rest_ids) + 1)) - set(rest_ids))
         missing += [f"f_rest_{i}" for i in gaps]
     if missing:
-        raise InputError(path, "PLY vertex element is missing properties required by the INRIA 3DGS "
-                               f"layout: {', '.join(missing)}")
+        raise InputError(
+            path, f"PLY vertex element is missing properties required by the INRIA 3DGS layout: {', '.join(missing)}"
+        )
     n_rest = len(rest_ids)
     if n_rest % 3 != 0:
         raise InputError(path, f"{n_rest} f_rest_* properties is not a multiple of 3")
     try:
         degree = sh_degree_from_bases(n_rest // 3 + 1)
     except ValueError:
-        raise InputError(path, f"{n_rest} f_rest_* properties does not match any SH degree "
-                               "(expected 0, 9, 24 or 45 for degrees 0-3)") from None
+        raise InputError(
+            path, f"{n_rest} f_rest_* properties does not match any SH degree (expected 0, 9, 24 or 45 for degrees 0-3)"
+        ) from None
 
     def cols(names: list[str]) -> np.ndarray:
-        return np.stack([np.asarray(v[p], dtype=np.float32) for p in names], axis=1) if names else \
-            np.zeros((len(v), 0), np.float32)
+        return (
+            np.stack([np.asarray(v[p], dtype=np.float32) for p in names], axis=1)
+            if names
+            else np.zeros((len(v), 0), np.float32)
+        )
 
     n = len(v)
     means = cols(["x", "y", "z"])
@@ -225,16 +282,25 @@ def read_ply(path: str | Path, device: torch.device | str | None = None) -> Gaus
     # lands on exactly 0.0 on all three axes), so it is rejected rather than read as unit scale.
     zero_rows = (log_scales == 0.0).all(axis=1)
     if zero_rows.any():
-        raise InputError(path, f"{int(zero_rows.sum())} of {n} Gaussians have scale_0..2 all exactly 0: "
-                               "the INRIA layout stores log-scales, so this file looks like it stores "
-                               "zero linear scales")
-    for label, arr in (("f_dc_*", dc), ("f_rest_*", rest), ("opacity", opacity),
-                       ("scale_*", log_scales), ("rot_*", quats)):
+        raise InputError(
+            path,
+            f"{int(zero_rows.sum())} of {n} Gaussians have scale_0..2 all exactly 0: "
+            "the INRIA layout stores log-scales, so this file looks like it stores "
+            "zero linear scales",
+        )
+    for label, arr in (
+        ("f_dc_*", dc),
+        ("f_rest_*", rest),
+        ("opacity", opacity),
+        ("scale_*", log_scales),
+        ("rot_*", quats),
+    ):
         if not np.isfinite(arr).all():
             raise InputError(path, f"property {label} has NaN or infinite values")
     if (np.linalg.norm(quats.astype(np.float64), axis=1) == 0).any():
-        raise InputError(path, f"{int((np.abs(quats).sum(1) == 0).sum())} Gaussians have an all-zero "
-                               "rotation quaternion (rot_0..3)")
+        raise InputError(
+            path, f"{int((np.abs(quats).sum(1) == 0).sum())} Gaussians have an all-zero rotation quaternion (rot_0..3)"
+        )
 
     k = num_sh_bases(degree)
     sh = np.empty((n, k, 3), dtype=np.float32)

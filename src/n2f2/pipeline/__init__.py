@@ -7,19 +7,22 @@ from __future__ import annotations
 
 from .._lazy import lazy_exports
 
-__getattr__, __all__ = lazy_exports(__name__, {
-    "StageCache": "cache",
-    "file_digest": "cache",
-    "scene_digest": "cache",
-    "stage_key": "cache",
-    "tree_digest": "cache",
-    "Preset": "presets",
-    "PRESETS": "presets",
-    "get_preset": "presets",
-    "DemoScene": "run",
-    "RunOptions": "run",
-    "resolve_defaults": "run",
-    "run_pipeline": "run",
-    "run_many": "many",
-    "run_scene": "many",
-})
+__getattr__, __all__ = lazy_exports(
+    __name__,
+    {
+        "StageCache": "cache",
+        "file_digest": "cache",
+        "scene_digest": "cache",
+        "stage_key": "cache",
+        "tree_digest": "cache",
+        "Preset": "presets",
+        "PRESETS": "presets",
+        "get_preset": "presets",
+        "DemoScene": "run",
+        "RunOptions": "run",
+        "resolve_defaults": "run",
+        "run_pipeline": "run",
+        "run_many": "many",
+        "run_scene": "many",
+    },
+)

@@ -74,8 +74,11 @@ class StageCache:
         log(f"[{name}] running")
         start = time.perf_counter()
         fn()
-        self.records[name] = {"key": key, "seconds": round(time.perf_counter() - start, 2),
-                              "outputs": [str(p.relative_to(self.run_dir)) for p in outputs]}
+        self.records[name] = {
+            "key": key,
+            "seconds": round(time.perf_counter() - start, 2),
+            "outputs": [str(p.relative_to(self.run_dir)) for p in outputs],
+        }
         write_json(self.run_dir / STAGES_FILE, self.records)
         self.ran.append(name)
         log(f"[{name}] done in {self.records[name]['seconds']:.1f} s")

@@ -20,41 +20,83 @@ def _add_run_options(p: argparse.ArgumentParser, per_scene_inputs: bool = True) 
     files (--gaussians, --langsplat-features, --labels), for ``run-many``."""
     if per_scene_inputs:
         p.add_argument("--gaussians", metavar="PLY", default=None, help="use these Gaussians instead of fitting")
-    p.add_argument("--segmenter", choices=["sam", "classical", "ground-truth"], default=None,
-                   help="segmenter (default: ground-truth on the demo scene, else sam)")
-    p.add_argument("--encoder", choices=["clip", "captions"], default=None,
-                   help="encoder (default: captions = ground-truth captions embedded by all-MiniLM-L6-v2, an "
-                        "offline stand-in for CLIP, on the demo scene; else clip). With --langsplat-features: "
-                        "the text encoder the features are aligned with (default: the one an n2f2 export "
-                        "recorded in DIR/encoder.json, else clip)")
+    p.add_argument(
+        "--segmenter",
+        choices=["sam", "classical", "ground-truth"],
+        default=None,
+        help="segmenter (default: ground-truth on the demo scene, else sam)",
+    )
+    p.add_argument(
+        "--encoder",
+        choices=["clip", "captions"],
+        default=None,
+        help="encoder (default: captions = ground-truth captions embedded by all-MiniLM-L6-v2, an "
+        "offline stand-in for CLIP, on the demo scene; else clip). With --langsplat-features: "
+        "the text encoder the features are aligned with (default: the one an n2f2 export "
+        "recorded in DIR/encoder.json, else clip)",
+    )
     p.add_argument("--model", metavar="ID", default=None, help="CLIP model id or folder")
     if per_scene_inputs:
-        p.add_argument("--langsplat-features", metavar="DIR", default=None,
-                       help="LangSplat language_features folder (<stem>_s.npy, <stem>_f.npy): import instead of "
-                            "segmenting")
-        p.add_argument("--labels", metavar="DIR", default=None,
-                       help="LangSplat-format labels (default: DATA/label when it exists)")
-    p.add_argument("--preset", choices=list(PRESETS), default=DEFAULT_PRESET,
-                   help="settings of every stage, n2f2.pipeline.presets (default %(default)s)")
+        p.add_argument(
+            "--langsplat-features",
+            metavar="DIR",
+            default=None,
+            help="LangSplat language_features folder (<stem>_s.npy, <stem>_f.npy): import instead of segmenting",
+        )
+        p.add_argument(
+            "--labels", metavar="DIR", default=None, help="LangSplat-format labels (default: DATA/label when it exists)"
+        )
+    p.add_argument(
+        "--preset",
+        choices=list(PRESETS),
+        default=DEFAULT_PRESET,
+        help="settings of every stage, n2f2.pipeline.presets (default %(default)s)",
+    )
     p.add_argument("--fit-steps", type=positive_int, default=None, help="override the fit preset's step count")
-    p.add_argument("--train-steps", type=positive_int, default=None,
-                   help=f"override the train preset's iterations ({per_preset(lambda p: p.train.iterations)})")
-    p.add_argument("--dim", type=positive_int, default=None,
-                   help=f"override the preset's feature-field dims D ({per_preset(lambda p: p.field.dim)})")
-    p.add_argument("--variant", choices=["nested", "flat", "levels"], default=None,
-                   help=f"field variant (default: the preset's: {per_preset(lambda p: p.field.variant)})")
-    p.add_argument("--depth-source", choices=["render", "gt"], default="render",
-                   help="lift segments with the Gaussians' rendered depth (default) or the demo scene's exact depth")
-    p.add_argument("--scale-measure", choices=list(SCALE_MEASURES), default=None,
-                   help="segment scale: eigenvalue = largest covariance eigenvalue of its 3D points (paper); "
-                        "extent = squared diagonal of their robust oriented box (not in the paper; fewer "
-                        "segments measured smaller than their own parts). Default: the preset's "
-                        f"({per_preset(lambda p: p.lift.scale_measure)})")
-    p.add_argument("--modes", nargs="+", default=list(DEFAULT_MODES), help=f"evaluation modes (default: {' '.join(DEFAULT_MODES)})")
-    p.add_argument("--downscale", type=positive_float, default=1.0,
-                   help="image downscale factor, as 3DGS -r (default %(default)s)")
-    p.add_argument("--skip-missing", action="store_true",
-                   help="drop views whose image file is missing (default: a missing image is an error)")
+    p.add_argument(
+        "--train-steps",
+        type=positive_int,
+        default=None,
+        help=f"override the train preset's iterations ({per_preset(lambda p: p.train.iterations)})",
+    )
+    p.add_argument(
+        "--dim",
+        type=positive_int,
+        default=None,
+        help=f"override the preset's feature-field dims D ({per_preset(lambda p: p.field.dim)})",
+    )
+    p.add_argument(
+        "--variant",
+        choices=["nested", "flat", "levels"],
+        default=None,
+        help=f"field variant (default: the preset's: {per_preset(lambda p: p.field.variant)})",
+    )
+    p.add_argument(
+        "--depth-source",
+        choices=["render", "gt"],
+        default="render",
+        help="lift segments with the Gaussians' rendered depth (default) or the demo scene's exact depth",
+    )
+    p.add_argument(
+        "--scale-measure",
+        choices=list(SCALE_MEASURES),
+        default=None,
+        help="segment scale: eigenvalue = largest covariance eigenvalue of its 3D points (paper); "
+        "extent = squared diagonal of their robust oriented box (not in the paper; fewer "
+        "segments measured smaller than their own parts). Default: the preset's "
+        f"({per_preset(lambda p: p.lift.scale_measure)})",
+    )
+    p.add_argument(
+        "--modes", nargs="+", default=list(DEFAULT_MODES), help=f"evaluation modes (default: {' '.join(DEFAULT_MODES)})"
+    )
+    p.add_argument(
+        "--downscale", type=positive_float, default=1.0, help="image downscale factor, as 3DGS -r (default %(default)s)"
+    )
+    p.add_argument(
+        "--skip-missing",
+        action="store_true",
+        help="drop views whose image file is missing (default: a missing image is an error)",
+    )
     p.add_argument("--device", default="cpu", help="torch device (default %(default)s)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 
@@ -65,13 +107,27 @@ def _run_options(args: argparse.Namespace, data: Path, out: Path) -> RunOptions:
         if value is not None and value <= 0:
             raise InputError(None, f"--{flag.replace('_', '-')} must be > 0, got {value}")
     return RunOptions(
-        data=data, out=out, gaussians=Path(args.gaussians) if args.gaussians else None,
-        segmenter=args.segmenter, encoder=args.encoder, model=args.model,
+        data=data,
+        out=out,
+        gaussians=Path(args.gaussians) if args.gaussians else None,
+        segmenter=args.segmenter,
+        encoder=args.encoder,
+        model=args.model,
         langsplat_features=Path(args.langsplat_features) if args.langsplat_features else None,
-        labels=Path(args.labels) if args.labels else None, preset=args.preset, fit_steps=args.fit_steps,
-        train_steps=args.train_steps, dim=args.dim, variant=args.variant, depth_source=args.depth_source,
-        scale_measure=args.scale_measure, downscale=args.downscale, skip_missing=args.skip_missing,
-        modes=tuple(args.modes), device=args.device, quiet=args.quiet)
+        labels=Path(args.labels) if args.labels else None,
+        preset=args.preset,
+        fit_steps=args.fit_steps,
+        train_steps=args.train_steps,
+        dim=args.dim,
+        variant=args.variant,
+        depth_source=args.depth_source,
+        scale_measure=args.scale_measure,
+        downscale=args.downscale,
+        skip_missing=args.skip_missing,
+        modes=tuple(args.modes),
+        device=args.device,
+        quiet=args.quiet,
+    )
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
@@ -79,8 +135,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
     start = time.perf_counter()
     result = run_pipeline(_run_options(args, Path(args.data), Path(args.out)))
-    print(f"run: {result['run_dir']} in {time.perf_counter() - start:.1f} s"
-          + (f"; evaluation: {result['eval']}" if result["eval"] else ""))
+    print(
+        f"run: {result['run_dir']} in {time.perf_counter() - start:.1f} s"
+        + (f"; evaluation: {result['eval']}" if result["eval"] else "")
+    )
     return 0
 
 
@@ -96,8 +154,11 @@ def _cmd_run_many(args: argparse.Namespace) -> int:
     for name in sorted(set(names)):
         same = [str(d) for d, n in zip(scenes, names) if n == name]
         if len(same) > 1:
-            raise InputError(None, f"scenes {', '.join(same)} share the folder name {name!r}, and each scene's run "
-                             f"goes to {out}/<scene folder name>")
+            raise InputError(
+                None,
+                f"scenes {', '.join(same)} share the folder name {name!r}, and each scene's run "
+                f"goes to {out}/<scene folder name>",
+            )
     executor = executor_from_args(args, gpu=str(args.device).startswith("cuda"))
     opts = [_run_options(args, d, out / n) for d, n in zip(scenes, names)]
     if executor.name == "ray":  # stage progress bars do not survive Ray's log streaming
@@ -107,8 +168,10 @@ def _cmd_run_many(args: argparse.Namespace) -> int:
     print((out / f"{SUMMARY_NAME}.md").read_text())
     failed = [r["scene"] for r in summary["scenes"] if r["status"] != "ok"]
     if failed:
-        raise InputError(None, f"{len(failed)} of {len(scenes)} scenes failed: {', '.join(failed)} "
-                         f"(details in {out / SUMMARY_NAME}.md)")
+        raise InputError(
+            None,
+            f"{len(failed)} of {len(scenes)} scenes failed: {', '.join(failed)} (details in {out / SUMMARY_NAME}.md)",
+        )
     return 0
 
 
@@ -136,45 +199,59 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 def register(subparsers) -> None:
     scene = DemoScene()
     p = subparsers.add_parser(
-        "demo", help="generate the built-in demo scene and run the whole pipeline on it",
+        "demo",
+        help="generate the built-in demo scene and run the whole pipeline on it",
         description="Generate a built-in synthetic scene (--layout: a tabletop or a lounge; exact ground truth "
-                    "at part, object and group level), then fit Gaussians, build the segment bank (ground-truth "
-                    "segments; captions embedded by all-MiniLM-L6-v2, an offline stand-in for CLIP), train the nested field, "
-                    "evaluate with LangSplat's protocol, and write a few relevancy PNGs.")
+        "at part, object and group level), then fit Gaussians, build the segment bank (ground-truth "
+        "segments; captions embedded by all-MiniLM-L6-v2, an offline stand-in for CLIP), train the nested field, "
+        "evaluate with LangSplat's protocol, and write a few relevancy PNGs.",
+    )
     p.add_argument("--out", default="demo_out", help="output folder (default: %(default)s)")
     p.add_argument("--views", type=positive_int, default=scene.views, help="number of views (default: %(default)s)")
     p.add_argument("--width", type=positive_int, default=scene.width, help="image width (default: %(default)s)")
     p.add_argument("--height", type=positive_int, default=scene.height, help="image height (default: %(default)s)")
     p.add_argument("--seed", type=nonneg_int, default=scene.seed, help="random seed (default: %(default)s)")
-    p.add_argument("--layout", choices=["tabletop", "lounge"], default=scene.layout,
-                   help="scene layout: tabletop (round table with a tea set and snacks, 6 x 6 m room; every "
-                        "preset was tuned on it) or lounge (sofa, floor lamp and a coffee table with small "
-                        "objects in a 14 x 11 m room, on a partial arc with close views). Default: %(default)s")
+    p.add_argument(
+        "--layout",
+        choices=["tabletop", "lounge"],
+        default=scene.layout,
+        help="scene layout: tabletop (round table with a tea set and snacks, 6 x 6 m room; every "
+        "preset was tuned on it) or lounge (sofa, floor lamp and a coffee table with small "
+        "objects in a 14 x 11 m room, on a partial arc with close views). Default: %(default)s",
+    )
     p.add_argument("--scene-only", action="store_true", help="only generate the scene and its contact sheet")
     _add_run_options(p)
     p.set_defaults(func=_cmd_demo)
 
     r = subparsers.add_parser(
-        "run", help="run every stage on a scene: fit, segments, train, eval (each cached)",
+        "run",
+        help="run every stage on a scene: fit, segments, train, eval (each cached)",
         description="Fit Gaussians (or --gaussians), build the segment bank (or --langsplat-features), train "
-                    "the nested field, and evaluate when labels exist. Each stage is skipped when its inputs "
-                    "are unchanged (RUN/stages.json).")
-    r.add_argument("data", metavar="DATA", help="scene folder (COLMAP or nerfstudio), or a folder of photos, "
-                                                "posed first by `n2f2 sfm` into DIR/sfm")
+        "the nested field, and evaluate when labels exist. Each stage is skipped when its inputs "
+        "are unchanged (RUN/stages.json).",
+    )
+    r.add_argument(
+        "data",
+        metavar="DATA",
+        help="scene folder (COLMAP or nerfstudio), or a folder of photos, posed first by `n2f2 sfm` into DIR/sfm",
+    )
     r.add_argument("--out", required=True, metavar="DIR", help="run folder")
     _add_run_options(r)
     r.set_defaults(func=_cmd_run)
 
     m = subparsers.add_parser(
-        "run-many", help="`run` on several scenes, one task per scene (serially or on Ray), and a summary table",
+        "run-many",
+        help="`run` on several scenes, one task per scene (serially or on Ray), and a summary table",
         description="Run every stage (as `n2f2 run`, with the same stage cache) on each scene into "
-                    "DIR/<scene folder name>/, one task per scene: serially, or as Ray tasks on this machine "
-                    "or a cluster (docs/distributed.md). A scene failing on bad input is reported and the "
-                    "others go on; then DIR/summary.md and DIR/summary.json give each scene's mIoU per mode, "
-                    "time per stage and status, and the command exits 2 if any scene failed.")
+        "DIR/<scene folder name>/, one task per scene: serially, or as Ray tasks on this machine "
+        "or a cluster (docs/distributed.md). A scene failing on bad input is reported and the "
+        "others go on; then DIR/summary.md and DIR/summary.json give each scene's mIoU per mode, "
+        "time per stage and status, and the command exits 2 if any scene failed.",
+    )
     m.add_argument("data", nargs="+", metavar="SCENE", help="scene folders (COLMAP or nerfstudio) or photo folders")
-    m.add_argument("--out", required=True, metavar="DIR", help="folder of the runs (DIR/<scene folder name>/) "
-                                                               "and the summary")
+    m.add_argument(
+        "--out", required=True, metavar="DIR", help="folder of the runs (DIR/<scene folder name>/) and the summary"
+    )
     _add_run_options(m, per_scene_inputs=False)
     add_executor_options(m, "scene")
     m.set_defaults(func=_cmd_run_many, gaussians=None, langsplat_features=None, labels=None)

@@ -36,12 +36,27 @@ def run_scene(opt: RunOptions) -> dict:
         result = run_pipeline(opt, log=lambda msg: print(f"{name}: {msg}", flush=True))
         mious = _eval_mious(result["eval"])
     except N2F2Error as e:
-        return {**row, "status": "failed", "error": str(e), "seconds": round(time.perf_counter() - start, 2),
-                "stages": {}, "miou": {}, "eval": None}
-    stages = {stage: {"seconds": rec.get("seconds"), "ran": stage in result["ran"]}
-              for stage, rec in result["stages"].items()}
-    return {**row, "status": "ok", "error": None, "seconds": round(time.perf_counter() - start, 2),
-            "stages": stages, "miou": mious, "eval": result["eval"]}
+        return {
+            **row,
+            "status": "failed",
+            "error": str(e),
+            "seconds": round(time.perf_counter() - start, 2),
+            "stages": {},
+            "miou": {},
+            "eval": None,
+        }
+    stages = {
+        stage: {"seconds": rec.get("seconds"), "ran": stage in result["ran"]} for stage, rec in result["stages"].items()
+    }
+    return {
+        **row,
+        "status": "ok",
+        "error": None,
+        "seconds": round(time.perf_counter() - start, 2),
+        "stages": stages,
+        "miou": mious,
+        "eval": result["eval"],
+    }
 
 
 def summary_markdown(summary: dict) -> str:
@@ -56,25 +71,37 @@ def summary_markdown(summary: dict) -> str:
     for r in rows:
         cells = [r["scene"], r["status"]]
         for m in modes:
-            cells.append(" / ".join(f"{100 * r['miou'][m][b]:.1f}" if b in r["miou"].get(m, {}) else "-"
-                                    for b in boxes))
+            cells.append(
+                " / ".join(f"{100 * r['miou'][m][b]:.1f}" if b in r["miou"].get(m, {}) else "-" for b in boxes)
+            )
         for stage in SUMMARY_STAGES:
             st = r["stages"].get(stage)
-            cells.append("-" if st is None or st["seconds"] is None
-                         else f"{st['seconds']:.1f}" + ("" if st["ran"] else " (cached)"))
+            cells.append(
+                "-"
+                if st is None or st["seconds"] is None
+                else f"{st['seconds']:.1f}" + ("" if st["ran"] else " (cached)")
+            )
         cells.append(f"{r['seconds']:.1f}")
         body.append(cells)
     box_note = " / ".join(boxes)
-    headers = (["scene", "status"] + [f"{m} mIoU % ({box_note})" for m in modes]
-               + [f"{s} s" for s in SUMMARY_STAGES] + ["wall s"])
-    text = (f"# run-many: {len(rows)} scenes, executor {summary['executor']}, {summary['seconds']:.1f} s\n\n"
-            + markdown_table(headers, body))
+    headers = (
+        ["scene", "status"]
+        + [f"{m} mIoU % ({box_note})" for m in modes]
+        + [f"{s} s" for s in SUMMARY_STAGES]
+        + ["wall s"]
+    )
+    text = (
+        f"# run-many: {len(rows)} scenes, executor {summary['executor']}, {summary['seconds']:.1f} s\n\n"
+        + markdown_table(headers, body)
+    )
     failed = [r for r in rows if r["status"] != "ok"]
     if failed:
         text += "\n" + "".join(f"- {r['scene']}: {r['error']}\n" for r in failed)
-    text += ("\nmIoU per box of LangSplat's protocol (exact: 30 px box; scaled: box scaled to the image "
-             "width). Stage times are those of the stage's last run; (cached): skipped this time, its inputs "
-             "unchanged.\n")
+    text += (
+        "\nmIoU per box of LangSplat's protocol (exact: 30 px box; scaled: box scaled to the image "
+        "width). Stage times are those of the stage's last run; (cached): skipped this time, its inputs "
+        "unchanged.\n"
+    )
     return text
 
 
@@ -92,8 +119,17 @@ def run_many(opts: list[RunOptions], out: Path, executor, progress: bool = True)
     with executor:
         for k, row in executor.map(run_scene, opts):
             if isinstance(row, TaskFailure):  # run_scene reports bad input itself; kept for safety
-                row = {"scene": Path(opts[k].out).name, "data": str(opts[k].data), "run_dir": str(opts[k].out),
-                       "status": "failed", "error": str(row), "seconds": 0.0, "stages": {}, "miou": {}, "eval": None}
+                row = {
+                    "scene": Path(opts[k].out).name,
+                    "data": str(opts[k].data),
+                    "run_dir": str(opts[k].out),
+                    "status": "failed",
+                    "error": str(row),
+                    "seconds": 0.0,
+                    "stages": {},
+                    "miou": {},
+                    "eval": None,
+                }
             rows[k] = row
             if row["status"] != "ok":
                 bar.write(f"run-many: {row['scene']} failed: {row['error']}", file=sys.stderr)

@@ -37,8 +37,13 @@ class Preset:
     field: FieldConfig
     train: TrainConfig
 
-    def fit_config(self, scene, steps: Optional[int] = None, seed: int = 0,  # scene: n2f2.data.Scene
-                   device: str = "cpu") -> FitConfig:
+    def fit_config(
+        self,
+        scene,
+        steps: Optional[int] = None,
+        seed: int = 0,  # scene: n2f2.data.Scene
+        device: str = "cpu",
+    ) -> FitConfig:
         """The fit settings for ``scene``; ``steps`` overrides the step count (a sized schedule
         keeps its fractions of the run)."""
         config = replace(self.fit, seed=seed)
@@ -49,13 +54,25 @@ class Preset:
 
 
 def cpu() -> Preset:
-    return Preset(name="cpu", fit=FitConfig.cpu(), sized_fit=True, lift=LiftSettings(scale_measure="extent"),
-                  field=FieldConfig.cpu(), train=TrainConfig.cpu())
+    return Preset(
+        name="cpu",
+        fit=FitConfig.cpu(),
+        sized_fit=True,
+        lift=LiftSettings(scale_measure="extent"),
+        field=FieldConfig.cpu(),
+        train=TrainConfig.cpu(),
+    )
 
 
 def paper() -> Preset:
-    return Preset(name="paper", fit=FitConfig.paper(), sized_fit=False, lift=LiftSettings(),
-                  field=FieldConfig.paper(), train=TrainConfig.paper())
+    return Preset(
+        name="paper",
+        fit=FitConfig.paper(),
+        sized_fit=False,
+        lift=LiftSettings(),
+        field=FieldConfig.paper(),
+        train=TrainConfig.paper(),
+    )
 
 
 PRESETS: dict[str, Callable[[], Preset]] = {"cpu": cpu, "paper": paper}

@@ -87,8 +87,11 @@ def run_pipeline(opt: RunOptions, log: Callable[[str], None] = print) -> dict:
     if not data.is_dir():
         raise InputError(data, "scene folder does not exist")
     if opt.depth_source == "gt" and not (is_demo_scene(data) and (data / "depth").is_dir()):
-        raise InputError(data / "depth", "--depth-source gt needs the exact depth maps of the demo scene "
-                         "(depth/*.npy and regions.json); use --depth-source render")
+        raise InputError(
+            data / "depth",
+            "--depth-source gt needs the exact depth maps of the demo scene "
+            "(depth/*.npy and regions.json); use --depth-source render",
+        )
     if opt.langsplat_features is not None and not Path(opt.langsplat_features).is_dir():
         raise InputError(opt.langsplat_features, "LangSplat features folder does not exist")
     if opt.labels is not None and not Path(opt.labels).is_dir():
@@ -96,8 +99,7 @@ def run_pipeline(opt: RunOptions, log: Callable[[str], None] = print) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     cache = StageCache.open(out)
     progress = not opt.quiet
-    common = dict(downscale=opt.downscale, skip_missing=opt.skip_missing, device=opt.device, progress=progress,
-                  log=log)
+    common = dict(downscale=opt.downscale, skip_missing=opt.skip_missing, device=opt.device, progress=progress, log=log)
     from ..data.sfm import posed_scene_path
 
     data = posed_scene_path(data, out / "sfm", progress=progress, log=log)  # photos: pose them first
@@ -114,8 +116,13 @@ def run_pipeline(opt: RunOptions, log: Callable[[str], None] = print) -> dict:
         fit_dir = out / "gaussians"
         ply = fit_dir / "gaussians.ply"
         fit_key = ["--preset", opt.preset] + (["--steps", opt.fit_steps] if opt.fit_steps else [])
-        cache.run("fit-gaussians", stage_key(scene=sdig, args=fit_key, downscale=opt.downscale), [ply],
-                  lambda: stages.fit_gaussians(data, fit_dir, preset, opt.fit_steps, **common), log)
+        cache.run(
+            "fit-gaussians",
+            stage_key(scene=sdig, args=fit_key, downscale=opt.downscale),
+            [ply],
+            lambda: stages.fit_gaussians(data, fit_dir, preset, opt.fit_steps, **common),
+            log,
+        )
     gdig = file_digest(ply)
 
     # 2. Segment bank.
@@ -123,21 +130,48 @@ def run_pipeline(opt: RunOptions, log: Callable[[str], None] = print) -> dict:
     lift = replace(preset.lift, scale_measure=opt.scale_measure)
     if opt.langsplat_features is not None:
         feats = Path(opt.langsplat_features)
-        seg_key = stage_key(scene=sdig, gaussians=gdig, features=tree_digest(feats),
-                            args=["--encoder", opt.encoder, "--scale-measure", opt.scale_measure],
-                            depth=opt.depth_source, model=opt.model)
+        seg_key = stage_key(
+            scene=sdig,
+            gaussians=gdig,
+            features=tree_digest(feats),
+            args=["--encoder", opt.encoder, "--scale-measure", opt.scale_measure],
+            depth=opt.depth_source,
+            model=opt.model,
+        )
 
         def build() -> None:
-            stages.import_langsplat_bank(data, bank, ply, feats, encoder=opt.encoder, lift=lift, model=opt.model,
-                                         depth_source=opt.depth_source, **common)
+            stages.import_langsplat_bank(
+                data,
+                bank,
+                ply,
+                feats,
+                encoder=opt.encoder,
+                lift=lift,
+                model=opt.model,
+                depth_source=opt.depth_source,
+                **common,
+            )
     else:
-        seg_key = stage_key(scene=sdig, gaussians=gdig, args=["--segmenter", opt.segmenter, "--encoder", opt.encoder,
-                                                              "--scale-measure", opt.scale_measure],
-                            depth=opt.depth_source, model=opt.model)
+        seg_key = stage_key(
+            scene=sdig,
+            gaussians=gdig,
+            args=["--segmenter", opt.segmenter, "--encoder", opt.encoder, "--scale-measure", opt.scale_measure],
+            depth=opt.depth_source,
+            model=opt.model,
+        )
 
         def build() -> None:
-            stages.build_segment_bank(data, bank, ply, segmenter=opt.segmenter, encoder=opt.encoder, lift=lift,
-                                      model=opt.model, depth_source=opt.depth_source, **common)
+            stages.build_segment_bank(
+                data,
+                bank,
+                ply,
+                segmenter=opt.segmenter,
+                encoder=opt.encoder,
+                lift=lift,
+                model=opt.model,
+                depth_source=opt.depth_source,
+                **common,
+            )
 
     def build_bank() -> None:
         if bank.exists():  # inputs changed: a resumed extraction would mix old and new records
@@ -149,8 +183,9 @@ def run_pipeline(opt: RunOptions, log: Callable[[str], None] = print) -> dict:
     # 3. Nested feature field.
     field_over = {k: v for k, v in (("dim", opt.dim), ("variant", opt.variant)) if v}
     field_config = replace(preset.field, **field_over)
-    train_config = replace(preset.train, seed=0, device=opt.device,
-                           **({"iterations": opt.train_steps} if opt.train_steps else {}))
+    train_config = replace(
+        preset.train, seed=0, device=opt.device, **({"iterations": opt.train_steps} if opt.train_steps else {})
+    )
     train_key = ["--preset", opt.preset]  # the settings as the key has always named them
     if opt.train_steps:
         train_key += ["--iterations", opt.train_steps]
@@ -162,11 +197,26 @@ def run_pipeline(opt: RunOptions, log: Callable[[str], None] = print) -> dict:
     def train() -> None:
         for stale in ("checkpoint.pt", "field.pt"):  # inputs changed: start from scratch
             (out / stale).unlink(missing_ok=True)
-        stages.train_field(data, ply, bank, out, field_config=field_config, train_config=train_config,
-                           downscale=opt.downscale, skip_missing=opt.skip_missing, progress=progress, log=log)
+        stages.train_field(
+            data,
+            ply,
+            bank,
+            out,
+            field_config=field_config,
+            train_config=train_config,
+            downscale=opt.downscale,
+            skip_missing=opt.skip_missing,
+            progress=progress,
+            log=log,
+        )
 
-    cache.run("train", stage_key(scene=sdig, gaussians=gdig, bank=file_digest(bank / "bank.json"), args=train_key),
-              [out / "field.pt"], train, log)
+    cache.run(
+        "train",
+        stage_key(scene=sdig, gaussians=gdig, bank=file_digest(bank / "bank.json"), args=train_key),
+        [out / "field.pt"],
+        train,
+        log,
+    )
 
     # 4. Evaluation, when labels exist.
     labels = Path(opt.labels) if opt.labels else (data / "label" if (data / "label").is_dir() else None)
@@ -174,13 +224,29 @@ def run_pipeline(opt: RunOptions, log: Callable[[str], None] = print) -> dict:
     if labels is not None:
         eval_dir = out / "eval"
         eval_json = eval_dir / "eval.json"
-        cache.run("eval", stage_key(field=file_digest(out / "field.pt"), labels=tree_digest(labels),
-                                    modes=list(opt.modes)),
-                  [eval_json],
-                  lambda: stages.evaluate(out, labels, eval_dir, scene=data, bank=bank, modes=opt.modes,
-                                          device=opt.device, progress=progress, log=log), log)
-    return {"run_dir": str(out), "stages": cache.records, "ran": list(cache.ran),
-            "eval": None if eval_json is None else str(eval_json)}
+        cache.run(
+            "eval",
+            stage_key(field=file_digest(out / "field.pt"), labels=tree_digest(labels), modes=list(opt.modes)),
+            [eval_json],
+            lambda: stages.evaluate(
+                out,
+                labels,
+                eval_dir,
+                scene=data,
+                bank=bank,
+                modes=opt.modes,
+                device=opt.device,
+                progress=progress,
+                log=log,
+            ),
+            log,
+        )
+    return {
+        "run_dir": str(out),
+        "stages": cache.records,
+        "ran": list(cache.ran),
+        "eval": None if eval_json is None else str(eval_json),
+    }
 
 
 # ----------------------------------------------------------------------------- demo
@@ -201,19 +267,37 @@ class DemoScene:
     layout: str = "tabletop"
 
 
-def cached_demo_scene(cache: StageCache, scene_dir: Path, spec: DemoScene, progress: bool = True,
-                      log: Callable[[str], None] = print) -> bool:
+def cached_demo_scene(
+    cache: StageCache, scene_dir: Path, spec: DemoScene, progress: bool = True, log: Callable[[str], None] = print
+) -> bool:
     """Generate the demo scene ``spec`` into ``scene_dir`` unless ``cache`` holds it (keyed on
     its settings and the generator's version). Returns True when it was generated."""
     from ..data.scene import SCENE_META_NAME
     from ..data.synthetic import GENERATOR_VERSION
 
-    key = stage_key(views=spec.views, width=spec.width, height=spec.height, seed=spec.seed, layout=spec.layout,
-                    generator=GENERATOR_VERSION)
-    return cache.run("demo-scene", key, [scene_dir / SCENE_META_NAME, scene_dir / "regions.json"],
-                     lambda: stages.generate_demo_scene(scene_dir, views=spec.views, width=spec.width,
-                                                        height=spec.height, seed=spec.seed, layout=spec.layout,
-                                                        progress=progress), log)
+    key = stage_key(
+        views=spec.views,
+        width=spec.width,
+        height=spec.height,
+        seed=spec.seed,
+        layout=spec.layout,
+        generator=GENERATOR_VERSION,
+    )
+    return cache.run(
+        "demo-scene",
+        key,
+        [scene_dir / SCENE_META_NAME, scene_dir / "regions.json"],
+        lambda: stages.generate_demo_scene(
+            scene_dir,
+            views=spec.views,
+            width=spec.width,
+            height=spec.height,
+            seed=spec.seed,
+            layout=spec.layout,
+            progress=progress,
+        ),
+        log,
+    )
 
 
 def demo_scene(out: Path, spec: DemoScene, progress: bool = True, log: Callable[[str], None] = print) -> Path:
@@ -231,14 +315,21 @@ def demo_scene(out: Path, spec: DemoScene, progress: bool = True, log: Callable[
     return scene_dir
 
 
-def demo_queries(out: Path, scene_dir: Path, run_dir: Path, layout: str, device: str = "cpu",
-                 progress: bool = True, log: Callable[[str], None] = print) -> Path:
+def demo_queries(
+    out: Path,
+    scene_dir: Path,
+    run_dir: Path,
+    layout: str,
+    device: str = "cpu",
+    progress: bool = True,
+    log: Callable[[str], None] = print,
+) -> Path:
     """A few relevancy PNGs for a person to look at (raw .npy beside each) in ``out/queries``,
     answered afresh each run: the layout's demo queries in its first two labelled views."""
     from ..data.scene import read_scene_meta
 
     views = [int(v) for v in read_scene_meta(scene_dir).get("labelled_views", [0])[:2]]
-    stages.answer_queries(run_dir, DEMO_QUERIES[layout], views, out / "queries", device=device,
-                          progress=progress, log=log)
+    stages.answer_queries(
+        run_dir, DEMO_QUERIES[layout], views, out / "queries", device=device, progress=progress, log=log
+    )
     return out / "queries"
-

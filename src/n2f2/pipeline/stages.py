@@ -30,50 +30,90 @@ def _claim(out: Path, results: Sequence[str]) -> list[str]:
     return claim_out_dir(out, results, force=True)
 
 
-def fit_gaussians(data: Path, out: Path, preset: "Preset", steps: Optional[int] = None, *, seed: int = 0,
-                  downscale: float = 1.0, skip_missing: bool = False, device: str = "cpu",
-                  progress: bool = True, log: Log = print) -> "FitReport":
+def fit_gaussians(
+    data: Path,
+    out: Path,
+    preset: "Preset",
+    steps: Optional[int] = None,
+    *,
+    seed: int = 0,
+    downscale: float = 1.0,
+    skip_missing: bool = False,
+    device: str = "cpu",
+    progress: bool = True,
+    log: Log = print,
+) -> "FitReport":
     """Fit the scene's Gaussians with ``preset``'s schedule into ``out`` (``gaussians.ply``,
     ``fit_report.json``, ``checkpoint.pt``), as ``n2f2 fit-gaussians``."""
     from ..data import load_scene
     from ..gaussians import fit
     from ..io import remove_results
 
-    present = _claim(out, (fit.PLY_NAME, fit.CHECKPOINT_NAME, fit.REPORT_NAME, fit.BACKGROUND_NAME,
-                           fit.TEST_RENDERS_DIR))
+    present = _claim(
+        out, (fit.PLY_NAME, fit.CHECKPOINT_NAME, fit.REPORT_NAME, fit.BACKGROUND_NAME, fit.TEST_RENDERS_DIR)
+    )
     scene = load_scene(data, downscale=downscale, skip_missing=skip_missing)
     config = preset.fit_config(scene, steps=steps, seed=seed, device=device)
     remove_results(out, present)
     report = fit.fit_gaussians(scene, config, out, progress=progress)
     test = "n/a" if report.test_psnr is None else f"{report.test_psnr:.2f} dB"
-    depth = "" if report.depth_median_rel_extent is None else \
-        f", median depth error {100 * report.depth_median_rel_extent:.2f}% of extent"
-    log(f"fit-gaussians: {report.steps} steps, {report.num_gaussians} Gaussians, "
-        f"train PSNR {report.train_psnr:.2f} dB, test PSNR {test}{depth}, {report.wall_time_s:.0f} s -> {out}")
+    depth = (
+        ""
+        if report.depth_median_rel_extent is None
+        else f", median depth error {100 * report.depth_median_rel_extent:.2f}% of extent"
+    )
+    log(
+        f"fit-gaussians: {report.steps} steps, {report.num_gaussians} Gaussians, "
+        f"train PSNR {report.train_psnr:.2f} dB, test PSNR {test}{depth}, {report.wall_time_s:.0f} s -> {out}"
+    )
     return report
 
 
 def _bank_results(out: Path) -> list[str]:
     from ..segments.bank import RECORD_FILES
 
-    records = [d.name for d in out.iterdir() if d.is_dir() and any((d / f).is_file() for f in RECORD_FILES)] \
-        if out.is_dir() else []
+    records = (
+        [d.name for d in out.iterdir() if d.is_dir() and any((d / f).is_file() for f in RECORD_FILES)]
+        if out.is_dir()
+        else []
+    )
     return ["bank.json", *sorted(records)]
 
 
-def build_segment_bank(data: Path, out: Path, gaussians: Optional[Path], *, segmenter: str, encoder: str,
-                       lift: "LiftSettings", model: Optional[str] = None, depth_source: str = "render",
-                       downscale: float = 1.0, skip_missing: bool = False, device: str = "cpu",
-                       progress: bool = True, log: Log = print) -> dict:
+def build_segment_bank(
+    data: Path,
+    out: Path,
+    gaussians: Optional[Path],
+    *,
+    segmenter: str,
+    encoder: str,
+    lift: "LiftSettings",
+    model: Optional[str] = None,
+    depth_source: str = "render",
+    downscale: float = 1.0,
+    skip_missing: bool = False,
+    device: str = "cpu",
+    progress: bool = True,
+    log: Log = print,
+) -> dict:
     """Segment, embed and lift every image into the segment bank ``out``, as ``n2f2 segments``."""
     from ..io import remove_results
     from ..segments.bank import build_bank
     from ..segments.setup import SegmentsSetup, report_lines
 
     present = _claim(out, _bank_results(out))
-    setup = SegmentsSetup(data=str(data), downscale=float(downscale), skip_missing=skip_missing,
-                          depth_source=depth_source, gaussians=None if gaussians is None else str(gaussians),
-                          segmenter=segmenter, encoder=encoder, model=model, sam_model=None, device=str(device))
+    setup = SegmentsSetup(
+        data=str(data),
+        downscale=float(downscale),
+        skip_missing=skip_missing,
+        depth_source=depth_source,
+        gaussians=None if gaussians is None else str(gaussians),
+        segmenter=segmenter,
+        encoder=encoder,
+        model=model,
+        sam_model=None,
+        device=str(device),
+    )
     scene, source, depth = setup.build()
     remove_results(out, present)
     report = build_bank(scene, source, depth, out, depth_source=depth_source, lift=lift, progress=progress)
@@ -82,10 +122,22 @@ def build_segment_bank(data: Path, out: Path, gaussians: Optional[Path], *, segm
     return report
 
 
-def import_langsplat_bank(data: Path, out: Path, gaussians: Optional[Path], features: Path, *,
-                          encoder: Optional[str], lift: "LiftSettings", model: Optional[str] = None,
-                          depth_source: str = "render", downscale: float = 1.0, skip_missing: bool = False,
-                          device: str = "cpu", progress: bool = True, log: Log = print) -> dict:
+def import_langsplat_bank(
+    data: Path,
+    out: Path,
+    gaussians: Optional[Path],
+    features: Path,
+    *,
+    encoder: Optional[str],
+    lift: "LiftSettings",
+    model: Optional[str] = None,
+    depth_source: str = "render",
+    downscale: float = 1.0,
+    skip_missing: bool = False,
+    device: str = "cpu",
+    progress: bool = True,
+    log: Log = print,
+) -> dict:
     """The segment bank ``out`` from LangSplat's ``language_features``, as
     ``n2f2 segments-from-langsplat``."""
     from ..io import remove_results
@@ -104,9 +156,19 @@ def import_langsplat_bank(data: Path, out: Path, gaussians: Optional[Path], feat
     return report
 
 
-def train_field(data: Path, gaussians: Path, bank: Path, out: Path, *, field_config: "FieldConfig",
-                train_config: "TrainConfig", downscale: float = 1.0, skip_missing: bool = False,
-                progress: bool = True, log: Log = print) -> dict:
+def train_field(
+    data: Path,
+    gaussians: Path,
+    bank: Path,
+    out: Path,
+    *,
+    field_config: "FieldConfig",
+    train_config: "TrainConfig",
+    downscale: float = 1.0,
+    skip_missing: bool = False,
+    progress: bool = True,
+    log: Log = print,
+) -> dict:
     """Train the feature field into the run folder ``out`` (``field.pt``, ``train_report.json``,
     ``checkpoint.pt``, a copy of the Gaussians), from scratch, as ``n2f2 train``."""
     from ..data import load_scene
@@ -121,41 +183,75 @@ def train_field(data: Path, gaussians: Path, bank: Path, out: Path, *, field_con
     g = read_ply(gaussians)
     segment_bank.validate_against(scene)
     remove_results(out, present)
-    report = trainer.train_field(scene, g, segment_bank, out, field_config=field_config, config=train_config,
-                                 progress=progress,
-                                 paths={"scene": str(Path(data).resolve()), "gaussians": str(Path(gaussians).resolve()),
-                                        "bank": str(Path(bank).resolve())})
+    report = trainer.train_field(
+        scene,
+        g,
+        segment_bank,
+        out,
+        field_config=field_config,
+        config=train_config,
+        progress=progress,
+        paths={
+            "scene": str(Path(data).resolve()),
+            "gaussians": str(Path(gaussians).resolve()),
+            "bank": str(Path(bank).resolve()),
+        },
+    )
     if report["time_per_iteration_s"]:
-        log(f"train: {report['steps']} steps ({field_config.variant}, D={field_config.dim}, "
+        log(
+            f"train: {report['steps']} steps ({field_config.variant}, D={field_config.dim}, "
             f"{'deferred' if train_config.deferred else 'non-deferred'}), final loss {report['final_loss']:.5f}, "
-            f"{report['time_per_iteration_s'] * 1000:.0f} ms/step, peak RSS {report['peak_rss_mb']:.0f} MB -> {out}")
+            f"{report['time_per_iteration_s'] * 1000:.0f} ms/step, peak RSS {report['peak_rss_mb']:.0f} MB -> {out}"
+        )
     return report
 
 
-def evaluate(run_dir: Path, labels: Path, out: Path, *, scene: Optional[Path] = None, bank: Optional[Path] = None,
-             modes: Optional[Sequence[str]] = None, temperature: float = 1.0, device: str = "cpu",
-             relevancy: bool = True, progress: bool = True, encoder: object = None,
-             log: Log = print) -> "EvalResult":
+def evaluate(
+    run_dir: Path,
+    labels: Path,
+    out: Path,
+    *,
+    scene: Optional[Path] = None,
+    bank: Optional[Path] = None,
+    modes: Optional[Sequence[str]] = None,
+    temperature: float = 1.0,
+    device: str = "cpu",
+    relevancy: bool = True,
+    progress: bool = True,
+    encoder: object = None,
+    log: Log = print,
+) -> "EvalResult":
     """Score a run on LangSplat-format labels into ``out`` (``eval.json``, ``eval.md``, plots,
     relevancy maps unless ``relevancy`` is False), as ``n2f2 eval``."""
-    from ..io import remove_results
-    from ..query.engine import QueryConfig
     from ..eval.reports import eval_results
     from ..eval.runner import EvalConfig, evaluate_run, write_eval_outputs
+    from ..io import remove_results
+    from ..query.engine import QueryConfig
 
     if not temperature > 0:
         raise InputError(None, f"temperature must be > 0, got {temperature}")
     present = _claim(out, eval_results(out))
-    config = EvalConfig(modes=tuple(modes) if modes else None, missing_frames="error", rescale_labels=False,
-                        progress=progress)
-    result = evaluate_run(run_dir, labels, scene=scene, bank=bank, config=config,
-                          query_config=QueryConfig(temperature=temperature), device=device, encoder=encoder,
-                          relevancy_dir=out / "relevancy" if relevancy else None,
-                          on_ready=lambda: remove_results(out, present))
+    config = EvalConfig(
+        modes=tuple(modes) if modes else None, missing_frames="error", rescale_labels=False, progress=progress
+    )
+    result = evaluate_run(
+        run_dir,
+        labels,
+        scene=scene,
+        bank=bank,
+        config=config,
+        query_config=QueryConfig(temperature=temperature),
+        device=device,
+        encoder=encoder,
+        relevancy_dir=out / "relevancy" if relevancy else None,
+        on_ready=lambda: remove_results(out, present),
+    )
     write_eval_outputs(result, out)
     for m in result.modes:
-        parts = [f"{b}: loc {100 * s.loc_accuracy:.1f}% mIoU {100 * s.miou:.1f}% (box {','.join(map(str, s.box_sizes))} px)"
-                 for b, s in result.scores[m].items()]
+        parts = [
+            f"{b}: loc {100 * s.loc_accuracy:.1f}% mIoU {100 * s.miou:.1f}% (box {','.join(map(str, s.box_sizes))} px)"
+            for b, s in result.scores[m].items()
+        ]
         log(f"eval {m}: " + "; ".join(parts))
     for note in result.notes:
         log(f"note: {note}")
@@ -163,24 +259,43 @@ def evaluate(run_dir: Path, labels: Path, out: Path, *, scene: Optional[Path] = 
     return result
 
 
-def generate_demo_scene(out: Path, *, views: int, width: int, height: int, seed: int, layout: str,
-                        progress: bool = True) -> Path:
+def generate_demo_scene(
+    out: Path, *, views: int, width: int, height: int, seed: int, layout: str, progress: bool = True
+) -> Path:
     """The built-in demo scene in ``out`` (see :func:`n2f2.data.synthetic.generate_demo_scene`)."""
     from ..data import synthetic
 
-    return synthetic.generate_demo_scene(out, num_views=views, width=width, height=height, seed=seed,
-                                         layout=layout, show_progress=progress)
+    return synthetic.generate_demo_scene(
+        out, num_views=views, width=width, height=height, seed=seed, layout=layout, show_progress=progress
+    )
 
 
-def answer_queries(run_dir: Path, texts: Sequence[str], views: Sequence[int], out: Path, *,
-                   device: str = "cpu", progress: bool = True, log: Log = print) -> dict:
+def answer_queries(
+    run_dir: Path,
+    texts: Sequence[str],
+    views: Sequence[int],
+    out: Path,
+    *,
+    device: str = "cpu",
+    progress: bool = True,
+    log: Log = print,
+) -> dict:
     """Relevancy maps, masks and heatmaps of ``texts`` in ``views`` with the evaluation
     protocol's settings (composite mode, 30 px box, threshold 0.4), replacing an earlier answer
     in ``out``, as ``n2f2 query``."""
     from ..query.answer import answer_queries as answer
     from ..query.maps import LANGSPLAT_BOX_SIZE, LANGSPLAT_THRESHOLD
 
-    summary = answer(run_dir, texts, views, out, mask_threshold=LANGSPLAT_THRESHOLD, box_size=LANGSPLAT_BOX_SIZE,
-                     force=True, device=device, progress=progress)
+    summary = answer(
+        run_dir,
+        texts,
+        views,
+        out,
+        mask_threshold=LANGSPLAT_THRESHOLD,
+        box_size=LANGSPLAT_BOX_SIZE,
+        force=True,
+        device=device,
+        progress=progress,
+    )
     log(f"query: {len(texts)} queries x {len(summary['views'])} views (composite) -> {out}")
     return summary

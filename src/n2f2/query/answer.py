@@ -48,12 +48,25 @@ def query_results(texts: Sequence[str], view_names: Sequence[str], three_d: bool
     return names
 
 
-def answer_queries(run_dir: Union[str, Path], texts: Sequence[str], views: Sequence[int], out: Path, *,
-                   mode: str = "composite", scene: Optional[Union[str, Path]] = None, three_d: bool = False,
-                   threshold: Optional[float] = None, mask_threshold: float, box_size: Union[int, str],
-                   temperature: float = 1.0, canonical: Optional[tuple[str, ...]] = None,
-                   selection: str = "smoothed", force: bool = False, device: str = "cpu",
-                   progress: bool = True) -> dict:
+def answer_queries(
+    run_dir: Union[str, Path],
+    texts: Sequence[str],
+    views: Sequence[int],
+    out: Path,
+    *,
+    mode: str = "composite",
+    scene: Optional[Union[str, Path]] = None,
+    three_d: bool = False,
+    threshold: Optional[float] = None,
+    mask_threshold: float,
+    box_size: Union[int, str],
+    temperature: float = 1.0,
+    canonical: Optional[tuple[str, ...]] = None,
+    selection: str = "smoothed",
+    force: bool = False,
+    device: str = "cpu",
+    progress: bool = True,
+) -> dict:
     """Render each view's feature cache once, answer every query of ``texts`` in one pass, and
     write the outputs into ``out`` (refused when it holds an answer, unless ``force``).
     Returns the ``query.json`` summary."""
@@ -85,8 +98,7 @@ def answer_queries(run_dir: Union[str, Path], texts: Sequence[str], views: Seque
             path = out / f"{slug}_selection.ply"
             if n:
                 engine.export_selection(mask, path)
-            selections[text] = {"mask": mask, "slug": slug, "count": n,
-                                "ply": path.name if n else None}
+            selections[text] = {"mask": mask, "slug": slug, "count": n, "ply": path.name if n else None}
     for i in tqdm(views, desc="query", unit="view", disable=not progress):
         view = engine.render_view(i, modes=[mode])
         result = engine.query(view, texts, mode=mode)
@@ -103,27 +115,45 @@ def answer_queries(run_dir: Union[str, Path], texts: Sequence[str], views: Seque
             if rgb is not None:
                 write_png(out / name, mask_overlay(rgb, m))
             rec["selection"] = {"file": name, "mask_area_px": int(m.sum())}
-        views_out.append({"view": view.name, "view_index": i, "height": view.height, "width": view.width,
-                          "box_size": size, "render_s": view.seconds.get("render"),
-                          "cache_s": view.seconds.get("cache"), "query_s": result.seconds,
-                          "queries": records})
+        views_out.append(
+            {
+                "view": view.name,
+                "view_index": i,
+                "height": view.height,
+                "width": view.width,
+                "box_size": size,
+                "render_s": view.seconds.get("render"),
+                "cache_s": view.seconds.get("cache"),
+                "query_s": result.seconds,
+                "queries": records,
+            }
+        )
     summary = {
         "run_dir": str(Path(run_dir)),
         "mode": mode,
         "queries": texts,
         "encoder": getattr(engine.encoder, "description", str(engine.meta.get("encoder_spec"))),
-        "field": {"variant": engine.variant, "D": engine.dim, "step_size": engine.step,
-                  "num_scales": len(engine.scale_dims) if engine.variant != "levels" else 3},
+        "field": {
+            "variant": engine.variant,
+            "D": engine.dim,
+            "step_size": engine.step,
+            "num_scales": len(engine.scale_dims) if engine.variant != "levels" else 3,
+        },
         "composite": {"canonical": list(config.canonical), "temperature": config.temperature},
         "relevancy": {"negatives": list(config.negatives), "feature_normalisation": "L2 (cosine)"},
         "segmentation": {"threshold": mask_threshold, "box_size": box_size, "selection": config.selection},
         "views": views_out,
     }
     if three_d:
-        rule = (f"relevancy >= {threshold}" if threshold is not None
-                else f"protocol rule (normalised > {LANGSPLAT_THRESHOLD})")
-        summary["selection_3d"] = {"rule": rule, "num_gaussians": engine.gaussians.num,
-                                   "selections": {t: {"count": s["count"], "ply": s["ply"]}
-                                                  for t, s in selections.items()}}
+        rule = (
+            f"relevancy >= {threshold}"
+            if threshold is not None
+            else f"protocol rule (normalised > {LANGSPLAT_THRESHOLD})"
+        )
+        summary["selection_3d"] = {
+            "rule": rule,
+            "num_gaussians": engine.gaussians.num,
+            "selections": {t: {"count": s["count"], "ply": s["ply"]} for t, s in selections.items()},
+        }
     write_summary(out / "query.json", summary)
     return summary

@@ -27,40 +27,83 @@ def register(subparsers) -> None:
         "query",
         help="answer text queries on a trained run: relevancy maps, masks, localization, 3D selection",
         description="Render each view's feature cache once, then answer every query in one pass. "
-                    "Writes per view and query a raw relevancy .npy, a heatmap and a mask PNG over "
-                    "the rendered RGB, and OUT/query.json with the numbers. With --3d, also selects "
-                    "the relevant Gaussians, writes them as OUT/<query>_selection.ply (INRIA 3DGS "
-                    "layout) and renders the selection's mask into every view.",
+        "Writes per view and query a raw relevancy .npy, a heatmap and a mask PNG over "
+        "the rendered RGB, and OUT/query.json with the numbers. With --3d, also selects "
+        "the relevant Gaussians, writes them as OUT/<query>_selection.ply (INRIA 3DGS "
+        "layout) and renders the selection's mask into every view.",
     )
     p.add_argument("run_dir", metavar="RUN_DIR", help="trained run folder (field.pt + gaussians.ply)")
-    p.add_argument("texts", metavar="TEXT", nargs="+", help="text queries, e.g. \"lid of the teapot\"")
-    p.add_argument("--views", type=nonneg_int, nargs="+", default=[0], metavar="I",
-                   help="view indices (sorted image order, 0-based; default 0)")
-    p.add_argument("--mode", choices=MODES[:3], default="composite",
-                   help="composite (default, paper), explicit (best of the D/k scales per query, "
-                        "LERF/LangSplat), levels (3-level baseline field)")
+    p.add_argument("texts", metavar="TEXT", nargs="+", help='text queries, e.g. "lid of the teapot"')
+    p.add_argument(
+        "--views",
+        type=nonneg_int,
+        nargs="+",
+        default=[0],
+        metavar="I",
+        help="view indices (sorted image order, 0-based; default 0)",
+    )
+    p.add_argument(
+        "--mode",
+        choices=MODES[:3],
+        default="composite",
+        help="composite (default, paper), explicit (best of the D/k scales per query, "
+        "LERF/LangSplat), levels (3-level baseline field)",
+    )
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
-    p.add_argument("--scene", default=None, metavar="DATA",
-                   help="scene folder (default: the scene recorded in the run)")
-    p.add_argument("--3d", dest="three_d", action="store_true",
-                   help="also select Gaussians per query, export them as PLY and render their masks")
-    p.add_argument("--threshold", type=finite_float, default=None,
-                   help="3D selection: absolute relevancy threshold (default: the protocol rule on "
-                        "the Gaussians' relevancy: min-max normalise, map to [-1, 1], > 0.4)")
-    p.add_argument("--mask-threshold", type=unit_interval, default=None,
-                   help="2D segmentation threshold of the evaluation protocol (default 0.4)")
-    p.add_argument("--box-size", type=_box_size, default=None,
-                   help="protocol mean-filter size in pixels, or 'scaled' = round(30 W / 986) "
-                        "(default 30, LangSplat's; use 'scaled' on small renders)")
-    p.add_argument("--temperature", type=positive_float, default=1.0,
-                   help="composite gamma = softmax(score / T); 1 = paper (default)")
-    p.add_argument("--canonical", nargs="+", default=None, metavar="PHRASE",
-                   help="canonical phrases of gamma (default: object stuff thing part texture)")
-    p.add_argument("--selection", choices=["smoothed", "max"], default="smoothed",
-                   help="explicit/levels scale choice: max of the protocol-smoothed map "
-                        "(LangSplat, default) or of the raw map (LERF)")
-    p.add_argument("--force", action="store_true",
-                   help="replace the query results already in --out (query.json and the files it lists)")
+    p.add_argument(
+        "--scene", default=None, metavar="DATA", help="scene folder (default: the scene recorded in the run)"
+    )
+    p.add_argument(
+        "--3d",
+        dest="three_d",
+        action="store_true",
+        help="also select Gaussians per query, export them as PLY and render their masks",
+    )
+    p.add_argument(
+        "--threshold",
+        type=finite_float,
+        default=None,
+        help="3D selection: absolute relevancy threshold (default: the protocol rule on "
+        "the Gaussians' relevancy: min-max normalise, map to [-1, 1], > 0.4)",
+    )
+    p.add_argument(
+        "--mask-threshold",
+        type=unit_interval,
+        default=None,
+        help="2D segmentation threshold of the evaluation protocol (default 0.4)",
+    )
+    p.add_argument(
+        "--box-size",
+        type=_box_size,
+        default=None,
+        help="protocol mean-filter size in pixels, or 'scaled' = round(30 W / 986) "
+        "(default 30, LangSplat's; use 'scaled' on small renders)",
+    )
+    p.add_argument(
+        "--temperature",
+        type=positive_float,
+        default=1.0,
+        help="composite gamma = softmax(score / T); 1 = paper (default)",
+    )
+    p.add_argument(
+        "--canonical",
+        nargs="+",
+        default=None,
+        metavar="PHRASE",
+        help="canonical phrases of gamma (default: object stuff thing part texture)",
+    )
+    p.add_argument(
+        "--selection",
+        choices=["smoothed", "max"],
+        default="smoothed",
+        help="explicit/levels scale choice: max of the protocol-smoothed map "
+        "(LangSplat, default) or of the raw map (LERF)",
+    )
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="replace the query results already in --out (query.json and the files it lists)",
+    )
     p.add_argument("--device", default="cpu", help="torch device (default cpu)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
@@ -82,21 +125,37 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(None, f"--mask-threshold must be in [0, 1), got {mask_threshold}")
     box = LANGSPLAT_BOX_SIZE if args.box_size is None else args.box_size
     out = Path(args.out)
-    summary = answer_queries(args.run_dir, texts, args.views, out, mode=args.mode, scene=args.scene,
-                             three_d=args.three_d, threshold=args.threshold, mask_threshold=mask_threshold,
-                             box_size=box, temperature=args.temperature,
-                             canonical=tuple(args.canonical) if args.canonical else None,
-                             selection=args.selection, force=args.force, device=args.device,
-                             progress=not args.quiet)
+    summary = answer_queries(
+        args.run_dir,
+        texts,
+        args.views,
+        out,
+        mode=args.mode,
+        scene=args.scene,
+        three_d=args.three_d,
+        threshold=args.threshold,
+        mask_threshold=mask_threshold,
+        box_size=box,
+        temperature=args.temperature,
+        canonical=tuple(args.canonical) if args.canonical else None,
+        selection=args.selection,
+        force=args.force,
+        device=args.device,
+        progress=not args.quiet,
+    )
     for v in summary["views"]:
         for r in v["queries"]:
             loc = r["localization"]
-            print(f"{v['view']}  {r['query']!r}: max relevancy {r['relevancy_max']:.3f} at "
-                  f"({loc['x']}, {loc['y']}), mask {r['mask_area_px']} px"
-                  + (f", scale {r['chosen_scale']}" if r["chosen_scale"] else ""))
+            print(
+                f"{v['view']}  {r['query']!r}: max relevancy {r['relevancy_max']:.3f} at "
+                f"({loc['x']}, {loc['y']}), mask {r['mask_area_px']} px"
+                + (f", scale {r['chosen_scale']}" if r["chosen_scale"] else "")
+            )
     sel3d = summary.get("selection_3d")
     for t, s in (sel3d["selections"] if sel3d else {}).items():
-        print(f"3D {t!r}: {s['count']} of {sel3d['num_gaussians']} Gaussians"
-              + (f" -> {out / s['ply']}" if s["ply"] else " (empty selection, no PLY written)"))
+        print(
+            f"3D {t!r}: {s['count']} of {sel3d['num_gaussians']} Gaussians"
+            + (f" -> {out / s['ply']}" if s["ply"] else " (empty selection, no PLY written)")
+        )
     print(f"query: {len(texts)} queries x {len(summary['views'])} views ({args.mode}) -> {out}")
     return 0

@@ -144,9 +144,9 @@ def premultiply(
     out = torch.empty_like(theta)
     D = theta.shape[1]
     for start in range(0, theta.shape[0], chunk):
-        block = theta[start:start + chunk]
+        block = theta[start : start + chunk]
         gamma = composite_weights(block, W, canonical, step, temperature)
-        out[start:start + chunk] = prefix_weights(gamma, D, step) * block
+        out[start : start + chunk] = prefix_weights(gamma, D, step) * block
     return out
 
 
@@ -267,8 +267,9 @@ def _in_threads(job: Callable[[int, int], None], num_points: int) -> int:
     return n
 
 
-def _window_margins(terms: Tensor, weights: Tensor, inv_norm: Tensor, neg_max: Tensor,
-                    a: int, b: int) -> Tensor:  # [S, C, b - a]
+def _window_margins(
+    terms: Tensor, weights: Tensor, inv_norm: Tensor, neg_max: Tensor, a: int, b: int
+) -> Tensor:  # [S, C, b - a]
     """The margins of points ``a:b`` at every scale with torch ops (the arithmetic of
     :func:`prefix_dot` and the score caches)."""
     raw = (terms[:, :, a:b] * weights[:, :, None]).cumsum_(dim=0)  # [S, C, p]
@@ -332,5 +333,7 @@ def prefix_margin_at(
     cols = torch.arange(C, device=terms.device)
     scales = scales.to(terms.device)
     for a in range(0, P, MARGIN_CHUNK):
-        out[:, a:a + MARGIN_CHUNK] = _window_margins(terms, weights, inv_norm, neg_max, a, a + MARGIN_CHUNK)[scales, cols]
+        out[:, a : a + MARGIN_CHUNK] = _window_margins(terms, weights, inv_norm, neg_max, a, a + MARGIN_CHUNK)[
+            scales, cols
+        ]
     return out

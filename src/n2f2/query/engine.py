@@ -33,7 +33,8 @@ the raw relevancy (LERF). For 3D queries on Gaussians there is no image grid: al
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field as dc_field
+from dataclasses import dataclass
+from dataclasses import field as dc_field
 from pathlib import Path
 from typing import Any, Callable, Optional, Protocol, Sequence, Union, cast
 
@@ -42,12 +43,27 @@ import torch
 from torch import Tensor
 
 from ..errors import InputError
-from .composite import (DEFAULT_CANONICAL, premultiply, prefix_dot, prefix_margin_at, prefix_margin_max,
-                        prefix_sq_norms, prefix_terms, supervised_dims, to_blocks)
-from .maps import (LANGSPLAT_BOX_SIZE, LANGSPLAT_THRESHOLD, mask_iou, normalized_for_threshold, resolve_box_size,
-                   segmentation_mask, smoothed_relevancy)
-from .relevancy import (DEFAULT_NEGATIVES, check_texts, inverse_norm, inverse_norm_from_sq,
-                        relevancy_from_scores)
+from .composite import (
+    DEFAULT_CANONICAL,
+    prefix_dot,
+    prefix_margin_at,
+    prefix_margin_max,
+    prefix_sq_norms,
+    prefix_terms,
+    premultiply,
+    supervised_dims,
+    to_blocks,
+)
+from .maps import (
+    LANGSPLAT_BOX_SIZE,
+    LANGSPLAT_THRESHOLD,
+    mask_iou,
+    normalized_for_threshold,
+    resolve_box_size,
+    segmentation_mask,
+    smoothed_relevancy,
+)
+from .relevancy import DEFAULT_NEGATIVES, check_texts, inverse_norm, inverse_norm_from_sq, relevancy_from_scores
 
 MODES = ("composite", "explicit", "levels", "oracle")
 SELECTIONS = ("smoothed", "max")
@@ -165,10 +181,10 @@ def build_composite_cache(
     neg = features.new_empty(P)
     chunk = _points_per_block(chunk, W.shape[0])  # [p, E] intermediates near 4M floats
     for a in range(0, P, chunk):
-        phi = features[a:a + chunk] @ W.T  # [p, E]
+        phi = features[a : a + chunk] @ W.T  # [p, E]
         i = inverse_norm(phi)  # [p, 1]
-        inv[a:a + chunk] = i[:, 0]
-        neg[a:a + chunk] = ((phi @ negatives.T) * i).amax(dim=-1)
+        inv[a : a + chunk] = i[:, 0]
+        neg[a : a + chunk] = ((phi @ negatives.T) * i).amax(dim=-1)
     return CompositeCache(features.contiguous(), W, inv, neg)
 
 
@@ -189,10 +205,10 @@ def build_prefix_cache(
     neg = theta.new_empty(S, 1, P)
     chunk = _points_per_block(chunk, S * step)
     for a in range(0, P, chunk):
-        b = blocks[:, :, a:a + chunk]
+        b = blocks[:, :, a : a + chunk]
         i = inverse_norm_from_sq(prefix_sq_norms(b, gram))  # [S, p]
-        inv[:, 0, a:a + chunk] = i
-        neg[:, 0, a:a + chunk] = (prefix_dot(b, negdir[: S * step]) * i[:, None, :]).amax(dim=1)
+        inv[:, 0, a : a + chunk] = i
+        neg[:, 0, a : a + chunk] = (prefix_dot(b, negdir[: S * step]) * i[:, None, :]).amax(dim=1)
     return PrefixCache(blocks, W, dims, inv, neg, labels=[f"d={d}" for d in dims])
 
 
@@ -212,11 +228,11 @@ def build_linear_cache(
     neg = theta.new_empty(S, 1, P)
     chunk = _points_per_block(chunk, S * D)
     for a in range(0, P, chunk):
-        t = theta[a:a + chunk]  # [p, D]
+        t = theta[a : a + chunk]  # [p, D]
         sq = ((t @ gram_cat).view(-1, S, D) * t[:, None, :]).sum(-1).clamp_(min=0.0)  # [p, S]
         i = inverse_norm_from_sq(sq).T  # [S, p]
-        inv[:, 0, a:a + chunk] = i
-        neg[:, 0, a:a + chunk] = (torch.einsum("pd,sdc->spc", t, negdir) * i[..., None]).amax(-1)
+        inv[:, 0, a : a + chunk] = i
+        neg[:, 0, a : a + chunk] = (torch.einsum("pd,sdc->spc", t, negdir) * i[..., None]).amax(-1)
     return LinearCache(theta.contiguous(), maps, inv, neg, labels=list(labels))
 
 
@@ -270,7 +286,7 @@ def _relevancy_of_margins(margins: Tensor) -> Tensor:  # [..., P] contiguous, in
     n = flat.numel()
     body = n - n % 64
     for a in range(0, body, _SIGMOID_BLOCK):
-        relevancy_from_scores(flat[a:min(a + _SIGMOID_BLOCK, body)], zero, inplace=True)
+        relevancy_from_scores(flat[a : min(a + _SIGMOID_BLOCK, body)], zero, inplace=True)
     if body < n:
         tail = flat.new_zeros(64)
         tail[: n - body] = flat[body:]
@@ -332,9 +348,17 @@ class QueryEngine:
         scene: optional :class:`n2f2.data.scene.Scene` giving the cameras for view indices.
     """
 
-    def __init__(self, field: Any, gaussians: Any, encoder: Any, meta: dict,
-                 config: Optional[QueryConfig] = None, device: Union[str, torch.device] = "cpu",
-                 scene: Any = None, run_dir: Optional[Path] = None) -> None:
+    def __init__(
+        self,
+        field: Any,
+        gaussians: Any,
+        encoder: Any,
+        meta: dict,
+        config: Optional[QueryConfig] = None,
+        device: Union[str, torch.device] = "cpu",
+        scene: Any = None,
+        run_dir: Optional[Path] = None,
+    ) -> None:
         self.field = field
         self.gaussians = gaussians
         self._encoder = encoder  # None: built from meta["encoder_spec"] on first use
@@ -355,9 +379,13 @@ class QueryEngine:
 
     # ------------------------------------------------------------------ construction
     @staticmethod
-    def from_run(run_dir: Union[str, Path], device: Union[str, torch.device] = "cpu",
-                 scene: Any = None, config: Optional[QueryConfig] = None,
-                 encoder: Any = None) -> "QueryEngine":
+    def from_run(
+        run_dir: Union[str, Path],
+        device: Union[str, torch.device] = "cpu",
+        scene: Any = None,
+        config: Optional[QueryConfig] = None,
+        encoder: Any = None,
+    ) -> "QueryEngine":
         """Load ``RUN_DIR/field.pt`` and ``RUN_DIR/gaussians.ply`` (and the field's text encoder).
 
         ``scene`` is a Scene, a scene folder, or None (then the scene recorded in the run's
@@ -370,8 +398,7 @@ class QueryEngine:
             raise InputError(run_dir, "run directory does not exist")
         field_path = run_dir / "field.pt"
         if not field_path.is_file():
-            raise InputError(run_dir, "no field.pt in the run directory: not a trained run "
-                                      "(run `n2f2 train` first)")
+            raise InputError(run_dir, "no field.pt in the run directory: not a trained run (run `n2f2 train` first)")
         ply_path = run_dir / "gaussians.ply"
         if not ply_path.is_file():
             raise InputError(run_dir, "no gaussians.ply in the run directory")
@@ -413,10 +440,15 @@ class QueryEngine:
         if mode not in MODES:
             raise InputError(None, f"unknown query mode {mode!r}; choose one of {', '.join(MODES)}")
         if mode not in self.modes():
-            hint = ("it was trained as the 3-level baseline: use --mode levels" if self.variant == "levels"
-                    else "mode 'levels' needs a field trained with variant 'levels'")
-            raise InputError(self.run_dir / "field.pt" if self.run_dir else None,
-                             f"mode {mode!r} does not apply to this {self.variant!r} field ({hint})")
+            hint = (
+                "it was trained as the 3-level baseline: use --mode levels"
+                if self.variant == "levels"
+                else "mode 'levels' needs a field trained with variant 'levels'"
+            )
+            raise InputError(
+                self.run_dir / "field.pt" if self.run_dir else None,
+                f"mode {mode!r} does not apply to this {self.variant!r} field ({hint})",
+            )
 
     def _cache_kind(self, mode: str) -> str:
         if mode == "composite":
@@ -433,8 +465,11 @@ class QueryEngine:
             emb = torch.as_tensor(self.encoder.encode_text(list(missing)))
             emb = torch.nn.functional.normalize(emb.to(self.device, torch.float32), dim=-1)
             if emb.shape[-1] != self.W.shape[0]:
-                raise InputError(None, f"text encoder gives {emb.shape[-1]}-dim embeddings but the "
-                                       f"field's W expects E = {self.W.shape[0]}")
+                raise InputError(
+                    None,
+                    f"text encoder gives {emb.shape[-1]}-dim embeddings but the "
+                    f"field's W expects E = {self.W.shape[0]}",
+                )
             for t, e in zip(missing, emb):
                 self._text_cache[t] = e
         return torch.stack([self._text_cache[t] for t in texts])
@@ -452,8 +487,9 @@ class QueryEngine:
         if self._theta_tilde is None:
             canon = self.encode(self.config.canonical)
             with torch.no_grad():
-                self._theta_tilde = premultiply(self.theta, self.W, canon, self.step,
-                                                self.config.temperature, self.config.chunk)
+                self._theta_tilde = premultiply(
+                    self.theta, self.W, canon, self.step, self.config.temperature, self.config.chunk
+                )
         return self._theta_tilde
 
     def level_maps(self) -> Tensor:  # [3, E, D] the "levels" field's three linear projections
@@ -480,12 +516,17 @@ class QueryEngine:
             if self.scene is None:
                 recorded = self.meta.get("scene")
                 where = f" (its recorded scene {recorded} does not exist)" if recorded else ""
-                raise InputError(self.run_dir, f"no scene is known for this run{where}: pass --scene DATA, "
-                                               "or give cameras instead of view indices")
+                raise InputError(
+                    self.run_dir,
+                    f"no scene is known for this run{where}: pass --scene DATA, "
+                    "or give cameras instead of view indices",
+                )
             n = len(self.scene.cameras)
             if not 0 <= int(view) < n:
-                raise InputError(getattr(self.scene, "root", None),
-                                 f"view index {int(view)} out of range: the scene has {n} views (0..{n - 1})")
+                raise InputError(
+                    getattr(self.scene, "root", None),
+                    f"view index {int(view)} out of range: the scene has {n} views (0..{n - 1})",
+                )
             i = int(view)
             return self.scene.cameras[i], i, self.scene.image_names[i]
         return view, None, "camera"
@@ -502,8 +543,9 @@ class QueryEngine:
         cam, index, name = self.camera(view)
         kinds = list(dict.fromkeys(self._cache_kind(m) for m in modes))
         # Composite needs Theta~, the other kinds raw Theta: one rasterization of both.
-        parts = (["tilde"] if "composite" in kinds else []) + \
-                (["theta"] if any(k != "composite" for k in kinds) else [])
+        parts = (["tilde"] if "composite" in kinds else []) + (
+            ["theta"] if any(k != "composite" for k in kinds) else []
+        )
         tensors = [self.theta_tilde if p == "tilde" else self.theta for p in parts]
         stacked = tensors[0] if len(tensors) == 1 else torch.cat(tensors, dim=1)
         self.encode(self.config.negatives)  # loads the encoder on first use: not render time
@@ -513,21 +555,24 @@ class QueryEngine:
         # Rendered in bands straight into the buffer the score cache keeps (one kind: no copy),
         # so a view's transient memory is a band's, not a few copies of the whole [H, W, C].
         flat = stacked.new_empty(H * W_, stacked.shape[1])
-        out = rasterize_in_bands(g.means, g.normalized_quats, g.scales, g.opacities, stacked, cam,
-                                 out=flat.view(H, W_, -1))
+        out = rasterize_in_bands(
+            g.means, g.normalized_quats, g.scales, g.opacities, stacked, cam, out=flat.view(H, W_, -1)
+        )
         t1 = time.perf_counter()
         D = self.dim
         caches = {}
         for k in kinds:
             j = parts.index("tilde" if k == "composite" else "theta")
-            caches[k] = self._build_cache(k, flat[:, j * D:(j + 1) * D])
+            caches[k] = self._build_cache(k, flat[:, j * D : (j + 1) * D])
         t2 = time.perf_counter()
         image = None
         if rgb:
-            image = rasterize_in_bands(g.means, g.normalized_quats, g.scales, g.opacities, view_colors(g, cam), cam,
-                                       background=(0.0, 0.0, 0.0)).features.clamp_(0.0, 1.0)
-        return ViewCache(cam, index, name, caches, out.alpha.reshape(H, W_), image,
-                         {"render": t1 - t0, "cache": t2 - t1})
+            image = rasterize_in_bands(
+                g.means, g.normalized_quats, g.scales, g.opacities, view_colors(g, cam), cam, background=(0.0, 0.0, 0.0)
+            ).features.clamp_(0.0, 1.0)
+        return ViewCache(
+            cam, index, name, caches, out.alpha.reshape(H, W_), image, {"render": t1 - t0, "cache": t2 - t1}
+        )
 
     def view_cache_bytes(self, view: Any, modes: Sequence[str] = ("composite",), rgb: bool = True) -> int:
         """Bytes of what :meth:`render_view` keeps for ``view`` (an index or a Camera): per cache
@@ -547,8 +592,14 @@ class QueryEngine:
         return floats * item
 
     @torch.no_grad()
-    def query(self, view: ViewCache, texts: Sequence[str], mode: str = "composite",
-              gt_masks: Optional[Any] = None, scorer: Optional[OracleScorer] = None) -> QueryResult:
+    def query(
+        self,
+        view: ViewCache,
+        texts: Sequence[str],
+        mode: str = "composite",
+        gt_masks: Optional[Any] = None,
+        scorer: Optional[OracleScorer] = None,
+    ) -> QueryResult:
         """Relevancy maps ``[Q, H, W]`` of ``texts`` in a rendered view.
 
         Oracle mode needs ``gt_masks`` (``[Q, H, W]`` bool, scored by protocol IoU at every scale)
@@ -557,8 +608,9 @@ class QueryEngine:
         self._check_mode(mode)
         kind = self._cache_kind(mode)
         if kind not in view.caches:
-            raise InputError(None, f"view {view.name} was not rendered for mode {mode!r}: "
-                                   f"render_view(..., modes=[{mode!r}])")
+            raise InputError(
+                None, f"view {view.name} was not rendered for mode {mode!r}: render_view(..., modes=[{mode!r}])"
+            )
         if mode == "oracle" and gt_masks is None and scorer is None:
             raise InputError(None, "oracle mode needs ground-truth masks or a scorer")
         t0 = time.perf_counter()
@@ -567,8 +619,7 @@ class QueryEngine:
         H, W_ = view.height, view.width
         if kind == "composite":
             rel = cache.relevancy(emb)[0].view(len(texts), H, W_)
-            return QueryResult(texts, mode, rel, cache.labels, [None] * len(texts),
-                               seconds=time.perf_counter() - t0)
+            return QueryResult(texts, mode, rel, cache.labels, [None] * len(texts), seconds=time.perf_counter() - t0)
         S = len(cache.labels)
         out = emb.new_empty(len(texts), H, W_)
         scores = emb.new_empty(len(texts), S)
@@ -577,7 +628,7 @@ class QueryEngine:
         # than one big block: measured faster per query on the demo view).
         group = max(1, (1 << 22) // max(1, S * H * W_))
         for a in range(0, len(texts), group):
-            rel = cache.relevancy(emb[a:a + group]).view(S, -1, H, W_)  # [S, q, H, W]
+            rel = cache.relevancy(emb[a : a + group]).view(S, -1, H, W_)  # [S, q, H, W]
             for j in range(rel.shape[1]):
                 qi = a + j
                 if mode == "oracle":
@@ -593,7 +644,6 @@ class QueryEngine:
     def _selection_scores(self, rel: Tensor, image: bool) -> Tensor:  # [S, ...] -> [S]
         """Per-scale selection score (see module docstring)."""
         if image and self.config.selection == "smoothed":
-
             size = resolve_box_size(_box(self.config), rel.shape[-1])
             sm = smoothed_relevancy(rel.float().cpu().numpy(), size)
             return torch.from_numpy(sm.reshape(len(sm), -1).max(axis=1)).to(rel.device)
@@ -623,11 +673,9 @@ class QueryEngine:
         emb = self.encode(texts)
         if mode == "composite":
             rel = cache.relevancy(emb)  # [1, Q, N]
-            return QueryResult(texts, mode, rel[0], cache.labels, [None] * len(texts),
-                               seconds=time.perf_counter() - t0)
+            return QueryResult(texts, mode, rel[0], cache.labels, [None] * len(texts), seconds=time.perf_counter() - t0)
         chosen, scores, out = select_scale(cast(Union[PrefixCache, LinearCache], cache), emb)
-        return QueryResult(texts, mode, out, cache.labels, chosen.tolist(), scores,
-                           time.perf_counter() - t0)
+        return QueryResult(texts, mode, out, cache.labels, chosen.tolist(), scores, time.perf_counter() - t0)
 
     def select(self, text: str, threshold: Optional[float] = None, mode: str = "composite") -> Tensor:
         """Boolean ``[N]`` selection of the Gaussians relevant to ``text``.
@@ -665,8 +713,9 @@ class QueryEngine:
         return n
 
 
-def _oracle_scores(rel: Tensor, qi: int, gt_masks: Any, scorer: Optional[OracleScorer],
-                   config: QueryConfig) -> Tensor:  # rel [S, H, W] -> [S]
+def _oracle_scores(
+    rel: Tensor, qi: int, gt_masks: Any, scorer: Optional[OracleScorer], config: QueryConfig
+) -> Tensor:  # rel [S, H, W] -> [S]
     if scorer is not None:
         return torch.as_tensor(np.asarray(scorer(rel, qi), dtype=np.float64)).to(rel.device, torch.float32)
 

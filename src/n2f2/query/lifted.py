@@ -33,7 +33,7 @@ class LevelBlockCache(LinearCache):
 
     def margins(self, texts: Tensor) -> Tensor:  # [Q, E] -> [S, Q, P]
         S, E = self.maps.shape[0], texts.shape[1]
-        raw = torch.stack([texts @ self.features[:, s * E:(s + 1) * E].T for s in range(S)])  # [S, Q, P]
+        raw = torch.stack([texts @ self.features[:, s * E : (s + 1) * E].T for s in range(S)])  # [S, Q, P]
         return raw.mul_(self.inv_norm).sub_(self.neg_max)
 
 
@@ -52,10 +52,10 @@ def level_block_cache(
     step = max(1, min(chunk, (1 << 22) // max(1, E)))
     for a in range(0, P, step):
         for s in range(S):
-            phi = features[a:a + step, s * E:(s + 1) * E]  # [p, E]
+            phi = features[a : a + step, s * E : (s + 1) * E]  # [p, E]
             i = inverse_norm(phi)  # [p, 1]
-            inv[s, 0, a:a + step] = i[:, 0]
-            neg[s, 0, a:a + step] = ((phi @ negatives.T) * i).amax(dim=-1)
+            inv[s, 0, a : a + step] = i[:, 0]
+            neg[s, 0, a : a + step] = ((phi @ negatives.T) * i).amax(dim=-1)
     maps = LevelBlocks(E, features.device).selectors()
     return LevelBlockCache(features.contiguous(), maps, inv, neg, labels=list(labels))
 
@@ -64,8 +64,17 @@ class LevelBlockEngine(QueryEngine):
     """A query engine over features stored as 3 level blocks: a 3-level field without a network
     (modes ``levels`` and ``oracle``). Subclasses say where the features come from."""
 
-    def __init__(self, embed_dim: int, gaussians: Any, encoder: Any, meta: dict, config: Any = None,
-                 device: Any = "cpu", scene: Any = None, run_dir: Any = None) -> None:
+    def __init__(
+        self,
+        embed_dim: int,
+        gaussians: Any,
+        encoder: Any,
+        meta: dict,
+        config: Any = None,
+        device: Any = "cpu",
+        scene: Any = None,
+        run_dir: Any = None,
+    ) -> None:
         meta = {**meta, "config": {"variant": "levels", "dim": NUM_LEVELS * int(embed_dim)}, "variant": "levels"}
         super().__init__(LevelBlocks(embed_dim, device), gaussians, encoder, meta, config, device, scene, run_dir)
 
@@ -79,15 +88,32 @@ class LevelBlockEngine(QueryEngine):
 class LiftEngine(LevelBlockEngine):
     """The lift's per-Gaussian features (``engine.lift``), queried as a 3-level field."""
 
-    def __init__(self, lift: Lift, gaussians: Any, encoder: Any, meta: dict, config: Any = None,
-                 device: Any = "cpu", scene: Any = None, run_dir: Any = None) -> None:
+    def __init__(
+        self,
+        lift: Lift,
+        gaussians: Any,
+        encoder: Any,
+        meta: dict,
+        config: Any = None,
+        device: Any = "cpu",
+        scene: Any = None,
+        run_dir: Any = None,
+    ) -> None:
         super().__init__(int(lift.features.shape[-1]), gaussians, encoder, meta, config, device, scene, run_dir)
         self.lift = lift
         self._theta = lift.flat.to(self.device)
 
 
-def lift_engine(lift: Lift, gaussians: Any, encoder: Any, meta: dict, config: Any = None,
-                device: Any = "cpu", scene: Any = None, run_dir: Any = None) -> LiftEngine:
+def lift_engine(
+    lift: Lift,
+    gaussians: Any,
+    encoder: Any,
+    meta: dict,
+    config: Any = None,
+    device: Any = "cpu",
+    scene: Any = None,
+    run_dir: Any = None,
+) -> LiftEngine:
     """A query engine over ``lift`` (``meta``: the run's field metadata, for the encoder spec,
     scene and bank paths, and the held-out views)."""
     return LiftEngine(lift, gaussians, encoder, meta, config, device, scene, run_dir)
@@ -130,8 +156,16 @@ def run_lift(run_dir: Any, engine: QueryEngine, bank: Any, progress: bool = Fals
     return build_lift(engine.gaussians, engine.scene, bank, views, progress=progress), False
 
 
-def lift_run(run_dir: Any, *, scene: Any = None, bank: Any = None, config: Any = None, device: Any = "cpu",
-             encoder: Any = None, progress: bool = False) -> LiftEngine:
+def lift_run(
+    run_dir: Any,
+    *,
+    scene: Any = None,
+    bank: Any = None,
+    config: Any = None,
+    device: Any = "cpu",
+    encoder: Any = None,
+    progress: bool = False,
+) -> LiftEngine:
     """The lift of a trained run's Gaussians (:func:`run_lift`) as a query engine
     (``engine.lift`` holds the features and the build time)."""
     from ..segments.bank import SegmentBank

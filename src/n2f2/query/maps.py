@@ -66,7 +66,7 @@ def box_filter(
     size = int(size)
     if size < 1:
         raise ValueError(f"box size must be >= 1, got {size}")
-    kernel = np.ones((size, size)) / (size ** 2)  # float64, as in LangSplat
+    kernel = np.ones((size, size)) / (size**2)  # float64, as in LangSplat
     h, w = r.shape[-2:]
     if r.ndim == 2:
         return cv2.filter2D(np.ascontiguousarray(r), -1, kernel)
@@ -74,8 +74,8 @@ def box_filter(
     stack = r.reshape(-1, h, w).transpose(1, 2, 0)  # [H, W, C]
     out = np.empty_like(stack)
     for c0 in range(0, stack.shape[-1], _CV_MAX_CHANNELS):
-        chunk = np.ascontiguousarray(stack[..., c0:c0 + _CV_MAX_CHANNELS])
-        out[..., c0:c0 + _CV_MAX_CHANNELS] = cv2.filter2D(chunk, -1, kernel).reshape(chunk.shape)
+        chunk = np.ascontiguousarray(stack[..., c0 : c0 + _CV_MAX_CHANNELS])
+        out[..., c0 : c0 + _CV_MAX_CHANNELS] = cv2.filter2D(chunk, -1, kernel).reshape(chunk.shape)
     return out.transpose(2, 0, 1).reshape(*lead, h, w)
 
 
@@ -125,8 +125,12 @@ def majority_filter(
     j = np.arange(w)
     r0, r1 = np.maximum(0, i - radius), np.minimum(i + radius + 1, h - 1)
     c0, c1 = np.maximum(0, j - radius), np.minimum(j + radius + 1, w - 1)
-    count = (integral[r1[:, None], c1[None, :]] - integral[r0[:, None], c1[None, :]]
-             - integral[r1[:, None], c0[None, :]] + integral[r0[:, None], c0[None, :]])
+    count = (
+        integral[r1[:, None], c1[None, :]]
+        - integral[r0[:, None], c1[None, :]]
+        - integral[r1[:, None], c0[None, :]]
+        + integral[r0[:, None], c0[None, :]]
+    )
     n = (r1 - r0)[:, None] * (c1 - c0)[None, :]
     return (2 * count > n).astype(np.uint8)  # strictly more ones than zeros; ties -> 0
 

@@ -68,9 +68,10 @@ def normalize01(x: np.ndarray) -> np.ndarray:
     return (x - lo) / (hi - lo) if hi > lo else np.zeros_like(x)
 
 
-def heatmap_overlay(rgb: np.ndarray,  # [H, W, 3] float in [0, 1]
-                    relevancy: np.ndarray,  # [H, W]
-                    ) -> np.ndarray:  # [H, W, 3] float
+def heatmap_overlay(
+    rgb: np.ndarray,  # [H, W, 3] float in [0, 1]
+    relevancy: np.ndarray,  # [H, W]
+) -> np.ndarray:  # [H, W, 3] float
     """Turbo colours of the min-max normalised relevancy over the RGB; weak values let the
     image through (opacity 0.8 x normalised value)."""
     from matplotlib import colormaps
@@ -81,10 +82,11 @@ def heatmap_overlay(rgb: np.ndarray,  # [H, W, 3] float in [0, 1]
     return rgb * (1.0 - a) + color * a
 
 
-def mask_overlay(rgb: np.ndarray,  # [H, W, 3]
-                 mask: np.ndarray,  # [H, W] bool
-                 point: Optional[tuple[int, int]] = None,  # (x, y) localization pixel
-                 ) -> np.ndarray:  # [H, W, 3]
+def mask_overlay(
+    rgb: np.ndarray,  # [H, W, 3]
+    mask: np.ndarray,  # [H, W] bool
+    point: Optional[tuple[int, int]] = None,  # (x, y) localization pixel
+) -> np.ndarray:  # [H, W, 3]
     """Mask tinted over a dimmed RGB, the localization pixel marked by a white cross."""
     out = rgb * 0.55
     m = mask[..., None].astype(np.float32)
@@ -109,8 +111,11 @@ def write_view_outputs(
 ) -> list[dict]:
     """Write the npy / PNG files of one view and return one JSON record per query."""
     out_dir = Path(out_dir)
-    rgb = (view.rgb.detach().float().cpu().numpy() if view.rgb is not None
-           else np.zeros((view.height, view.width, 3), np.float32))
+    rgb = (
+        view.rgb.detach().float().cpu().numpy()
+        if view.rgb is not None
+        else np.zeros((view.height, view.width, 3), np.float32)
+    )
     write_png(out_dir / f"{view.name}_rgb.png", rgb)
     rel_all = result.relevancy.detach().float().cpu().numpy()
     records = []
@@ -125,9 +130,11 @@ def write_view_outputs(
             "view": view.name,
             "view_index": view.index,
             "query": text,
-            "files": {"relevancy": f"{view.name}_{slug}.npy",
-                      "heatmap": f"{view.name}_{slug}_heatmap.png",
-                      "mask": f"{view.name}_{slug}_mask.png"},
+            "files": {
+                "relevancy": f"{view.name}_{slug}.npy",
+                "heatmap": f"{view.name}_{slug}_heatmap.png",
+                "mask": f"{view.name}_{slug}_mask.png",
+            },
             "localization": {"x": x, "y": y},
             "relevancy_max": float(rel.max()),
             "relevancy_min": float(rel.min()),

@@ -44,8 +44,12 @@ class RenderOutput:
 
 def _check_inputs(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, features: Tensor) -> None:
     n = means.shape[0] if means.dim() == 2 else -1
-    expected = {"means": (means, (n, 3)), "quats": (quats, (n, 4)), "scales": (scales, (n, 3)),
-                "opacities": (opacities, (n,))}
+    expected = {
+        "means": (means, (n, 3)),
+        "quats": (quats, (n, 4)),
+        "scales": (scales, (n, 3)),
+        "opacities": (opacities, (n,)),
+    }
     for name, (x, shape) in expected.items():
         if tuple(x.shape) != shape:
             raise ValueError(f"rasterize: {name} must have shape {shape} with N = len(means), got {tuple(x.shape)}")
@@ -81,11 +85,27 @@ def rasterize(
     opacities and features. ``out.means2d.retain_grad()`` before ``backward`` gives the
     screen-space positional gradient used for densification."""
     if not isinstance(camera, Camera):
-        return [rasterize(means, quats, scales, opacities, features, cam, backend=backend, near=near, far=far,
-                          eps2d=eps2d, alpha_clamp=alpha_clamp, alpha_min=alpha_min,
-                          transmittance_min=transmittance_min, tile_size=tile_size, background=background,
-                          rows=rows)
-                for cam in camera]
+        return [
+            rasterize(
+                means,
+                quats,
+                scales,
+                opacities,
+                features,
+                cam,
+                backend=backend,
+                near=near,
+                far=far,
+                eps2d=eps2d,
+                alpha_clamp=alpha_clamp,
+                alpha_min=alpha_min,
+                transmittance_min=transmittance_min,
+                tile_size=tile_size,
+                background=background,
+                rows=rows,
+            )
+            for cam in camera
+        ]
     if backend not in BACKENDS:
         raise N2F2Error(f"unknown render backend {backend!r}; choose one of {', '.join(BACKENDS)}")
     if not 0.0 < alpha_min <= alpha_clamp < 1.0:
@@ -111,18 +131,45 @@ def rasterize(
         if rows is not None:
             raise ValueError("rasterize: rows (a band of the image) needs a CPU backend")
 
-        raw = rasterize_gsplat(means, quats, scales, opacities, features, cam["viewmat"], cam["K"],
-                               camera.width, camera.height, near=near, far=far, eps2d=eps2d)
+        raw = rasterize_gsplat(
+            means,
+            quats,
+            scales,
+            opacities,
+            features,
+            cam["viewmat"],
+            cam["K"],
+            camera.width,
+            camera.height,
+            near=near,
+            far=far,
+            eps2d=eps2d,
+        )
     else:
         if backend == "numba":
             from n2f2.render.numba_backend import rasterize_numba as rasterize_cpu
         else:
             from n2f2.render.torch_backend import rasterize_torch as rasterize_cpu
 
-        raw = rasterize_cpu(means, quats, scales, opacities, features, cam["viewmat"], cam["K"],
-                            camera.width, camera.height, near=near, far=far, eps2d=eps2d,
-                            alpha_clamp=alpha_clamp, alpha_min=alpha_min,
-                            transmittance_min=transmittance_min, tile_size=tile_size, rows=rows)
+        raw = rasterize_cpu(
+            means,
+            quats,
+            scales,
+            opacities,
+            features,
+            cam["viewmat"],
+            cam["K"],
+            camera.width,
+            camera.height,
+            near=near,
+            far=far,
+            eps2d=eps2d,
+            alpha_clamp=alpha_clamp,
+            alpha_min=alpha_min,
+            transmittance_min=transmittance_min,
+            tile_size=tile_size,
+            rows=rows,
+        )
     alpha = raw["alpha"]
     dsum = raw["depth_sum"]
     # Expected depth; where nothing was blended alpha is exactly 0 and so is the depth sum.
@@ -131,8 +178,9 @@ def rasterize(
     if background is not None:
         bg = torch.as_tensor(background, dtype=feats.dtype, device=feats.device)
         feats = feats + bg * (1.0 - alpha)
-    return RenderOutput(features=feats, alpha=alpha, depth=depth, means2d=raw["means2d"],
-                        radii=raw["radii"], n_pairs=raw.get("n_pairs"))
+    return RenderOutput(
+        features=feats, alpha=alpha, depth=depth, means2d=raw["means2d"], radii=raw["radii"], n_pairs=raw.get("n_pairs")
+    )
 
 
 @torch.no_grad()
@@ -154,14 +202,17 @@ def rasterize_in_bands(
     band's features written into ``out``: a render's transient memory (the compositing's tiled
     output and its untiled copy, about three ``[h, W, C + 2]`` arrays) then stays near
     ``max_band_bytes`` whatever the image size, and the result is the one-pass image (same
-    projection, same tiles; the torch backend's batches of tiles may round sums differently). ``radii`` are the largest over the bands (0: touches no
-    pixel). On CUDA (gsplat) it renders in one pass into ``out``. No gradients."""
+    projection, same tiles; the torch backend's batches of tiles may round sums differently).
+    ``radii`` are the largest over the bands (0: touches no pixel). On CUDA (gsplat) it renders
+    in one pass into ``out``. No gradients."""
     H, W, C = camera.height, camera.width, features.shape[1]
     if out is None:
         out = features.new_empty(H, W, C)
     elif tuple(out.shape) != (H, W, C) or out.dtype != features.dtype or out.device != features.device:
-        raise ValueError(f"out must be a {features.dtype} tensor of shape {(H, W, C)} on {features.device}, "
-                         f"got {out.dtype} {tuple(out.shape)} on {out.device}")
+        raise ValueError(
+            f"out must be a {features.dtype} tensor of shape {(H, W, C)} on {features.device}, "
+            f"got {out.dtype} {tuple(out.shape)} on {out.device}"
+        )
     if means.device.type != "cpu":
         one = rasterize(means, quats, scales, opacities, features, camera, **kw)
         out.copy_(one.features)
@@ -182,8 +233,7 @@ def rasterize_in_bands(
         means2d = band.means2d
         pairs += band.n_pairs or 0
         del band
-    return RenderOutput(features=out, alpha=alpha, depth=depth, means2d=means2d, radii=radii,
-                        n_pairs=pairs)
+    return RenderOutput(features=out, alpha=alpha, depth=depth, means2d=means2d, radii=radii, n_pairs=pairs)
 
 
 def view_colors(
@@ -211,5 +261,13 @@ def render_rgb(
     **kw: Any,  # passed to rasterize (backend, eps2d, alpha_clamp, ...)
 ) -> RenderOutput:
     """Render colours from spherical harmonics (:func:`view_colors`)."""
-    return rasterize(gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities,
-                     view_colors(gaussians, camera, sh_degree), camera, background=background, **kw)
+    return rasterize(
+        gaussians.means,
+        gaussians.quats,
+        gaussians.scales,
+        gaussians.opacities,
+        view_colors(gaussians, camera, sh_degree),
+        camera,
+        background=background,
+        **kw,
+    )

@@ -78,11 +78,14 @@ def rasterize_gsplat(
 
     kw = dict(eps2d=eps2d, near_plane=near, far_plane=far, packed=False)
     try:  # gsplat >= 1.5 uses the opacities for a tighter screen extent
-        proj = fully_fused_projection(means, None, quats, scales, viewmat[None], K[None], width, height,
-                                      opacities=opacities, **kw)
+        proj = fully_fused_projection(
+            means, None, quats, scales, viewmat[None], K[None], width, height, opacities=opacities, **kw
+        )
     except TypeError:  # gsplat 1.4
         proj = fully_fused_projection(means, None, quats, scales, viewmat[None], K[None], width, height, **kw)
-    radii, means2d, depths, conics, _ = proj  # radii [1, N, 2] (gsplat < 1.5: [1, N]), means2d [1, N, 2], depths [1, N], conics [1, N, 3]
+    radii, means2d, depths, conics, _ = (
+        proj  # radii [1, N, 2] (gsplat < 1.5: [1, N]), means2d [1, N, 2], depths [1, N], conics [1, N, 3]
+    )
     m2d = means2d[0]  # [N, 2]: the tensor we hand out; everything below reads it
     m2d_b = m2d[None]
     tiles_x = math.ceil(width / GSPLAT_TILE_SIZE)
@@ -93,8 +96,17 @@ def rasterize_gsplat(
     opac = opacities[None]
     parts, alpha = [], None
     for c0 in range(0, colors.shape[-1], GSPLAT_CHANNEL_CHUNK):
-        img, a = rasterize_to_pixels(m2d_b, conics, colors[..., c0 : c0 + GSPLAT_CHANNEL_CHUNK], opac,
-                                     width, height, GSPLAT_TILE_SIZE, offsets, flatten_ids)
+        img, a = rasterize_to_pixels(
+            m2d_b,
+            conics,
+            colors[..., c0 : c0 + GSPLAT_CHANNEL_CHUNK],
+            opac,
+            width,
+            height,
+            GSPLAT_TILE_SIZE,
+            offsets,
+            flatten_ids,
+        )
         parts.append(img[0])
         alpha = a[0] if alpha is None else alpha
     img = torch.cat(parts, dim=-1)  # [H, W, C + 1]

@@ -83,7 +83,9 @@ if numba is not None:
         order,  # [T'] int64 non-empty tiles, longest list first
         aug,  # [N, D] features, z, 1
         basis,  # [5, p] u, v, u^2, uv, v^2 of each pixel (offsets from the tile centre)
-        log_min, log_clamp, t_min,  # thresholds (log2 alpha_min, log2 alpha_clamp, transmittance)
+        log_min,
+        log_clamp,
+        t_min,  # thresholds (log2 alpha_min, log2 alpha_clamp, transmittance)
         nthreads,
         out,  # [T, p, D] zero-initialised
         stop,  # [T, p] int64: pairs walked by each pixel
@@ -116,7 +118,14 @@ if numba is not None:
                     # Branch-free passes over all pixels (most of a Gaussian's pixels in its tiles
                     # fall below alpha_min), then the blending only where it counts.
                     for p in range(P):
-                        la[p] = k0 + k1 * basis[0, p] + k2 * basis[1, p] + k3 * basis[2, p] + k4 * basis[3, p] + k5 * basis[4, p]
+                        la[p] = (
+                            k0
+                            + k1 * basis[0, p]
+                            + k2 * basis[1, p]
+                            + k3 * basis[2, p]
+                            + k4 * basis[3, p]
+                            + k5 * basis[4, p]
+                        )
                     c = 0
                     for p in range(P):
                         hit[c] = p
@@ -147,7 +156,9 @@ if numba is not None:
         order,  # [T']
         aug,  # [N, D]
         basis,  # [5, p]
-        log_min, log_clamp, ln2,  # ln2: log(2) in the arrays' type
+        log_min,
+        log_clamp,
+        ln2,  # ln2: log(2) in the arrays' type
         nthreads,
         out,  # [T, p, D] forward output
         g_out,  # [T, D, p] upstream gradient (the torch backend's layout)
@@ -201,7 +212,14 @@ if numba is not None:
                         q = s + j
                         k0, k1, k2, k3, k4, k5 = kp[q, 0], kp[q, 1], kp[q, 2], kp[q, 3], kp[q, 4], kp[q, 5]
                         for p in range(P):
-                            la[p] = k0 + k1 * basis[0, p] + k2 * basis[1, p] + k3 * basis[2, p] + k4 * basis[3, p] + k5 * basis[4, p]
+                            la[p] = (
+                                k0
+                                + k1 * basis[0, p]
+                                + k2 * basis[1, p]
+                                + k3 * basis[2, p]
+                                + k4 * basis[3, p]
+                                + k5 * basis[4, p]
+                            )
                         c = 0
                         for p in range(P):
                             hit[c] = p
@@ -309,8 +327,21 @@ class _NumbaComposite(torch.autograd.Function):
         log_min, log_clamp = math.log2(cfg.alpha_min), math.log2(cfg.alpha_clamp)
         with _LOCK:
             nthreads = _threads()
-            _forward_kernel(kp_np, gid, ts, tl, order, aug_np, basis, np_dtype.type(log_min),
-                            np_dtype.type(log_clamp), np_dtype.type(cfg.transmittance_min), nthreads, out, stop)
+            _forward_kernel(
+                kp_np,
+                gid,
+                ts,
+                tl,
+                order,
+                aug_np,
+                basis,
+                np_dtype.type(log_min),
+                np_dtype.type(log_clamp),
+                np_dtype.type(cfg.transmittance_min),
+                nthreads,
+                out,
+                stop,
+            )
         bins.evaluated = int(stop.sum())  # pairs walked (each pixel up to its stop)
         out_t = torch.from_numpy(out).transpose(1, 2)  # [T, D, p], the torch backend's layout
         ctx.bins, ctx.cfg = bins, cfg
@@ -326,9 +357,23 @@ class _NumbaComposite(torch.autograd.Function):
         with _LOCK:
             nthreads = _threads()
             g_aug = np.zeros((nthreads,) + aug_np.shape, dtype=np_dtype)
-            _backward_kernel(kp_np, bins.pair_gid.numpy(), bins.tile_start.numpy(), order,
-                             aug_np, basis, np_dtype.type(log_min), np_dtype.type(log_clamp), np_dtype.type(_LN2),
-                             nthreads, out, g_out_np, stop, g_kp, g_aug)
+            _backward_kernel(
+                kp_np,
+                bins.pair_gid.numpy(),
+                bins.tile_start.numpy(),
+                order,
+                aug_np,
+                basis,
+                np_dtype.type(log_min),
+                np_dtype.type(log_clamp),
+                np_dtype.type(_LN2),
+                nthreads,
+                out,
+                g_out_np,
+                stop,
+                g_kp,
+                g_aug,
+            )
         for k in range(1, nthreads):
             g_aug[0] += g_aug[k]
         return torch.from_numpy(g_kp).T, torch.from_numpy(g_aug[0]), None, None
@@ -350,5 +395,6 @@ def rasterize_numba(
     same dict (``n_pairs`` counts the pairs the pixels walked, without padding)."""
     if means.device.type != "cpu":
         raise ValueError("the numba backend runs on CPU tensors only")
-    return rasterize_torch(means, quats, scales, opacities, features, viewmat, K, width, height,
-                           composite=_NumbaComposite.apply, **kw)
+    return rasterize_torch(
+        means, quats, scales, opacities, features, viewmat, K, width, height, composite=_NumbaComposite.apply, **kw
+    )

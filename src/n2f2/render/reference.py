@@ -79,8 +79,9 @@ def rasterize_reference(
     cov2d = J @ sigma_cam @ J.transpose(1, 2) + eps2d * torch.eye(2, dtype=dtype, device=device)
     conic = torch.linalg.inv(cov2d)  # [N, 2, 2]
 
-    jj, ii = torch.meshgrid(torch.arange(H_img, dtype=dtype, device=device),
-                            torch.arange(W_img, dtype=dtype, device=device), indexing="ij")
+    jj, ii = torch.meshgrid(
+        torch.arange(H_img, dtype=dtype, device=device), torch.arange(W_img, dtype=dtype, device=device), indexing="ij"
+    )
     pix = torch.stack([ii + 0.5, jj + 0.5], dim=-1).reshape(-1, 2)  # [P, 2]
     means2d = torch.stack([u, v], -1)  # [N, 2]
     d = pix[:, None, :] - means2d[None]  # [P, N, 2]
@@ -112,8 +113,7 @@ def rasterize_reference(
         feat = feat + background.to(dtype) * (1 - alpha_img)
     dsum = dsum.reshape(H_img, W_img, 1)
     depth = torch.where(alpha_img > 0, dsum / alpha_img.clamp_min(1e-30), torch.zeros_like(dsum))
-    return RenderOutput(features=feat, alpha=alpha_img, depth=depth,
-                        means2d=means2d, radii=contributes.to(torch.int32))
+    return RenderOutput(features=feat, alpha=alpha_img, depth=depth, means2d=means2d, radii=contributes.to(torch.int32))
 
 
 def random_scene(

@@ -38,7 +38,6 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-
 LOG2E = 1.0 / math.log(2.0)
 
 # ---------------------------------------------------------------------------------- projection
@@ -53,9 +52,15 @@ def quat_to_rotmat(quats: Tensor) -> Tensor:  # quats [N, 4] wxyz -> [3, 3, N]
     w, x, y, z = q
     return torch.stack(
         [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+            1 - 2 * (y * y + z * z),
+            2 * (x * y - w * z),
+            2 * (x * z + w * y),
+            2 * (x * y + w * z),
+            1 - 2 * (x * x + z * z),
+            2 * (y * z - w * x),
+            2 * (x * z - w * y),
+            2 * (y * z + w * x),
+            1 - 2 * (x * x + y * y),
         ],
         dim=0,
     ).reshape(3, 3, -1)
@@ -175,8 +180,9 @@ def bin_gaussians(
         lo.append(a)
         hi.append(b)
     zero = torch.zeros((), dtype=means2d.dtype, device=device)
-    x0, y0, x1, y1 = (torch.where(ok, v, zero).long().div_(tile_size, rounding_mode="floor")
-                      for v in (lo[0], lo[1], hi[0], hi[1]))
+    x0, y0, x1, y1 = (
+        torch.where(ok, v, zero).long().div_(tile_size, rounding_mode="floor") for v in (lo[0], lo[1], hi[0], hi[1])
+    )
     sx = x1 - x0 + 1
     counts = torch.where(ok, sx * (y1 - y0 + 1), 0)  # [N] tiles per Gaussian
 
@@ -282,6 +288,7 @@ def _padded_coefficients(kp: Tensor, pos: Tensor, pad: Tensor) -> Tensor:  # [B,
 def _thresholds(cfg: CompositeConfig, dtype: torch.dtype) -> tuple[float, float, float, float]:
     """log2 alpha_min, log2 alpha_clamp, and the largest values below alpha_min and
     transmittance_min, so that ``F.threshold(x, t, 0)`` keeps exactly ``x >= limit``."""
+
     def below(v: float) -> float:
         return float(torch.nextafter(torch.tensor(v, dtype=dtype), torch.tensor(0.0, dtype=dtype)))
 
@@ -436,8 +443,9 @@ class _Composite(torch.autograd.Function):
                         break
                     kb, gb, T, g, base, lens, rows = _take(keep, kb, gb, T, g, base, lens, rows)
             sel = (~pad).reshape(-1).nonzero().squeeze(1)
-            g_kp.index_copy_(1, pos.reshape(-1).index_select(0, sel),
-                             gkb.transpose(0, 1).reshape(6, -1).index_select(1, sel))
+            g_kp.index_copy_(
+                1, pos.reshape(-1).index_select(0, sel), gkb.transpose(0, 1).reshape(6, -1).index_select(1, sel)
+            )
         return g_kp, (g_aug.T if few else g_aug), None, None
 
 
@@ -486,18 +494,22 @@ def rasterize_torch(
     ``rows``: the features, alpha and depth of those rows only ([y1 - y0, W, ...]), exactly as
     in the whole image: the projection is the whole image's (3DGS's Jacobian clamp depends on
     the image bounds), and the tiles and their centres are the whole image's tiles."""
-    proj = project_gaussians(means, quats, scales, opacities, viewmat, K, width, height,
-                             near=near, far=far, eps2d=eps2d, alpha_min=alpha_min)
+    proj = project_gaussians(
+        means, quats, scales, opacities, viewmat, K, width, height, near=near, far=far, eps2d=eps2d, alpha_min=alpha_min
+    )
     y0, y1 = rows if rows is not None else (0, height)
     if not 0 <= y0 < y1 <= height:
         raise ValueError(f"rows [{y0}, {y1}) are not inside an image of height {height}")
     height = y1 - y0
-    bins = bin_gaussians(proj.means2d, proj.half_extent, proj.depths, proj.valid, width, height, tile_size,
-                         row0=y0)
+    bins = bin_gaussians(proj.means2d, proj.half_extent, proj.depths, proj.valid, width, height, tile_size, row0=y0)
     kp = pair_coefficients(proj.means2d, proj.conics, opacities, bins)
-    cfg = CompositeConfig(alpha_clamp=alpha_clamp, alpha_min=alpha_min,
-                          transmittance_min=transmittance_min, chunk=chunk,
-                          batch_elements=batch_elements)
+    cfg = CompositeConfig(
+        alpha_clamp=alpha_clamp,
+        alpha_min=alpha_min,
+        transmittance_min=transmittance_min,
+        chunk=chunk,
+        batch_elements=batch_elements,
+    )
     ones = torch.ones_like(proj.depths)[:, None]
     aug = torch.cat([features, proj.depths[:, None], ones], dim=1)  # [N, C + 2]
     out = _untile((composite or _Composite.apply)(kp, aug, bins, cfg), bins, width, height)  # [H, W, C + 2]

@@ -16,13 +16,26 @@ from __future__ import annotations
 from .._lazy import lazy_exports
 
 _EXPORTS = {
-    "SegmentBank": "bank", "ImageSegments": "bank", "build_bank": "bank", "SegmentAndEncode": "bank",
-    "QuantileScaleBins": "bins", "scale_to_dims": "bins", "three_level_groups": "bins",
-    "get_encoder": "encoders", "ClipEncoder": "encoders", "CaptionEncoder": "encoders",
-    "get_segmenter": "segmenters", "SegmentSet": "segmenters", "SamSegmenter": "segmenters",
-    "ClassicalSegmenter": "segmenters", "GroundTruthSegmenter": "segmenters", "mask_nms": "segmenters",
-    "LangSplatSource": "langsplat", "read_langsplat": "langsplat",
-    "segment_scales": "lifting", "LiftSettings": "lifting",
+    "SegmentBank": "bank",
+    "ImageSegments": "bank",
+    "build_bank": "bank",
+    "SegmentAndEncode": "bank",
+    "QuantileScaleBins": "bins",
+    "scale_to_dims": "bins",
+    "three_level_groups": "bins",
+    "get_encoder": "encoders",
+    "ClipEncoder": "encoders",
+    "CaptionEncoder": "encoders",
+    "get_segmenter": "segmenters",
+    "SegmentSet": "segmenters",
+    "SamSegmenter": "segmenters",
+    "ClassicalSegmenter": "segmenters",
+    "GroundTruthSegmenter": "segmenters",
+    "mask_nms": "segmenters",
+    "LangSplatSource": "langsplat",
+    "read_langsplat": "langsplat",
+    "segment_scales": "lifting",
+    "LiftSettings": "lifting",
 }
 
 __getattr__, __all__ = lazy_exports(__name__, _EXPORTS)

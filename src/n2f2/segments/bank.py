@@ -60,8 +60,12 @@ class SegmentSource(Protocol):
 
     def prepare(self, stems: list[str]) -> None: ...
 
-    def extract(self, index: int, stem: str, image: np.ndarray  # [H, W, 3] float
-                ) -> tuple[SegmentSet, np.ndarray]: ...  # segments, embeddings [S, E]
+    def extract(
+        self,
+        index: int,
+        stem: str,
+        image: np.ndarray,  # [H, W, 3] float
+    ) -> tuple[SegmentSet, np.ndarray]: ...  # segments, embeddings [S, E]
 
 
 class SegmentAndEncode:
@@ -70,8 +74,11 @@ class SegmentAndEncode:
 
     def __init__(self, segmenter, encoder, chunk: int = 64) -> None:
         if encoder.requires_captions and segmenter.name != "ground-truth":
-            raise InputError(None, f"--encoder {encoder.name} embeds ground-truth captions, so it needs "
-                             "--segmenter ground-truth (the demo scene); use --encoder clip otherwise")
+            raise InputError(
+                None,
+                f"--encoder {encoder.name} embeds ground-truth captions, so it needs "
+                "--segmenter ground-truth (the demo scene); use --encoder clip otherwise",
+            )
         self.segmenter = segmenter
         self.encoder = encoder
         self.chunk = chunk  # segments whose full-size masks are materialised at once
@@ -93,8 +100,7 @@ class SegmentAndEncode:
         if S == 0:
             return segs, np.zeros((0, self.encoder.dim), np.float32)
         if self.encoder.requires_captions:
-            return segs, self.encoder.encode_segments(image, np.zeros((S, 0, 0), bool),
-                                                      captions=segs.captions).numpy()
+            return segs, self.encoder.encode_segments(image, np.zeros((S, 0, 0), bool), captions=segs.captions).numpy()
         layer_of = segs.layer_of()
         out = []
         for start in range(0, S, self.chunk):
@@ -122,8 +128,9 @@ class ImageSegments:
     def masks(self, ids: Optional[Sequence[int]] = None) -> np.ndarray:
         """Boolean masks [n, H, W] of segments ``ids`` (default: all)."""
         S = self.num_segments
-        return layers_to_masks(np.asarray(self.layers), S if ids is None else ids,
-                               layer_of=segment_layers(np.asarray(self.layers), S))
+        return layers_to_masks(
+            np.asarray(self.layers), S if ids is None else ids, layer_of=segment_layers(np.asarray(self.layers), S)
+        )
 
 
 class SegmentBank:
@@ -147,10 +154,15 @@ class SegmentBank:
         if meta.get("format") != BANK_FORMAT:
             raise InputError(meta_path, f"not a segment bank (format {meta.get('format')!r})")
         if int(meta.get("version", -1)) > BANK_VERSION:
-            raise InputError(meta_path, f"bank format version {meta.get('version')} is newer than this n2f2 ({BANK_VERSION})")
+            raise InputError(
+                meta_path, f"bank format version {meta.get('version')} is newer than this n2f2 ({BANK_VERSION})"
+            )
         if not meta.get("complete"):
-            raise InputError(meta_path, "segment bank is incomplete (extraction was interrupted); "
-                             "rerun the same `n2f2 segments` command with --resume to finish it")
+            raise InputError(
+                meta_path,
+                "segment bank is incomplete (extraction was interrupted); "
+                "rerun the same `n2f2 segments` command with --resume to finish it",
+            )
         try:
             return SegmentBank(root, meta)
         except (KeyError, ValueError) as e:
@@ -225,9 +237,14 @@ class SegmentBank:
         valid = np.asarray(self._load(i, "valid.npy"))
         quant = self.bins.transform(scales).astype(np.float32)
         quant[~valid] = np.nan
-        return ImageSegments(layers=self._load(i, "layers.npy"), embeddings=self._load(i, "embeddings.npy"),
-                             scales=scales, quantized=quant, areas=np.asarray(self._load(i, "areas.npy")),
-                             valid=valid)
+        return ImageSegments(
+            layers=self._load(i, "layers.npy"),
+            embeddings=self._load(i, "embeddings.npy"),
+            scales=scales,
+            quantized=quant,
+            areas=np.asarray(self._load(i, "areas.npy")),
+            valid=valid,
+        )
 
     def optional(self, i: int, name: str) -> Optional[np.ndarray]:
         """An optional per-record array (``"source_ids"``, ``"num_points"``, ...) or None."""
@@ -247,18 +264,25 @@ class SegmentBank:
             raise InputError(path, f"bank has {self.num_images} images, the scene has {len(names)}")
         if names != self.image_names:
             bad = next(a for a, b in zip(self.image_names, names) if a != b)
-            raise InputError(path, f"image names differ from the scene's (bank has {bad!r} where the scene "
-                             "differs); was the bank made for another scene?")
+            raise InputError(
+                path,
+                f"image names differ from the scene's (bank has {bad!r} where the scene "
+                "differs); was the bank made for another scene?",
+            )
         for (h, w), cam, name in zip(self.sizes, scene.cameras, names):
             if (cam.height, cam.width) != (h, w):
-                raise InputError(path, f"image {name} is {w}x{h} in the bank but {cam.width}x{cam.height} in "
-                                 "the scene (different --downscale?)")
+                raise InputError(
+                    path,
+                    f"image {name} is {w}x{h} in the bank but {cam.width}x{cam.height} in "
+                    "the scene (different --downscale?)",
+                )
 
 
 # ----------------------------------------------------------------------------- writing
 def scene_fingerprint(scene) -> dict:
-    return {"images": [{"name": n, "width": c.width, "height": c.height}
-                       for n, c in zip(scene.image_names, scene.cameras)]}
+    return {
+        "images": [{"name": n, "width": c.width, "height": c.height} for n, c in zip(scene.image_names, scene.cameras)]
+    }
 
 
 def _record_dir(root: Path, stem: str) -> Path:
@@ -291,18 +315,24 @@ def _check_resume(meta_path: Path, header: dict) -> None:
     try:
         old = json.loads(meta_path.read_text())
     except (OSError, ValueError) as e:
-        raise InputError(meta_path, f"cannot read existing bank.json ({e}); pass --force to replace the bank, or "
-                         "choose another --out") from None
+        raise InputError(
+            meta_path,
+            f"cannot read existing bank.json ({e}); pass --force to replace the bank, or choose another --out",
+        ) from None
     if old.get("format") != BANK_FORMAT:
         raise InputError(meta_path, "output folder holds something that is not a segment bank")
     for key in ("scene", "segmenter", "encoder", "lifting"):
         if old.get(key) != header.get(key):
-            raise InputError(meta_path, f"existing bank was made with different {key} settings; pass --force to "
-                             "replace it, or choose another --out")
+            raise InputError(
+                meta_path,
+                f"existing bank was made with different {key} settings; pass --force to "
+                "replace it, or choose another --out",
+            )
 
 
-def extract_record(scene, source: SegmentSource, depth: DepthProvider, i: int,
-                   lift: LiftSettings) -> tuple[dict, Optional[list[str]]]:
+def extract_record(
+    scene, source: SegmentSource, depth: DepthProvider, i: int, lift: LiftSettings
+) -> tuple[dict, Optional[list[str]]]:
     """Image ``i``'s record: segments and embeddings from ``source``, each segment's scale lifted
     with ``depth``. Returns the arrays the bank stores (name -> array) and the captions (ground
     truth only). The same code runs in the driver and in a Ray worker."""
@@ -311,18 +341,24 @@ def extract_record(scene, source: SegmentSource, depth: DepthProvider, i: int,
     segs, emb = source.extract(i, stem, image)
     S = segs.num_segments
     if segs.layers.shape[1:] != (cam.height, cam.width):
-        raise InputError(scene.image_paths[i], f"segments are {segs.width}x{segs.height} but the image is "
-                         f"{cam.width}x{cam.height}")
+        raise InputError(
+            scene.image_paths[i], f"segments are {segs.width}x{segs.height} but the image is {cam.width}x{cam.height}"
+        )
     emb = np.asarray(emb, dtype=np.float32)
     if emb.shape != (S, int(source.encoder_spec["embed_dim"])):
         raise ValueError(f"{stem}: embeddings {emb.shape} for {S} segments")
     d, ok = depth(i)
     scales, npts = lift_view(segs.layers, d, ok, cam, S, lift)
     areas = segs.areas()
-    arrays = {"layers": segs.layers.astype(np.int32), "embeddings": emb.astype(np.float16),
-              "scales": scales.astype(np.float32), "areas": areas.astype(np.int64),
-              "valid": np.isfinite(scales) & (areas > 0), "num_points": npts.astype(np.int64),
-              "scores": segs.scores.astype(np.float32)}
+    arrays = {
+        "layers": segs.layers.astype(np.int32),
+        "embeddings": emb.astype(np.float16),
+        "scales": scales.astype(np.float32),
+        "areas": areas.astype(np.int64),
+        "valid": np.isfinite(scales) & (areas > 0),
+        "num_points": npts.astype(np.int64),
+        "scores": segs.scores.astype(np.float32),
+    }
     if segs.source_ids is not None:
         arrays["source_ids"] = np.asarray(segs.source_ids, dtype=np.int64)
     return arrays, segs.captions
@@ -350,16 +386,27 @@ def _extract_in_worker(task: tuple) -> tuple[dict, Optional[list[str]], float]:
     scene, source, depth = worker_state(setup, build)
     t0 = time.perf_counter()  # per-image time, as the serial loop measures it (models loaded)
     if i >= len(scene) or scene.image_names[i] != stem:
-        raise InputError(scene.root, f"the worker's scene has no image {stem!r} at index {i}; do all Ray "
-                         "nodes see the same scene folder?")
+        raise InputError(
+            scene.root,
+            f"the worker's scene has no image {stem!r} at index {i}; do all Ray nodes see the same scene folder?",
+        )
     arrays, captions = extract_record(scene, source, depth, i, lift)
     return arrays, captions, time.perf_counter() - t0
 
 
-def build_bank(scene, source: SegmentSource, depth: DepthProvider, out: str | Path, *,
-               depth_source: str = "render", lift: Optional[LiftSettings] = None,
-               num_quantiles: int = 1000, progress: bool = True, executor: Optional["Executor"] = None,
-               worker_setup: Optional[WorkerSetup] = None) -> dict:
+def build_bank(
+    scene,
+    source: SegmentSource,
+    depth: DepthProvider,
+    out: str | Path,
+    *,
+    depth_source: str = "render",
+    lift: Optional[LiftSettings] = None,
+    num_quantiles: int = 1000,
+    progress: bool = True,
+    executor: Optional["Executor"] = None,
+    worker_setup: Optional[WorkerSetup] = None,
+) -> dict:
     """Extract (or finish extracting) the segment bank of ``scene`` into ``out``.
 
     For every image without a record: segments + embeddings from ``source``, depth from
@@ -378,7 +425,9 @@ def build_bank(scene, source: SegmentSource, depth: DepthProvider, out: str | Pa
     out.mkdir(parents=True, exist_ok=True)
     stems = list(scene.image_names)
     if len(set(stems)) != len(stems):
-        raise InputError(scene.root, "image file names (without extension) are not unique; the bank keys records by them")
+        raise InputError(
+            scene.root, "image file names (without extension) are not unique; the bank keys records by them"
+        )
     if executor is not None and executor.name == "serial":
         executor = None  # the in-process loop below
     if executor is not None and worker_setup is None:
@@ -427,8 +476,11 @@ def build_bank(scene, source: SegmentSource, depth: DepthProvider, out: str | Pa
         if failed:
             bar.close()
             names = ", ".join(Path(scene.image_paths[i]).name for i in sorted(failed))
-            raise InputError(out, f"{len(failed)} of {len(todo)} images failed ({names}); the records of the "
-                             "others are kept: fix the inputs and rerun with --resume to finish the bank")
+            raise InputError(
+                out,
+                f"{len(failed)} of {len(todo)} images failed ({names}); the records of the "
+                "others are kept: fix the inputs and rerun with --resume to finish the bank",
+            )
     bar.close()
 
     # Fit the quantile transform over every valid segment of the scene.
@@ -447,31 +499,52 @@ def build_bank(scene, source: SegmentSource, depth: DepthProvider, out: str | Pa
         n_degenerate += int(((ar > 0) & ~va).sum())
     scales = np.concatenate(all_scales) if all_scales else np.zeros(0)
     if scales.size == 0:
-        raise InputError(out, "no segment could be lifted to 3D (no valid depth under any segment); "
-                         "check the Gaussians / depth source")
+        raise InputError(
+            out,
+            "no segment could be lifted to 3D (no valid depth under any segment); check the Gaussians / depth source",
+        )
     bins = QuantileScaleBins.fit(scales, num_quantiles)
-    counts = {"images": len(stems), "segments": n_total, "valid": int(scales.size),
-              "dropped_degenerate": n_degenerate, "dropped_empty": n_empty,
-              "max_layers": max(n_layers) if n_layers else 0,
-              "segments_per_image": n_total / max(1, len(stems))}
-    timing = {"images_extracted_now": len(times), "seconds": float(sum(times)),
-              "seconds_per_image": float(np.mean(times)) if times else None}
-    stats = {"scale_median": float(np.median(scales)), "scale_min": float(scales.min()),
-             "scale_max": float(scales.max())}
+    counts = {
+        "images": len(stems),
+        "segments": n_total,
+        "valid": int(scales.size),
+        "dropped_degenerate": n_degenerate,
+        "dropped_empty": n_empty,
+        "max_layers": max(n_layers) if n_layers else 0,
+        "segments_per_image": n_total / max(1, len(stems)),
+    }
+    timing = {
+        "images_extracted_now": len(times),
+        "seconds": float(sum(times)),
+        "seconds_per_image": float(np.mean(times)) if times else None,
+    }
+    stats = {
+        "scale_median": float(np.median(scales)),
+        "scale_min": float(scales.min()),
+        "scale_max": float(scales.max()),
+    }
     check = None
     if all_sources is not None and scene.ground_truth is not None:
         check = ground_truth_scale_check(scales, np.concatenate(all_sources), scene.ground_truth.regions)
-    meta = {**header, "complete": True, "source": str(scene.root), "quantile": bins.to_dict(),
-            "counts": counts, "scale_stats": stats, "timing": timing, "ground_truth_check": check}
+    meta = {
+        **header,
+        "complete": True,
+        "source": str(scene.root),
+        "quantile": bins.to_dict(),
+        "counts": counts,
+        "scale_stats": stats,
+        "timing": timing,
+        "ground_truth_check": check,
+    }
     write_json(meta_path, meta)
-    return {"bank": str(out), "counts": counts, "timing": timing, "scale_stats": stats,
-            "ground_truth_check": check}
+    return {"bank": str(out), "counts": counts, "timing": timing, "scale_stats": stats, "ground_truth_check": check}
 
 
-def ground_truth_scale_check(scales: np.ndarray,  # [S] lifted scales of the valid segments
-                             region_ids: np.ndarray,  # [S] ground-truth region of each segment
-                             regions: dict,  # the demo scene's regions.json
-                             ) -> dict:
+def ground_truth_scale_check(
+    scales: np.ndarray,  # [S] lifted scales of the valid segments
+    region_ids: np.ndarray,  # [S] ground-truth region of each segment
+    regions: dict,  # the demo scene's regions.json
+) -> dict:
     """How well lifting worked, where the true regions are known (the demo scene): Spearman rank
     correlation of the lifted scales with the regions' true 3D extents, and the median scale per
     hierarchy level (it should grow from parts to objects to groups)."""

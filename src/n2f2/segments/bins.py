@@ -74,8 +74,11 @@ class QuantileScaleBins:
     __call__ = transform
 
     def to_dict(self) -> dict:
-        return {"kind": "quantile-uniform", "knots": [float(v) for v in self.knots],
-                "references": [float(v) for v in self.references]}
+        return {
+            "kind": "quantile-uniform",
+            "knots": [float(v) for v in self.knots],
+            "references": [float(v) for v in self.references],
+        }
 
     @staticmethod
     def from_dict(d: dict) -> "QuantileScaleBins":

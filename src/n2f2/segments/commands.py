@@ -20,79 +20,137 @@ from .setup import SegmentsSetup
 def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("data", metavar="DATA", help="scene folder (COLMAP sparse/0 or nerfstudio transforms.json)")
     p.add_argument("--out", required=True, metavar="BANK", help="output segment bank folder")
-    p.add_argument("--resume", action="store_true",
-                   help="finish the bank in BANK (its images with a record are skipped; settings must match)")
+    p.add_argument(
+        "--resume",
+        action="store_true",
+        help="finish the bank in BANK (its images with a record are skipped; settings must match)",
+    )
     p.add_argument("--force", action="store_true", help="replace the bank already in BANK")
-    p.add_argument("--gaussians", metavar="PLY",
-                   help="fitted 3DGS (gaussians.ply, or the fit-gaussians folder) whose expected depth "
-                        "lifts segments to 3D; not needed with --depth-source gt")
-    p.add_argument("--depth-source", choices=["render", "gt"], default="render",
-                   help="render: expected depth of --gaussians (paper, default); gt: the demo scene's "
-                        "exact depth maps")
-    p.add_argument("--scale-measure", choices=list(SCALE_MEASURES), default=LiftSettings.scale_measure,
-                   help="segment scale from its 3D points: eigenvalue = largest eigenvalue of their "
-                        "covariance (paper); extent = squared diagonal of their robust oriented box "
-                        "(2nd-98th percentile along each principal axis; not in the paper). Default: %(default)s")
-    p.add_argument("--downscale", type=positive_float, default=1.0, help="image downscale factor, as 3DGS -r (default 1)")
-    p.add_argument("--skip-missing", action="store_true",
-                   help="drop views whose image file is missing (default: a missing image is an error)")
+    p.add_argument(
+        "--gaussians",
+        metavar="PLY",
+        help="fitted 3DGS (gaussians.ply, or the fit-gaussians folder) whose expected depth "
+        "lifts segments to 3D; not needed with --depth-source gt",
+    )
+    p.add_argument(
+        "--depth-source",
+        choices=["render", "gt"],
+        default="render",
+        help="render: expected depth of --gaussians (paper, default); gt: the demo scene's exact depth maps",
+    )
+    p.add_argument(
+        "--scale-measure",
+        choices=list(SCALE_MEASURES),
+        default=LiftSettings.scale_measure,
+        help="segment scale from its 3D points: eigenvalue = largest eigenvalue of their "
+        "covariance (paper); extent = squared diagonal of their robust oriented box "
+        "(2nd-98th percentile along each principal axis; not in the paper). Default: %(default)s",
+    )
+    p.add_argument(
+        "--downscale", type=positive_float, default=1.0, help="image downscale factor, as 3DGS -r (default 1)"
+    )
+    p.add_argument(
+        "--skip-missing",
+        action="store_true",
+        help="drop views whose image file is missing (default: a missing image is an error)",
+    )
     p.add_argument("--device", default="cpu", help="torch device for models and rendering (default cpu)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
-        "segments", help="extract the segment bank: segments, language embeddings, 3D scales",
+        "segments",
+        help="extract the segment bank: segments, language embeddings, 3D scales",
         description="Segment every image (SAM, Felzenszwalb or the demo scene's ground truth), embed "
-                    "each segment (CLIP, or ground-truth captions with all-MiniLM-L6-v2 as an offline "
-                    "stand-in for CLIP), lift it to 3D with the Gaussians' expected depth to measure its "
-                    "physical scale, and fit the quantile transform of scales. Writes BANK/bank.json and "
-                    "one record per image; --resume finishes an interrupted bank.")
+        "each segment (CLIP, or ground-truth captions with all-MiniLM-L6-v2 as an offline "
+        "stand-in for CLIP), lift it to 3D with the Gaussians' expected depth to measure its "
+        "physical scale, and fit the quantile transform of scales. Writes BANK/bank.json and "
+        "one record per image; --resume finishes an interrupted bank.",
+    )
     _common(p)
-    p.add_argument("--segmenter", choices=["sam", "classical", "ground-truth"], default="sam",
-                   help="sam: SAM automatic masks (paper, default); classical: multi-scale Felzenszwalb "
-                        "(no weights needed); ground-truth: demo scene regions with captions")
-    p.add_argument("--encoder", choices=["clip", "captions"], default="clip",
-                   help="clip: CLIP image encoder on masked segments (paper, default); captions: ground-truth "
-                        "captions embedded by all-MiniLM-L6-v2 (offline stand-in, needs --segmenter ground-truth)")
-    p.add_argument("--model", "--clip-model", dest="model", metavar="ID", default=None,
-                   help="CLIP model: Hugging Face id or a local folder saved with save_pretrained "
-                        "(default laion/CLIP-ViT-B-16-laion2B-s34B-b88K)")
-    p.add_argument("--sam-model", metavar="ID", default=None,
-                   help="SAM model: Hugging Face id or a local folder saved with save_pretrained "
-                        "(default facebook/sam-vit-huge)")
+    p.add_argument(
+        "--segmenter",
+        choices=["sam", "classical", "ground-truth"],
+        default="sam",
+        help="sam: SAM automatic masks (paper, default); classical: multi-scale Felzenszwalb "
+        "(no weights needed); ground-truth: demo scene regions with captions",
+    )
+    p.add_argument(
+        "--encoder",
+        choices=["clip", "captions"],
+        default="clip",
+        help="clip: CLIP image encoder on masked segments (paper, default); captions: ground-truth "
+        "captions embedded by all-MiniLM-L6-v2 (offline stand-in, needs --segmenter ground-truth)",
+    )
+    p.add_argument(
+        "--model",
+        "--clip-model",
+        dest="model",
+        metavar="ID",
+        default=None,
+        help="CLIP model: Hugging Face id or a local folder saved with save_pretrained "
+        "(default laion/CLIP-ViT-B-16-laion2B-s34B-b88K)",
+    )
+    p.add_argument(
+        "--sam-model",
+        metavar="ID",
+        default=None,
+        help="SAM model: Hugging Face id or a local folder saved with save_pretrained (default facebook/sam-vit-huge)",
+    )
     add_executor_options(p, "image")
     p.set_defaults(func=run_segments)
 
     q = subparsers.add_parser(
-        "segments-from-langsplat", help="build the segment bank from LangSplat's language_features",
+        "segments-from-langsplat",
+        help="build the segment bank from LangSplat's language_features",
         description="Import LangSplat's preprocessed segments and CLIP features (<stem>_s.npy, <stem>_f.npy) "
-                    "as a segment bank, lifting each segment to 3D for its scale, so N2F2 trains without "
-                    "re-running SAM and CLIP.")
+        "as a segment bank, lifting each segment to 3D for its scale, so N2F2 trains without "
+        "re-running SAM and CLIP.",
+    )
     _common(q)
-    q.add_argument("--features", metavar="DIR", default=None,
-                   help="LangSplat language_features folder (default DATA/language_features)")
-    q.add_argument("--encoder", choices=["clip", "captions"], default=None,
-                   help="text encoder the features are aligned with: clip (LangSplat's OpenCLIP ViT-B/16 "
-                        "laion2b_s34b_b88k) or captions (ground-truth captions embedded by all-MiniLM-L6-v2, "
-                        "the offline stand-in that `n2f2 segments-export-langsplat` exports from a demo bank). "
-                        "Default: the encoder an n2f2 export recorded in DIR/encoder.json, else clip")
-    q.add_argument("--model", metavar="ID", default=None,
-                   help="CLIP model id recorded for queries (default laion/CLIP-ViT-B-16-laion2B-s34B-b88K)")
+    q.add_argument(
+        "--features",
+        metavar="DIR",
+        default=None,
+        help="LangSplat language_features folder (default DATA/language_features)",
+    )
+    q.add_argument(
+        "--encoder",
+        choices=["clip", "captions"],
+        default=None,
+        help="text encoder the features are aligned with: clip (LangSplat's OpenCLIP ViT-B/16 "
+        "laion2b_s34b_b88k) or captions (ground-truth captions embedded by all-MiniLM-L6-v2, "
+        "the offline stand-in that `n2f2 segments-export-langsplat` exports from a demo bank). "
+        "Default: the encoder an n2f2 export recorded in DIR/encoder.json, else clip",
+    )
+    q.add_argument(
+        "--model",
+        metavar="ID",
+        default=None,
+        help="CLIP model id recorded for queries (default laion/CLIP-ViT-B-16-laion2B-s34B-b88K)",
+    )
     q.set_defaults(func=run_from_langsplat)
 
     x = subparsers.add_parser(
-        "segments-export-langsplat", help="write a segment bank as LangSplat language_features",
+        "segments-export-langsplat",
+        help="write a segment bank as LangSplat language_features",
         description="Write a segment bank's segments and embeddings in LangSplat's language_features format "
-                    "(<stem>_s.npy: [4, H, W] global row indices per level default/s/m/l, -1 = none; "
-                    "<stem>_f.npy: [N, E] embeddings) plus encoder.json naming the text encoder. Each LangSplat "
-                    "level takes one bank layer (--levels); the demo's ground truth maps to default = object, "
-                    "s = part, m = object, l = group.")
+        "(<stem>_s.npy: [4, H, W] global row indices per level default/s/m/l, -1 = none; "
+        "<stem>_f.npy: [N, E] embeddings) plus encoder.json naming the text encoder. Each LangSplat "
+        "level takes one bank layer (--levels); the demo's ground truth maps to default = object, "
+        "s = part, m = object, l = group.",
+    )
     x.add_argument("bank", metavar="BANK", help="segment bank folder (`n2f2 segments`)")
     x.add_argument("--out", required=True, metavar="DIR", help="output folder (e.g. SCENE/language_features)")
-    x.add_argument("--levels", nargs=4, metavar=("DEFAULT", "S", "M", "L"), default=None,
-                   help="bank layer (index, or level name such as part / object / group) for each LangSplat "
-                        "level (default: 1 0 1 2, i.e. object part object group)")
+    x.add_argument(
+        "--levels",
+        nargs=4,
+        metavar=("DEFAULT", "S", "M", "L"),
+        default=None,
+        help="bank layer (index, or level name such as part / object / group) for each LangSplat "
+        "level (default: 1 0 1 2, i.e. object part object group)",
+    )
     x.add_argument("--force", action="store_true", help="replace the LangSplat files already in DIR")
     x.add_argument("--quiet", action="store_true", help="no progress bar")
     x.set_defaults(func=run_export_langsplat)
@@ -105,8 +163,11 @@ def _claim_bank(args: argparse.Namespace) -> list[str]:
     from .bank import RECORD_FILES
 
     out = Path(args.out)
-    records = [d.name for d in out.iterdir() if d.is_dir() and any((d / f).is_file() for f in RECORD_FILES)] \
-        if out.is_dir() else []
+    records = (
+        [d.name for d in out.iterdir() if d.is_dir() and any((d / f).is_file() for f in RECORD_FILES)]
+        if out.is_dir()
+        else []
+    )
     return claim_out_dir(out, ["bank.json", *sorted(records)], resume=args.resume, force=args.force)
 
 
@@ -134,9 +195,17 @@ def run_segments(args: argparse.Namespace) -> int:
     if args.force:  # the inputs are read: now the old bank goes
         remove_results(args.out, present)
     with executor:
-        report = build_bank(scene, source, depth, args.out, depth_source=args.depth_source,
-                            lift=_lift_settings(args), progress=not args.quiet, executor=executor,
-                            worker_setup=setup.for_ray_worker())
+        report = build_bank(
+            scene,
+            source,
+            depth,
+            args.out,
+            depth_source=args.depth_source,
+            lift=_lift_settings(args),
+            progress=not args.quiet,
+            executor=executor,
+            worker_setup=setup.for_ray_worker(),
+        )
     return _finish(report)
 
 
@@ -156,17 +225,27 @@ def run_from_langsplat(args: argparse.Namespace) -> int:
         source.check_resumed_bank(args.out)
     if args.force:
         remove_results(args.out, present)
-    report = build_bank(scene, source, depth, args.out, depth_source=args.depth_source, lift=_lift_settings(args),
-                        progress=not args.quiet)
+    report = build_bank(
+        scene,
+        source,
+        depth,
+        args.out,
+        depth_source=args.depth_source,
+        lift=_lift_settings(args),
+        progress=not args.quiet,
+    )
     return _finish(report)
 
 
 def run_export_langsplat(args: argparse.Namespace) -> int:
     from .langsplat import DEFAULT_LEVEL_LAYERS, export_langsplat
 
-    report = export_langsplat(args.bank, args.out, level_layers=args.levels or DEFAULT_LEVEL_LAYERS,
-                              progress=not args.quiet, force=args.force)
+    report = export_langsplat(
+        args.bank, args.out, level_layers=args.levels or DEFAULT_LEVEL_LAYERS, progress=not args.quiet, force=args.force
+    )
     lv = ", ".join(f"{k} = layer {v}" for k, v in report["levels"].items())
-    print(f"segments-export-langsplat: {report['images']} images, {report['rows']} feature rows ({lv}); "
-          f"{report['segments_not_exported']} segments in no exported layer -> {report['out']}")
+    print(
+        f"segments-export-langsplat: {report['images']} images, {report['rows']} feature rows ({lv}); "
+        f"{report['segments_not_exported']} segments in no exported layer -> {report['out']}"
+    )
     return 0

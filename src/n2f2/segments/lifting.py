@@ -74,7 +74,7 @@ def erode_layers(layers: np.ndarray) -> np.ndarray:  # [L, H, W] int -> [L, H, W
     same = np.ones(layers.shape, dtype=bool)
     for dy in (0, 1, 2):
         for dx in (0, 1, 2):
-            same &= padded[:, dy:dy + H, dx:dx + W] == layers
+            same &= padded[:, dy : dy + H, dx : dx + W] == layers
     return np.where(same, layers, -1).astype(np.int32)
 
 
@@ -84,10 +84,12 @@ def _counts(layers: np.ndarray, valid: np.ndarray, S: int) -> np.ndarray:
     return np.bincount(ids[ids >= 0], minlength=S)[:S]
 
 
-def segment_quantiles(ids: np.ndarray,  # [P] segment id of each sample (>= 0)
-                      values: np.ndarray,  # [P]
-                      S: int,
-                      q: float) -> np.ndarray:
+def segment_quantiles(
+    ids: np.ndarray,  # [P] segment id of each sample (>= 0)
+    values: np.ndarray,  # [P]
+    S: int,
+    q: float,
+) -> np.ndarray:
     """[S] ``q``-quantile (0..1, linear interpolation as ``np.quantile``) of ``values`` per
     segment (NaN for segments without samples), by one lexicographic sort instead of a loop
     over segments."""
@@ -107,18 +109,22 @@ def segment_quantiles(ids: np.ndarray,  # [P] segment id of each sample (>= 0)
     return out
 
 
-def segment_medians(ids: np.ndarray,  # [P] segment id of each sample (>= 0)
-                    values: np.ndarray,  # [P]
-                    S: int) -> np.ndarray:
+def segment_medians(
+    ids: np.ndarray,  # [P] segment id of each sample (>= 0)
+    values: np.ndarray,  # [P]
+    S: int,
+) -> np.ndarray:
     """[S] median of ``values`` per segment (NaN for segments without samples)."""
     return segment_quantiles(ids, values, S, 0.5)
 
 
-def select_pixels(layers: np.ndarray,  # [L, H, W] int32 segment ids
-                  valid: np.ndarray,  # [H, W] bool
-                  depth: Optional[np.ndarray],  # [H, W] z-depth, for outlier rejection
-                  num_segments: int,
-                  settings: Optional[LiftSettings] = None) -> np.ndarray:  # [L, H, W] int32
+def select_pixels(
+    layers: np.ndarray,  # [L, H, W] int32 segment ids
+    valid: np.ndarray,  # [H, W] bool
+    depth: Optional[np.ndarray],  # [H, W] z-depth, for outlier rejection
+    num_segments: int,
+    settings: Optional[LiftSettings] = None,
+) -> np.ndarray:  # [L, H, W] int32
     """The pixels each segment is lifted from, as id layers (-1 = not used): the eroded mask
     (or the raw mask when erosion leaves fewer than ``min_points`` valid pixels), restricted
     to valid depth, minus depth outliers."""
@@ -146,9 +152,11 @@ def select_pixels(layers: np.ndarray,  # [L, H, W] int32 segment ids
     return sel
 
 
-def _moments(layers: np.ndarray,  # [L, H, W] int32, only pixels to use
-             points: np.ndarray,  # [H, W, 3] float64, centred
-             S: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _moments(
+    layers: np.ndarray,  # [L, H, W] int32, only pixels to use
+    points: np.ndarray,  # [H, W, 3] float64, centred
+    S: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per segment: count [S], sum of points [S, 3], sum of outer products [S, 3, 3]."""
     count = np.zeros(S)
     first = np.zeros((S, 3))
@@ -168,13 +176,14 @@ def _moments(layers: np.ndarray,  # [L, H, W] int32, only pixels to use
     return count, first, second.reshape(S, 3, 3)
 
 
-def segment_scales(layers: np.ndarray,  # [L, H, W] int32 segment ids, -1 = none
-                   points: np.ndarray,  # [H, W, 3] world points at the pixel centres
-                   valid: np.ndarray,  # [H, W] bool: pixel has a trustworthy depth
-                   num_segments: int,
-                   settings: Optional[LiftSettings] = None,
-                   depth: Optional[np.ndarray] = None,  # [H, W] z-depth for outlier rejection
-                   ) -> tuple[np.ndarray, np.ndarray]:
+def segment_scales(
+    layers: np.ndarray,  # [L, H, W] int32 segment ids, -1 = none
+    points: np.ndarray,  # [H, W, 3] world points at the pixel centres
+    valid: np.ndarray,  # [H, W] bool: pixel has a trustworthy depth
+    num_segments: int,
+    settings: Optional[LiftSettings] = None,
+    depth: Optional[np.ndarray] = None,  # [H, W] z-depth for outlier rejection
+) -> tuple[np.ndarray, np.ndarray]:
     """Physical scale of every segment from its lifted pixels (see :func:`select_pixels`): the
     largest eigenvalue of their covariance, or with ``scale_measure="extent"`` the squared
     diagonal of their robust oriented box (:func:`robust_extent`). Returns ``(scales [S]
@@ -202,11 +211,13 @@ def segment_scales(layers: np.ndarray,  # [L, H, W] int32 segment ids, -1 = none
     return scales, count.astype(np.int64)
 
 
-def robust_extent(layers: np.ndarray,  # [L, H, W] int32, only pixels to use
-                  points: np.ndarray,  # [H, W, 3] float64
-                  mean: np.ndarray,  # [S, 3] per-segment mean of its points
-                  cov: np.ndarray,  # [S, 3, 3] per-segment covariance
-                  percentile: float) -> np.ndarray:  # [S] float64 (length^2), NaN without points
+def robust_extent(
+    layers: np.ndarray,  # [L, H, W] int32, only pixels to use
+    points: np.ndarray,  # [H, W, 3] float64
+    mean: np.ndarray,  # [S, 3] per-segment mean of its points
+    cov: np.ndarray,  # [S, 3, 3] per-segment covariance
+    percentile: float,
+) -> np.ndarray:  # [S] float64 (length^2), NaN without points
     """Squared diagonal of each segment's robust oriented box: along each principal axis of
     its points (eigenvectors of ``cov``), the range between the ``percentile`` and
     ``100 - percentile`` percentiles of the points' coordinates; summed squares of the three."""
@@ -229,25 +240,27 @@ def robust_extent(layers: np.ndarray,  # [L, H, W] int32, only pixels to use
     return total
 
 
-def lift_view(layers: np.ndarray,  # [L, H, W]
-              depth: np.ndarray,  # [H, W] z-depth
-              valid: np.ndarray,  # [H, W] bool
-              camera: Camera,
-              num_segments: int,
-              settings: Optional[LiftSettings] = None) -> tuple[np.ndarray, np.ndarray]:
+def lift_view(
+    layers: np.ndarray,  # [L, H, W]
+    depth: np.ndarray,  # [H, W] z-depth
+    valid: np.ndarray,  # [H, W] bool
+    camera: Camera,
+    num_segments: int,
+    settings: Optional[LiftSettings] = None,
+) -> tuple[np.ndarray, np.ndarray]:
     """Unproject one view's depth with its camera and measure every segment's scale."""
     depth = np.asarray(depth, dtype=np.float64)
     if depth.shape != (camera.height, camera.width) or layers.shape[1:] != depth.shape:
-        raise ValueError(f"depth {depth.shape}, segments {layers.shape[1:]} and camera "
-                         f"{camera.height}x{camera.width} sizes differ")
+        raise ValueError(
+            f"depth {depth.shape}, segments {layers.shape[1:]} and camera {camera.height}x{camera.width} sizes differ"
+        )
     valid = np.asarray(valid, dtype=bool) & np.isfinite(depth) & (depth > 0)
     points = camera.depth_to_points(np.where(valid, depth, 0.0))
     return segment_scales(layers, points, valid, num_segments, settings, depth=depth)
 
 
 # ----------------------------------------------------------------------------- depth sources
-def render_depth_provider(gaussians, cameras: list[Camera], min_alpha: float = 0.5,
-                          **render_kw) -> DepthProvider:
+def render_depth_provider(gaussians, cameras: list[Camera], min_alpha: float = 0.5, **render_kw) -> DepthProvider:
     """Expected z-depth of fitted Gaussians (``n2f2.render``); pixels with accumulated opacity
     <= ``min_alpha`` have no trustworthy depth."""
     import torch
@@ -268,8 +281,10 @@ def gt_depth_provider(scene) -> DepthProvider:
     """The demo scene's exact depth (``depth/<stem>.npy``), resized to the scene's cameras
     (nearest, at pixel centres); 0 / non-finite depth = background."""
     if scene.ground_truth is None:
-        raise InputError(scene.root, "--depth-source gt needs a scene with exact depth maps "
-                         "(depth/*.npy, as the built-in demo scene has)")
+        raise InputError(
+            scene.root,
+            "--depth-source gt needs a scene with exact depth maps (depth/*.npy, as the built-in demo scene has)",
+        )
     from .segmenters import resize_nearest
 
     def provide(i: int) -> tuple[np.ndarray, np.ndarray]:

@@ -83,13 +83,14 @@ class SegmentSet:
 
     def masks(self, ids: Optional[Sequence[int]] = None) -> np.ndarray:
         """Boolean masks [len(ids), H, W] of the given segments (default: all)."""
-        return layers_to_masks(self.layers, self.num_segments if ids is None else ids,
-                               layer_of=self.layer_of())
+        return layers_to_masks(self.layers, self.num_segments if ids is None else ids, layer_of=self.layer_of())
 
     @staticmethod
-    def from_masks(masks: np.ndarray,  # [S, H, W] bool, may overlap
-                   scores: Optional[np.ndarray] = None,  # [S]
-                   captions: Optional[list[str]] = None) -> "SegmentSet":
+    def from_masks(
+        masks: np.ndarray,  # [S, H, W] bool, may overlap
+        scores: Optional[np.ndarray] = None,  # [S]
+        captions: Optional[list[str]] = None,
+    ) -> "SegmentSet":
         """Pack (possibly overlapping) masks into layers; segment i is ``masks[i]``."""
         masks = np.asarray(masks, dtype=bool)
         scores = np.ones(len(masks), np.float32) if scores is None else np.asarray(scores, np.float32)
@@ -100,15 +101,19 @@ class SegmentSet:
         return SegmentSet(np.full((0, height, width), -1, np.int32), np.zeros(0, np.float32))
 
 
-def segment_areas(layers: np.ndarray,  # [L, H, W] int, -1 = none
-                  num_segments: int) -> np.ndarray:
+def segment_areas(
+    layers: np.ndarray,  # [L, H, W] int, -1 = none
+    num_segments: int,
+) -> np.ndarray:
     """[S] int64 pixel count per segment id (ids are unique across layers)."""
     ids = layers[layers >= 0]
     return np.bincount(ids.ravel(), minlength=num_segments)[:num_segments].astype(np.int64)
 
 
-def segment_layers(layers: np.ndarray,  # [L, H, W] int, -1 = none
-                   num_segments: int) -> np.ndarray:
+def segment_layers(
+    layers: np.ndarray,  # [L, H, W] int, -1 = none
+    num_segments: int,
+) -> np.ndarray:
     """[S] int64 layer holding each segment, -1 for an empty segment. Raises ValueError when a
     segment id appears in two layers or exceeds ``num_segments``."""
     out = np.full(num_segments, -1, np.int64)
@@ -124,10 +129,11 @@ def segment_layers(layers: np.ndarray,  # [L, H, W] int, -1 = none
     return out
 
 
-def layers_to_masks(layers: np.ndarray,  # [L, H, W] int32
-                    ids,  # int S (all segments) or a sequence of segment ids
-                    layer_of: Optional[np.ndarray] = None,  # [S]
-                    ) -> np.ndarray:
+def layers_to_masks(
+    layers: np.ndarray,  # [L, H, W] int32
+    ids,  # int S (all segments) or a sequence of segment ids
+    layer_of: Optional[np.ndarray] = None,  # [S]
+) -> np.ndarray:
     """Boolean masks [n, H, W] of segments ``ids`` (one vectorised comparison)."""
     if isinstance(ids, (int, np.integer)):
         ids = np.arange(int(ids))
@@ -166,8 +172,10 @@ def pack_layers(masks: np.ndarray) -> np.ndarray:  # [S, H, W] bool -> [L, H, W]
     return np.stack(layers).reshape(len(layers), H, W)
 
 
-def relabel_label_maps(label_maps: np.ndarray,  # [L, H, W] int, -1 = none, any ids
-                       min_area: int = 0) -> tuple[np.ndarray, np.ndarray]:
+def relabel_label_maps(
+    label_maps: np.ndarray,  # [L, H, W] int, -1 = none, any ids
+    min_area: int = 0,
+) -> tuple[np.ndarray, np.ndarray]:
     """Turn per-level label maps (each already a partition) into bank layers with local ids
     0..S-1, numbered level by level. Labels with fewer than ``min_area`` pixels are dropped.
 
@@ -206,9 +214,10 @@ def relabel_label_maps(label_maps: np.ndarray,  # [L, H, W] int, -1 = none, any 
 INTERSECT_BUDGET = 1 << 24
 
 
-def mask_intersections(a: Tensor,  # [Sa, H, W] bool
-                       b: Tensor,  # [Sb, H, W] bool
-                       ) -> Tensor:  # [Sa, Sb] float64
+def mask_intersections(
+    a: Tensor,  # [Sa, H, W] bool
+    b: Tensor,  # [Sb, H, W] bool
+) -> Tensor:  # [Sa, Sb] float64
     """Pixel counts of every pairwise intersection, as a matrix product of the flattened
     masks, accumulated over pixel chunks so that at most :data:`INTERSECT_BUDGET` float
     values exist at a time."""
@@ -218,36 +227,40 @@ def mask_intersections(a: Tensor,  # [Sa, H, W] bool
     chunk = int(min(1 << 23, max(4096, INTERSECT_BUDGET // max(rows, 1))))
     inter = torch.zeros(fa.shape[0], fb.shape[0], dtype=torch.float64, device=a.device)
     for start in range(0, fa.shape[1], chunk):
-        x = fa[:, start:start + chunk].float()
-        y = x if b is a else fb[:, start:start + chunk].float()
+        x = fa[:, start : start + chunk].float()
+        y = x if b is a else fb[:, start : start + chunk].float()
         inter += (x @ y.T).double()  # counts per chunk <= chunk < 2^24: exact in float32
     return inter
 
 
-def mask_areas(masks: Tensor,  # [S, H, W] bool
-               ) -> Tensor:  # [S] float64
+def mask_areas(
+    masks: Tensor,  # [S, H, W] bool
+) -> Tensor:  # [S] float64
     """Pixel count of each mask, summed over pixel chunks (a sum over booleans converts its
     input to the sum's integer type: all at once, that is 4-8 bytes per pixel of every mask)."""
     flat = masks.reshape(masks.shape[0], -1)
     chunk = int(min(1 << 23, max(4096, INTERSECT_BUDGET // max(flat.shape[0], 1))))
     area = torch.zeros(flat.shape[0], dtype=torch.float64, device=masks.device)
     for start in range(0, flat.shape[1], chunk):
-        area += flat[:, start:start + chunk].sum(1, dtype=torch.int32).double()
+        area += flat[:, start : start + chunk].sum(1, dtype=torch.int32).double()
     return area
 
 
-def mask_overlaps(masks: Tensor,  # [S, H, W] bool
-                  ) -> tuple[Tensor, Tensor]:
+def mask_overlaps(
+    masks: Tensor,  # [S, H, W] bool
+) -> tuple[Tensor, Tensor]:
     """Pairwise intersections [S, S] and areas [S] (float64) of boolean masks."""
     inter = mask_intersections(masks, masks)
     return inter, torch.diagonal(inter).clone()
 
 
-def mask_nms(masks: Tensor,  # [S, H, W] bool
-             scores: Tensor,  # [S]
-             iou_thr: float = 0.7,
-             score_thr: float = 0.1,
-             inner_thr: float = 0.2) -> Tensor:
+def mask_nms(
+    masks: Tensor,  # [S, H, W] bool
+    scores: Tensor,  # [S]
+    iou_thr: float = 0.7,
+    score_thr: float = 0.1,
+    inner_thr: float = 0.2,
+) -> Tensor:
     """LangSplat's mask NMS (``preprocess.py: mask_nms``), vectorised; returns kept indices
     [K] into ``masks``, in descending score order. Same defaults as LangSplat's function.
 
@@ -290,10 +303,12 @@ def mask_nms(masks: Tensor,  # [S, H, W] bool
     return idx[keep]
 
 
-def greedy_mask_nms(masks: Tensor,  # [S, H, W] bool
-                    scores: Tensor,  # [S]
-                    iou_thr: float = 0.7,
-                    settled: int = 0) -> Tensor:
+def greedy_mask_nms(
+    masks: Tensor,  # [S, H, W] bool
+    scores: Tensor,  # [S]
+    iou_thr: float = 0.7,
+    settled: int = 0,
+) -> Tensor:
     """Classic greedy NMS on mask IoU (SAM's ``box_nms_thresh`` step, on masks instead of
     boxes): returns kept indices [K] in descending score order. The loop runs over kept masks,
     each step one vectorised row of the IoU matrix.
@@ -328,8 +343,10 @@ def greedy_mask_nms(masks: Tensor,  # [S, H, W] bool
     return order[torch.as_tensor(keep, dtype=torch.long, device=order.device)]
 
 
-def remove_small_regions(mask: np.ndarray,  # [H, W] bool
-                         min_area: int) -> np.ndarray:
+def remove_small_regions(
+    mask: np.ndarray,  # [H, W] bool
+    min_area: int,
+) -> np.ndarray:
     """SAM's ``min_mask_region_area`` post-processing: fill holes and remove islands smaller
     than ``min_area`` pixels (the largest island is kept if all are small)."""
     import cv2
@@ -364,8 +381,11 @@ def check_image(image: np.ndarray, path=None) -> np.ndarray:
     return image.astype(np.float32, copy=False)
 
 
-def resize_nearest(labels: np.ndarray,  # [L, H0, W0] int
-                   height: int, width: int) -> np.ndarray:
+def resize_nearest(
+    labels: np.ndarray,  # [L, H0, W0] int
+    height: int,
+    width: int,
+) -> np.ndarray:
     """Nearest-neighbour resize of label maps to [L, height, width], sampling at pixel centres
     (consistent with :mod:`n2f2.cameras`)."""
     L, H0, W0 = labels.shape
@@ -422,8 +442,9 @@ class SamSegmenter:
 
     name = "sam"
 
-    def __init__(self, model, settings: Optional[SamSettings] = None, model_id: str = "",
-                 device: str | torch.device = "cpu") -> None:
+    def __init__(
+        self, model, settings: Optional[SamSettings] = None, model_id: str = "", device: str | torch.device = "cpu"
+    ) -> None:
         self.model = model.to(device).eval()
         self.settings = settings or SamSettings()
         self.model_id = model_id
@@ -432,14 +453,14 @@ class SamSegmenter:
         self.last_counts: dict[str, int] = {}
 
     @staticmethod
-    def from_pretrained(model_id: str = DEFAULT_SAM_MODEL, device: str | torch.device = "cpu",
-                        settings: Optional[SamSettings] = None) -> "SamSegmenter":
+    def from_pretrained(
+        model_id: str = DEFAULT_SAM_MODEL, device: str | torch.device = "cpu", settings: Optional[SamSettings] = None
+    ) -> "SamSegmenter":
         from transformers import SamModel
 
         from .encoders import load_pretrained
 
-        model = load_pretrained(SamModel, model_id, what="SAM", alternative="--segmenter classical",
-                                flag="--sam-model")
+        model = load_pretrained(SamModel, model_id, what="SAM", alternative="--segmenter classical", flag="--sam-model")
         return SamSegmenter(model, settings, model_id=model_id, device=device)
 
     @property
@@ -450,8 +471,10 @@ class SamSegmenter:
     def _input_size(self) -> int:
         return int(self.model.config.vision_config.image_size)
 
-    def preprocess(self, image: np.ndarray,  # [H, W, 3] float in [0, 1]
-                   ) -> tuple[Tensor, tuple[int, int]]:
+    def preprocess(
+        self,
+        image: np.ndarray,  # [H, W, 3] float in [0, 1]
+    ) -> tuple[Tensor, tuple[int, int]]:
         """float [H, W, 3] in [0, 1] -> normalised, padded [1, 3, T, T] and the resized (h, w):
         SAM's ResizeLongestSide to T = model input size, ImageNet normalisation, zero pad
         bottom/right."""
@@ -466,8 +489,12 @@ class SamSegmenter:
         x = (x - mean) / std
         return F.pad(x, (0, T - w, 0, T - h)), (h, w)
 
-    def postprocess_masks(self, low_res: Tensor,  # [N, h0, w0] mask logits in SAM's frame
-                          resized: tuple[int, int], original: tuple[int, int]) -> Tensor:
+    def postprocess_masks(
+        self,
+        low_res: Tensor,  # [N, h0, w0] mask logits in SAM's frame
+        resized: tuple[int, int],
+        original: tuple[int, int],
+    ) -> Tensor:
         """SAM's ``postprocess_masks``: upsample low-res logits to the padded input size, crop
         the padding, upsample to the original image size. Returns logits [N, H, W].
 
@@ -480,8 +507,13 @@ class SamSegmenter:
         # Output row y < h samples input rows <= floor((y + 0.5) / fy - 0.5) + 1 <= h // fy + 1.
         rows = min(h0, int(resized[0] / fy) + 2)
         cols = min(w0, int(resized[1] / fx) + 2)
-        x = F.interpolate(low_res[:, None, :rows, :cols].float(), scale_factor=(fy, fx), mode="bilinear",
-                          align_corners=False, recompute_scale_factor=False)
+        x = F.interpolate(
+            low_res[:, None, :rows, :cols].float(),
+            scale_factor=(fy, fx),
+            mode="bilinear",
+            align_corners=False,
+            recompute_scale_factor=False,
+        )
         x = x[..., : resized[0], : resized[1]]
         return F.interpolate(x, size=original, mode="bilinear", align_corners=False)[:, 0]
 
@@ -493,8 +525,12 @@ class SamSegmenter:
         xs, ys = np.meshgrid(side, side)
         return np.stack([xs.ravel() * width, ys.ravel() * height], axis=-1)
 
-    def filter_masks(self, low_res: Tensor,  # [N, h0, w0] logits of masks that passed the IoU filter
-                     resized: tuple[int, int], original: tuple[int, int]) -> tuple[Tensor, Tensor, Tensor]:
+    def filter_masks(
+        self,
+        low_res: Tensor,  # [N, h0, w0] logits of masks that passed the IoU filter
+        resized: tuple[int, int],
+        original: tuple[int, int],
+    ) -> tuple[Tensor, Tensor, Tensor]:
         """Upsample logits to image resolution (at most :data:`UPSAMPLE_BUDGET` values at a
         time), keep the stable, non-empty masks. Returns ``(masks [K, H, W] bool,
         stability [K], kept [K] indices into low_res)``, on the segmenter's device.
@@ -511,7 +547,7 @@ class SamSegmenter:
         chunk = max(1, UPSAMPLE_BUDGET // per_mask)
         masks, stability, kept = [], [], []
         for start in range(0, low_res.shape[0], chunk):
-            logits = self.postprocess_masks(low_res[start:start + chunk], resized, original)  # [c, H, W]
+            logits = self.postprocess_masks(low_res[start : start + chunk], resized, original)  # [c, H, W]
             # (int32 sums of booleans are several times faster than the default int64 ones)
             hi = (logits > st.mask_threshold + st.stability_score_offset).flatten(1).sum(1, dtype=torch.int32)
             lo = (logits > st.mask_threshold - st.stability_score_offset).flatten(1).sum(1, dtype=torch.int32)
@@ -523,20 +559,27 @@ class SamSegmenter:
             kept.append(torch.nonzero(ok).flatten() + start)
             del logits, binary
         if not masks:
-            return (torch.zeros(0, H, W, dtype=torch.bool, device=low_res.device),
-                    torch.zeros(0, device=low_res.device), torch.zeros(0, dtype=torch.long, device=low_res.device))
+            return (
+                torch.zeros(0, H, W, dtype=torch.bool, device=low_res.device),
+                torch.zeros(0, device=low_res.device),
+                torch.zeros(0, dtype=torch.long, device=low_res.device),
+            )
         return torch.cat(masks), torch.cat(stability), torch.cat(kept)
 
-    def _nms(self, masks: list[Tensor], iou: list[Tensor], stability: list[Tensor],
-             settled: int) -> tuple[Tensor, Tensor, Tensor]:
+    def _nms(
+        self, masks: list[Tensor], iou: list[Tensor], stability: list[Tensor], settled: int
+    ) -> tuple[Tensor, Tensor, Tensor]:
         parts = masks
         masks, iou, stability = torch.cat(parts), torch.cat(iou), torch.cat(stability)
         parts.clear()  # the caller's list: only the concatenated copy stays alive
         kept = greedy_mask_nms(masks, iou, self.settings.box_nms_thresh, settled=settled)
         return masks[kept], iou[kept], stability[kept]
 
-    def __call__(self, image: np.ndarray,  # [H, W, 3] float in [0, 1] or uint8
-                 view: Optional[int] = None) -> SegmentSet:
+    def __call__(
+        self,
+        image: np.ndarray,  # [H, W, 3] float in [0, 1] or uint8
+        view: Optional[int] = None,
+    ) -> SegmentSet:
         with torch.inference_mode():
             return self._generate(check_image(image))
 
@@ -565,11 +608,14 @@ class SamSegmenter:
         all_masks, all_iou, all_stab = [], [], []
         settled = 0  # leading masks of all_masks that already passed NMS together
         for start in range(0, points.shape[0], st.points_per_batch):
-            pts = points[start:start + st.points_per_batch]
+            pts = points[start : start + st.points_per_batch]
             with device_autocast(self.device):
-                out = self.model(image_embeddings=embeddings, input_points=pts[None, :, None, :],
-                                 input_labels=torch.ones(1, pts.shape[0], 1, dtype=torch.long, device=self.device),
-                                 multimask_output=True)
+                out = self.model(
+                    image_embeddings=embeddings,
+                    input_points=pts[None, :, None, :],
+                    input_labels=torch.ones(1, pts.shape[0], 1, dtype=torch.long, device=self.device),
+                    multimask_output=True,
+                )
             iou = out.iou_scores[0].reshape(-1).float()  # [B * 3]
             low = out.pred_masks[0].reshape(-1, *out.pred_masks.shape[-2:])  # [B * 3, h0, w0]
             keep = torch.nonzero(iou > st.pred_iou_thresh).flatten()
@@ -639,8 +685,7 @@ class ClassicalSegmenter:
 
         image = check_image(image)
         st = self.settings
-        labels = np.stack([felzenszwalb(image, scale=s, sigma=st.sigma, min_size=st.min_area)
-                           for s in st.scales])
+        labels = np.stack([felzenszwalb(image, scale=s, sigma=st.sigma, min_size=st.min_area) for s in st.scales])
         layers, _ = relabel_label_maps(labels, min_area=st.min_area)
         S = int(layers.max()) + 1 if layers.size else 0
         return SegmentSet(layers, np.ones(S, np.float32))
@@ -655,8 +700,11 @@ class GroundTruthSegmenter:
 
     def __init__(self, scene) -> None:
         if scene.ground_truth is None:
-            raise InputError(scene.root, "--segmenter ground-truth needs a scene with ground-truth "
-                             "regions (regions/ and regions.json, as the built-in demo scene has)")
+            raise InputError(
+                scene.root,
+                "--segmenter ground-truth needs a scene with ground-truth "
+                "regions (regions/ and regions.json, as the built-in demo scene has)",
+            )
         self.scene = scene
         gt = scene.ground_truth
         regions = gt.regions
@@ -695,14 +743,16 @@ class GroundTruthSegmenter:
         return SegmentSet(layers, np.ones(len(source_ids), np.float32), captions=captions, source_ids=source_ids)
 
 
-def get_segmenter(name: str, scene=None, model_id: Optional[str] = None,
-                  device: str | torch.device = "cpu", **settings):
+def get_segmenter(
+    name: str, scene=None, model_id: Optional[str] = None, device: str | torch.device = "cpu", **settings
+):
     """Build a segmenter by name: ``sam`` (``model_id`` default ``facebook/sam-vit-huge``,
     ``settings`` are :class:`SamSettings` fields), ``classical`` (:class:`ClassicalSettings`
     fields) or ``ground-truth`` (needs ``scene``)."""
     if name == "sam":
-        return SamSegmenter.from_pretrained(model_id or DEFAULT_SAM_MODEL, device=device,
-                                            settings=SamSettings(**settings))
+        return SamSegmenter.from_pretrained(
+            model_id or DEFAULT_SAM_MODEL, device=device, settings=SamSettings(**settings)
+        )
     if name == "classical":
         return ClassicalSegmenter(ClassicalSettings(**settings))
     if name == "ground-truth":

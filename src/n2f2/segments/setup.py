@@ -33,8 +33,11 @@ def depth_provider(scene, depth_source: str, gaussians: Optional[str | Path], de
     if depth_source == "gt":
         return gt_depth_provider(scene)
     if not gaussians:
-        raise InputError(None, "--gaussians PLY is needed to lift segments with rendered depth "
-                         "(or use --depth-source gt on the demo scene)")
+        raise InputError(
+            None,
+            "--gaussians PLY is needed to lift segments with rendered depth "
+            "(or use --depth-source gt on the demo scene)",
+        )
     from ..gaussians import read_ply
 
     path = Path(gaussians)
@@ -64,10 +67,18 @@ class SegmentsSetup:
 
     @staticmethod
     def from_args(args: argparse.Namespace) -> "SegmentsSetup":
-        return SegmentsSetup(data=str(args.data), downscale=float(args.downscale), skip_missing=bool(args.skip_missing),
-                             depth_source=args.depth_source, gaussians=None if args.gaussians is None else str(args.gaussians),
-                             segmenter=args.segmenter, encoder=args.encoder, model=args.model,
-                             sam_model=args.sam_model, device=str(args.device))
+        return SegmentsSetup(
+            data=str(args.data),
+            downscale=float(args.downscale),
+            skip_missing=bool(args.skip_missing),
+            depth_source=args.depth_source,
+            gaussians=None if args.gaussians is None else str(args.gaussians),
+            segmenter=args.segmenter,
+            encoder=args.encoder,
+            model=args.model,
+            sam_model=args.sam_model,
+            device=str(args.device),
+        )
 
     def for_ray_worker(self) -> "SegmentsSetup":
         """A Ray task sees only the GPU Ray gave it, as device ``cuda``."""
@@ -109,12 +120,16 @@ def report_lines(report: dict) -> list[str]:
     demo scene, how the lifted scales rank against the true region extents."""
     c, t, s = report["counts"], report["timing"], report["scale_stats"]
     per = "" if t["seconds_per_image"] is None else f", {t['seconds_per_image']:.2f} s/image"
-    lines = [f"segments: {c['images']} images, {c['segments']} segments ({c['valid']} lifted, "
-             f"{c['dropped_degenerate']} degenerate dropped, {c['dropped_empty']} empty), "
-             f"median scale {s['scale_median']:.4g}{per} -> {report['bank']}"]
+    lines = [
+        f"segments: {c['images']} images, {c['segments']} segments ({c['valid']} lifted, "
+        f"{c['dropped_degenerate']} degenerate dropped, {c['dropped_empty']} empty), "
+        f"median scale {s['scale_median']:.4g}{per} -> {report['bank']}"
+    ]
     check = report.get("ground_truth_check")
     if check:
         medians = ", ".join(f"{k} {v:.3g}" for k, v in check["median_scale_by_level"].items())
-        lines.append(f"segments: lifted scale vs true region extent: Spearman "
-                     f"{check['spearman_scale_vs_true_extent']:.3f}; median scale by level: {medians}")
+        lines.append(
+            f"segments: lifted scale vs true region extent: Spearman "
+            f"{check['spearman_scale_vs_true_extent']:.3f}; median scale by level: {medians}"
+        )
     return lines

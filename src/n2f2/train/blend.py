@@ -40,10 +40,12 @@ class BlendCache:
     def nbytes(self) -> int:
         return sum(t.numel() * t.element_size() for t in (self.crow, self.gid, self.weight))
 
-    def blend(self, features: Tensor,  # [N, C] per-Gaussian features
-              slot: Tensor,  # [P] long, index of the cached view
-              pixel: Tensor,  # [P] long, flat pixel index in that view
-              ) -> Tensor:  # [P, C] rendered features at those pixels
+    def blend(
+        self,
+        features: Tensor,  # [N, C] per-Gaussian features
+        slot: Tensor,  # [P] long, index of the cached view
+        pixel: Tensor,  # [P] long, flat pixel index in that view
+    ) -> Tensor:  # [P, C] rendered features at those pixels
         """What rasterizing ``features`` gives at the requested pixels (differentiable in
         ``features``)."""
         offsets = torch.as_tensor(self.offsets, dtype=torch.long, device=pixel.device)
@@ -59,17 +61,19 @@ class BlendCache:
 
 
 @torch.no_grad()
-def view_blend_weights(geometry: dict[str, Tensor],  # means [N,3], quats [N,4], scales [N,3], opacities [N]
-                       camera: Any,  # n2f2.cameras.Camera
-                       ) -> tuple[Tensor, Tensor, Tensor]:  # pixel [nnz] long, gid [nnz] long, weight [nnz]
+def view_blend_weights(
+    geometry: dict[str, Tensor],  # means [N,3], quats [N,4], scales [N,3], opacities [N]
+    camera: Any,  # n2f2.cameras.Camera
+) -> tuple[Tensor, Tensor, Tensor]:  # pixel [nnz] long, gid [nnz] long, weight [nnz]
     """Every non-zero (pixel, Gaussian, weight) of one view, with the torch backend's defaults
     (tile 8, alpha clamp 0.99, alpha_min 1/255, transmittance_min 1e-4, eps2d 0.3)."""
     from ..render import torch_backend as tb
 
     W, H = camera.width, camera.height
     cam = camera.to_torch(device=geometry["means"].device, dtype=geometry["means"].dtype)
-    proj = tb.project_gaussians(geometry["means"], geometry["quats"], geometry["scales"], geometry["opacities"],
-                                cam["viewmat"], cam["K"], W, H)
+    proj = tb.project_gaussians(
+        geometry["means"], geometry["quats"], geometry["scales"], geometry["opacities"], cam["viewmat"], cam["K"], W, H
+    )
     ts = 8
     bins = tb.bin_gaussians(proj.means2d, proj.half_extent, proj.depths, proj.valid, W, H, ts)
     kp = tb.pair_coefficients(proj.means2d, proj.conics, geometry["opacities"], bins)
@@ -83,7 +87,7 @@ def view_blend_weights(geometry: dict[str, Tensor],  # means [N,3], quats [N,4],
         gb = bins.pair_gid[pos]  # [B, L]
         T = torch.ones(tiles.shape[0], ts * ts, dtype=kp.dtype, device=kp.device)
         for c0 in range(0, kb.shape[2], cfg.chunk):
-            w, T_next, _ = tb._chunk(kb[:, :, c0:c0 + cfg.chunk], P, T, th)  # [B, p, k]
+            w, T_next, _ = tb._chunk(kb[:, :, c0 : c0 + cfg.chunk], P, T, th)  # [B, p, k]
             # Flat indices: advanced indexing with three index tensors is ~10x slower on CPU.
             kk = w.shape[2]
             flat = torch.nonzero(w.reshape(-1)).squeeze(1)
@@ -94,7 +98,7 @@ def view_blend_weights(geometry: dict[str, Tensor],  # means [N,3], quats [N,4],
             col = (tile % bins.tiles_x) * ts + p % ts
             inside = torch.nonzero((row < H) & (col < W)).squeeze(1)  # edge tiles overhang the image
             pix.append((row * W + col).index_select(0, inside))
-            gid.append(gb[:, c0:c0 + kk].reshape(-1).index_select(0, (b * kk + k).index_select(0, inside)))
+            gid.append(gb[:, c0 : c0 + kk].reshape(-1).index_select(0, (b * kk + k).index_select(0, inside)))
             wt.append(w.reshape(-1).index_select(0, flat.index_select(0, inside)))
             T = T_next[:, :, -1]
             if bool((T.amax(1) == 0).all()):  # every pixel of the batch has stopped
@@ -105,8 +109,9 @@ def view_blend_weights(geometry: dict[str, Tensor],  # means [N,3], quats [N,4],
     return torch.cat(pix), torch.cat(gid), torch.cat(wt)
 
 
-def build_blend_cache(geometry: dict[str, Tensor], cameras: Sequence[Any], *,
-                      max_bytes: float = float("inf"), progress: bool = False) -> BlendCache:
+def build_blend_cache(
+    geometry: dict[str, Tensor], cameras: Sequence[Any], *, max_bytes: float = float("inf"), progress: bool = False
+) -> BlendCache:
     """Blending weights of ``cameras`` (one cached view each). Raises MemoryError as soon as the
     projected size (bytes so far / views done x views) exceeds ``max_bytes``."""
     from tqdm import tqdm
@@ -126,10 +131,20 @@ def build_blend_cache(geometry: dict[str, Tensor], cameras: Sequence[Any], *,
         total_nnz += int(pix.numel())
         nbytes += int(pix.numel()) * 8 + cam.width * cam.height * 8
         if nbytes / (k + 1) * len(cameras) > max_bytes:
-            raise MemoryError(f"blend-weight cache would need ~{nbytes / (k + 1) * len(cameras) / 2**20:.0f} MB "
-                              f"(limit {max_bytes / 2**20:.0f} MB)")
+            raise MemoryError(
+                f"blend-weight cache would need ~{nbytes / (k + 1) * len(cameras) / 2**20:.0f} MB "
+                f"(limit {max_bytes / 2**20:.0f} MB)"
+            )
     device = geometry["means"].device
-    crow = torch.cat([torch.zeros(1, dtype=torch.long, device=device)] + crows) if crows \
+    crow = (
+        torch.cat([torch.zeros(1, dtype=torch.long, device=device)] + crows)
+        if crows
         else torch.zeros(1, dtype=torch.long, device=device)
-    return BlendCache(crow=crow, gid=torch.cat(gids) if gids else torch.zeros(0, dtype=torch.int32),
-                      weight=torch.cat(weights) if weights else torch.zeros(0), offsets=offsets, sizes=sizes)
+    )
+    return BlendCache(
+        crow=crow,
+        gid=torch.cat(gids) if gids else torch.zeros(0, dtype=torch.int32),
+        weight=torch.cat(weights) if weights else torch.zeros(0),
+        offsets=offsets,
+        sizes=sizes,
+    )

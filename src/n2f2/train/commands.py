@@ -26,8 +26,10 @@ _TRAIN_OPTIONS = {
     "pixels_per_step": (positive_int, "sampled pixels per step"),
     "checkpoint_every": (nonneg_int, "write checkpoint.pt every N steps; 0: only at the end"),
     "cos_weight": (nonneg_float, "lambda of the cosine loss"),
-    "scale_jitter": (nonneg_float, "uniform noise added to each sampled quantized scale before B(s) (0 = off, the "
-                                   "paper's; not in the paper)"),
+    "scale_jitter": (
+        nonneg_float,
+        "uniform noise added to each sampled quantized scale before B(s) (0 = off, the paper's; not in the paper)",
+    ),
 }
 
 
@@ -53,51 +55,84 @@ def _preset_summary(name: str) -> str:
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
-        "train", help="train the nested feature field (writes field.pt and train_report.json)",
+        "train",
+        help="train the nested feature field (writes field.pt and train_report.json)",
         description="Optimise N2F2's nested feature field on a scene with frozen 3D Gaussians and a "
-                    "segment bank: TriPlane+MLP at the Gaussian centres, deferred rendering, "
-                    "scale-masked projection W, L2 + 0.001 cosine loss. Writes DIR/field.pt, "
-                    "DIR/train_report.json, DIR/checkpoint.pt and DIR/gaussians.ply.")
+        "segment bank: TriPlane+MLP at the Gaussian centres, deferred rendering, "
+        "scale-masked projection W, L2 + 0.001 cosine loss. Writes DIR/field.pt, "
+        "DIR/train_report.json, DIR/checkpoint.pt and DIR/gaussians.ply.",
+    )
     p.add_argument("data", metavar="DATA", help="scene folder (COLMAP sparse/0 or nerfstudio transforms.json)")
     p.add_argument("--gaussians", required=True, metavar="PLY", help="fitted 3DGS (gaussians.ply or its folder)")
     p.add_argument("--segments", required=True, metavar="BANK", help="segment bank folder (`n2f2 segments`)")
     p.add_argument("--out", required=True, metavar="DIR", help="run folder")
-    p.add_argument("--preset", choices=["cpu", "paper"], default=None,
-                   help=f"cpu: small field, {_preset_summary('cpu')} (default without CUDA); paper: the paper's "
-                        f"field, {_preset_summary('paper')} (default with --device cuda)")
+    p.add_argument(
+        "--preset",
+        choices=["cpu", "paper"],
+        default=None,
+        help=f"cpu: small field, {_preset_summary('cpu')} (default without CUDA); paper: the paper's "
+        f"field, {_preset_summary('paper')} (default with --device cuda)",
+    )
     for name, (typ, text) in {**_FIELD_OPTIONS, **_TRAIN_OPTIONS}.items():
         flag = "--" + name.replace("_", "-")
-        kw = {"choices": {"backbone": ["triplane", "mlp"], "variant": ["nested", "flat", "levels"]}[name]} \
-            if name in ("backbone", "variant") else {}
+        kw = (
+            {"choices": {"backbone": ["triplane", "mlp"], "variant": ["nested", "flat", "levels"]}[name]}
+            if name in ("backbone", "variant")
+            else {}
+        )
         p.add_argument(flag, type=typ, default=None, help=f"{text} {_preset_values(name)}", **kw)
-    p.add_argument("--no-deferred", action="store_true",
-                   help="rasterize D-dim features (MLP per Gaussian) instead of deferred rendering")
-    p.add_argument("--blend-cache", action=argparse.BooleanOptionalAction, default=None,
-                   help="precompute each view's blending weights once instead of rasterizing every step "
-                        "(exact; default on for the cpu preset, off for paper)")
-    p.add_argument("--train-on-all", action="store_true",
-                   help="also train on the views scene.json lists as test_views (held out by default)")
+    p.add_argument(
+        "--no-deferred",
+        action="store_true",
+        help="rasterize D-dim features (MLP per Gaussian) instead of deferred rendering",
+    )
+    p.add_argument(
+        "--blend-cache",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="precompute each view's blending weights once instead of rasterizing every step "
+        "(exact; default on for the cpu preset, off for paper)",
+    )
+    p.add_argument(
+        "--train-on-all",
+        action="store_true",
+        help="also train on the views scene.json lists as test_views (held out by default)",
+    )
     p.add_argument("--resume", action="store_true", help="continue from DIR/checkpoint.pt")
-    p.add_argument("--force", action="store_true",
-                   help="replace the results already in DIR (field.pt, checkpoint.pt, train_report.json)")
-    p.add_argument("--downscale", type=positive_float, default=1.0, help="image downscale factor, as 3DGS -r (default 1)")
-    p.add_argument("--skip-missing", action="store_true",
-                   help="drop views whose image file is missing (default: a missing image is an error)")
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="replace the results already in DIR (field.pt, checkpoint.pt, train_report.json)",
+    )
+    p.add_argument(
+        "--downscale", type=positive_float, default=1.0, help="image downscale factor, as 3DGS -r (default 1)"
+    )
+    p.add_argument(
+        "--skip-missing",
+        action="store_true",
+        help="drop views whose image file is missing (default: a missing image is an error)",
+    )
     p.add_argument("--seed", type=nonneg_int, default=0, help="random seed (default 0)")
     p.add_argument("--device", default=None, help="torch device (default: cuda when available, else cpu)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run_train)
 
     e = subparsers.add_parser(
-        "eval-field", help="per-level cosine similarity of a trained field to the teacher (demo scene)",
+        "eval-field",
+        help="per-level cosine similarity of a trained field to the teacher (demo scene)",
         description="For each hierarchy level (part, object, group) of a scene with ground-truth regions, "
-                    "the mean cosine similarity between phi(u, s) and the teacher embedding of the "
-                    "segment covering u, on the held-out views of the run.")
+        "the mean cosine similarity between phi(u, s) and the teacher embedding of the "
+        "segment covering u, on the held-out views of the run.",
+    )
     e.add_argument("run", metavar="RUN", help="run folder of `n2f2 train`")
     e.add_argument("--data", metavar="DATA", default=None, help="scene folder (default: the one the run used)")
     e.add_argument("--segments", metavar="BANK", default=None, help="segment bank (default: the run's)")
-    e.add_argument("--views", choices=["heldout", "train", "all"], default="heldout",
-                   help="which views to score (default: held-out)")
+    e.add_argument(
+        "--views",
+        choices=["heldout", "train", "all"],
+        default="heldout",
+        help="which views to score (default: held-out)",
+    )
     e.add_argument("--out", metavar="JSON", default=None, help="write the result here (default RUN/eval_field.json)")
     e.add_argument("--device", default="cpu", help="torch device (default cpu)")
     e.set_defaults(func=run_eval_field)
@@ -163,14 +198,29 @@ def run_train(args: argparse.Namespace) -> int:
     if args.force:  # the inputs are read and match: now the old results go
         bank.validate_against(scene)
         remove_results(args.out, present)
-    report = train_field(scene, gaussians, bank, args.out, field_config=field_config, config=config,
-                         resume=args.resume, progress=not args.quiet,
-                         paths={"scene": str(Path(args.data).resolve()), "gaussians": str(gpath.resolve()),
-                                "bank": str(Path(args.segments).resolve())})
-    print(f"train: {report['steps']} steps ({field_config.variant}, D={field_config.dim}, "
-          f"{'deferred' if config.deferred else 'non-deferred'}), final loss {report['final_loss']:.5f}, "
-          f"{report['time_per_iteration_s'] * 1000:.0f} ms/step, peak RSS {report['peak_rss_mb']:.0f} MB "
-          f"-> {args.out}" if report["time_per_iteration_s"] else f"train: already at step {report['steps']} -> {args.out}")
+    report = train_field(
+        scene,
+        gaussians,
+        bank,
+        args.out,
+        field_config=field_config,
+        config=config,
+        resume=args.resume,
+        progress=not args.quiet,
+        paths={
+            "scene": str(Path(args.data).resolve()),
+            "gaussians": str(gpath.resolve()),
+            "bank": str(Path(args.segments).resolve()),
+        },
+    )
+    print(
+        f"train: {report['steps']} steps ({field_config.variant}, D={field_config.dim}, "
+        f"{'deferred' if config.deferred else 'non-deferred'}), final loss {report['final_loss']:.5f}, "
+        f"{report['time_per_iteration_s'] * 1000:.0f} ms/step, peak RSS {report['peak_rss_mb']:.0f} MB "
+        f"-> {args.out}"
+        if report["time_per_iteration_s"]
+        else f"train: already at step {report['steps']} -> {args.out}"
+    )
     return 0
 
 
@@ -196,21 +246,30 @@ def run_eval_field(args: argparse.Namespace) -> int:
     bank = SegmentBank.open(bank_path)
     bank.validate_against(scene)
     if bank.embed_dim != field.embed_dim:
-        raise InputError(bank_path, f"bank embeddings are {bank.embed_dim}-d but the field was trained for "
-                                    f"E = {field.embed_dim}")
+        raise InputError(
+            bank_path, f"bank embeddings are {bank.embed_dim}-d but the field was trained for E = {field.embed_dim}"
+        )
     gaussians = read_ply(_gaussians_path(meta.get("gaussians") or str(run)))
-    views = {"heldout": meta.get("heldout_views") or [], "train": meta.get("train_views") or [],
-             "all": list(range(len(scene)))}[args.views]
+    views = {
+        "heldout": meta.get("heldout_views") or [],
+        "train": meta.get("train_views") or [],
+        "all": list(range(len(scene))),
+    }[args.views]
     if not views:
         raise InputError(run / FIELD_NAME, f"the run has no {args.views} views (use --views all)")
     result = evaluate_cosine_by_level(field, gaussians, scene, bank, views, device=args.device)
     result["run"] = str(run)
     write_json(args.out or run / "eval_field.json", result)
-    cells = ", ".join(f"{k} {v['cosine']:.4f} / {v['region_cosine']:.4f}"
-                      for k, v in result["levels"].items() if v["cosine"] is not None)
+    cells = ", ".join(
+        f"{k} {v['cosine']:.4f} / {v['region_cosine']:.4f}"
+        for k, v in result["levels"].items()
+        if v["cosine"] is not None
+    )
     print(f"eval-field: mean cosine (pixels / regions) on {len(views)} {args.views} views: {cells}")
     names = list(result["levels"])
     for row in result["per_view"]:
-        print(f"  view {row['view']:3d}: " + ", ".join(
-            f"{n} {row[n]:.4f}" if row[n] is not None else f"{n} n/a" for n in names))
+        print(
+            f"  view {row['view']:3d}: "
+            + ", ".join(f"{n} {row[n]:.4f}" if row[n] is not None else f"{n} n/a" for n in names)
+        )
     return 0

@@ -27,10 +27,12 @@ from .trainer import bank_cameras, frozen_geometry, render_features
 DEFAULT_LEVELS = ("part", "object", "group")
 
 
-def match_regions_to_segments(regions: np.ndarray,  # [H, W] int region id, -1 = none
-                              layers: np.ndarray,  # [L, H, W] int local segment id, -1 = none
-                              num_segments: int,
-                              min_iou: float = 0.5) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def match_regions_to_segments(
+    regions: np.ndarray,  # [H, W] int region id, -1 = none
+    layers: np.ndarray,  # [L, H, W] int local segment id, -1 = none
+    num_segments: int,
+    min_iou: float = 0.5,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Best-IoU bank segment per region. Returns ``(region_ids [R], segment [R] (-1 when no
     segment reaches min_iou), iou [R])``."""
     reg = regions.reshape(-1).astype(np.int64)
@@ -114,9 +116,13 @@ def evaluate_cosine_by_level(
             sums[name][2].extend((seg_sum[seg_count > 0] / seg_count[seg_count > 0]).tolist())
     levels = {}
     for name, (total, count, per_region, unmatched) in sums.items():
-        levels[name] = {"cosine": total / count if count else None,
-                        "region_cosine": float(np.mean(per_region)) if per_region else None,
-                        "pixels": count, "regions": len(per_region), "unmatched_regions": unmatched}
+        levels[name] = {
+            "cosine": total / count if count else None,
+            "region_cosine": float(np.mean(per_region)) if per_region else None,
+            "pixels": count,
+            "regions": len(per_region),
+            "unmatched_regions": unmatched,
+        }
     return {"levels": levels, "views": [int(v) for v in views], "per_view": per_view, "min_iou": min_iou}
 
 
@@ -125,7 +131,8 @@ def cosine_table(results: dict[str, dict]) -> str:
     names = list(next(iter(results.values()))["levels"])
     lines = ["| run | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
     for run, res in results.items():
-        cells = [f"{res['levels'][n]['cosine']:.4f}" if res["levels"][n]["cosine"] is not None else "n/a"
-                 for n in names]
+        cells = [
+            f"{res['levels'][n]['cosine']:.4f}" if res["levels"][n]["cosine"] is not None else "n/a" for n in names
+        ]
         lines.append(f"| {run} | " + " | ".join(cells) + " |")
     return "\n".join(lines)

@@ -23,9 +23,10 @@ from torch import Tensor
 MIN_AREA = 2.0
 
 
-def segment_weights(areas: Tensor,  # [S] pixel areas
-                    valid: Optional[Tensor] = None,  # [S] bool, invalid segments get weight 0
-                    ) -> Tensor:  # [S] float64 unnormalised weights 1 / log(area)
+def segment_weights(
+    areas: Tensor,  # [S] pixel areas
+    valid: Optional[Tensor] = None,  # [S] bool, invalid segments get weight 0
+) -> Tensor:  # [S] float64 unnormalised weights 1 / log(area)
     """The paper's per-segment sampling weight ``1 / log(area)``."""
     w = 1.0 / torch.log(areas.double().clamp(min=MIN_AREA))
     if valid is not None:
@@ -33,9 +34,10 @@ def segment_weights(areas: Tensor,  # [S] pixel areas
     return w
 
 
-def covering_probabilities(candidates: Tensor,  # [P, L] segment id per layer, -1 = none
-                           weights: Tensor,  # [S] from segment_weights
-                           ) -> Tensor:  # [P, L] row-normalised probabilities (0 rows stay 0)
+def covering_probabilities(
+    candidates: Tensor,  # [P, L] segment id per layer, -1 = none
+    weights: Tensor,  # [S] from segment_weights
+) -> Tensor:  # [P, L] row-normalised probabilities (0 rows stay 0)
     """Probability of choosing each covering segment of each pixel (layer order)."""
     w = torch.where(candidates >= 0, weights[candidates.clamp(min=0)], torch.zeros((), dtype=weights.dtype))
     total = w.sum(dim=1, keepdim=True)
@@ -67,8 +69,11 @@ class ViewSegments:
         L = layers.shape[0]
         layers = layers.reshape(L, -1)
         S = int(np.asarray(record.areas).shape[0])
-        valid = torch.from_numpy(np.array(record.valid, dtype=bool)) if record.valid is not None \
+        valid = (
+            torch.from_numpy(np.array(record.valid, dtype=bool))
+            if record.valid is not None
             else torch.ones(S, dtype=torch.bool)
+        )
         weights = segment_weights(torch.from_numpy(np.array(record.areas, dtype=np.int64)), valid)
         # Drop ids of invalid segments so every remaining candidate has a positive weight.
         if S:
@@ -77,7 +82,10 @@ class ViewSegments:
             layers = torch.where(keep, layers, torch.full_like(layers, -1))
         covered = torch.nonzero((layers >= 0).any(dim=0)).squeeze(1) if L else torch.zeros(0, dtype=torch.long)
         return ViewSegments(
-            view=view, layers=layers, weights=weights, covered=covered,
+            view=view,
+            layers=layers,
+            weights=weights,
+            covered=covered,
             quantized=torch.as_tensor(np.asarray(record.quantized, dtype=np.float32)),
             embeddings=torch.as_tensor(np.asarray(record.embeddings, dtype=np.float32)),
         )
@@ -95,9 +103,11 @@ class PixelBatch:
     target: Tensor  # [P, E] float32 teacher embedding
 
 
-def sample_segments(candidates: Tensor,  # [P, L]
-                    weights: Tensor,  # [S]
-                    generator: torch.Generator) -> Tensor:  # [P] chosen segment id
+def sample_segments(
+    candidates: Tensor,  # [P, L]
+    weights: Tensor,  # [S]
+    generator: torch.Generator,
+) -> Tensor:  # [P] chosen segment id
     """One covering segment per pixel, with probability ∝ 1 / log(area) (every row must have
     at least one candidate)."""
     probs = covering_probabilities(candidates, weights)  # [P, L]
@@ -137,8 +147,15 @@ class SegmentPool:
             quant.append(v.quantized)
             emb.append(v.embeddings)
             first += S
-        return SegmentPool(torch.cat(slot), torch.cat(pixel), torch.cat(cand), torch.cat(weights),
-                           torch.cat(local), torch.cat(quant), torch.cat(emb))
+        return SegmentPool(
+            torch.cat(slot),
+            torch.cat(pixel),
+            torch.cat(cand),
+            torch.cat(weights),
+            torch.cat(local),
+            torch.cat(quant),
+            torch.cat(emb),
+        )
 
     def sample(self, num_pixels: int, generator: torch.Generator) -> PixelBatch:
         """``num_pixels`` covered pixels, uniform (with replacement), each with one covering
@@ -147,6 +164,4 @@ class SegmentPool:
             raise ValueError("no pixel of the selected views is covered by a valid segment")
         pick = torch.randint(self.pixel.numel(), (num_pixels,), generator=generator)
         seg = sample_segments(self.candidates[pick], self.weights, generator)  # [P] pooled id
-        return PixelBatch(self.slot[pick], self.pixel[pick], self.local[seg], self.quantized[seg],
-                          self.embeddings[seg])
-
+        return PixelBatch(self.slot[pick], self.pixel[pick], self.local[seg], self.quantized[seg], self.embeddings[seg])

@@ -141,8 +141,9 @@ class TrainConfig(ConfigDict):
         / 0.844. The paper's form there (eigenvalue bank, no jitter): 0.872 / 0.831 / 0.871.
 
         Use ``--iterations`` (and ``--dim``) when minutes matter less."""
-        return TrainConfig(iterations=3000, pixels_per_step=4096, checkpoint_every=500, blend_cache=True,
-                           scale_jitter=0.03, lift=True)
+        return TrainConfig(
+            iterations=3000, pixels_per_step=4096, checkpoint_every=500, blend_cache=True, scale_jitter=0.03, lift=True
+        )
 
 
 def field_preset(name: str, **overrides: Any) -> FieldConfig:
@@ -151,9 +152,11 @@ def field_preset(name: str, **overrides: Any) -> FieldConfig:
 
 
 # ------------------------------------------------------------------------------------ loss
-def hierarchical_loss(phi: Tensor,  # [P, E] scale-aware features
-                      target: Tensor,  # [P, E] teacher embeddings
-                      cos_weight: float) -> tuple[Tensor, Tensor, Tensor]:
+def hierarchical_loss(
+    phi: Tensor,  # [P, E] scale-aware features
+    target: Tensor,  # [P, E] teacher embeddings
+    cos_weight: float,
+) -> tuple[Tensor, Tensor, Tensor]:
     """``L2 + lambda * L_cos`` (paper eq. 5): L2 is the mean squared error over pixels and
     embedding dims; L_cos the mean cosine distance ``1 - cos(phi, target)``. Returns
     ``(loss, l2, cos)``."""
@@ -162,9 +165,11 @@ def hierarchical_loss(phi: Tensor,  # [P, E] scale-aware features
     return l2 + cos_weight * cos, l2, cos
 
 
-def jitter_scales(scale: Tensor,  # [P] quantized scales in [0, 1)
-                  amount: float,
-                  generator: torch.Generator) -> Tensor:  # [P]
+def jitter_scales(
+    scale: Tensor,  # [P] quantized scales in [0, 1)
+    amount: float,
+    generator: torch.Generator,
+) -> Tensor:  # [P]
     """``scale`` plus uniform noise in [-amount, amount], kept in [0, 1) (TrainConfig.scale_jitter).
     ``amount == 0`` returns ``scale`` itself and draws nothing, so the random stream (and a
     run) stays the paper's."""
@@ -186,33 +191,44 @@ def split_views(scene: Any, holdout: bool) -> tuple[list[int], list[int]]:
 
 def bank_cameras(scene: Any, bank: Any) -> list:
     """The scene's cameras at the bank's resolution (segment masks are per bank pixel)."""
-    return [c if (c.width, c.height) == (bank.width, bank.height) else c.scaled(bank.width, bank.height)
-            for c in scene.cameras]
+    return [
+        c if (c.width, c.height) == (bank.width, bank.height) else c.scaled(bank.width, bank.height)
+        for c in scene.cameras
+    ]
 
 
 def frozen_geometry(gaussians: Any, device: Union[str, torch.device]) -> dict[str, Tensor]:
     """Detached activated Gaussian parameters: the 3DGS is frozen while the field trains."""
     with torch.no_grad():
-        return {"means": gaussians.means.detach().float().to(device).contiguous(),
-                "quats": gaussians.quats.detach().float().to(device).contiguous(),
-                "scales": gaussians.scales.detach().float().to(device).contiguous(),
-                "opacities": gaussians.opacities.detach().float().to(device).contiguous()}
+        return {
+            "means": gaussians.means.detach().float().to(device).contiguous(),
+            "quats": gaussians.quats.detach().float().to(device).contiguous(),
+            "scales": gaussians.scales.detach().float().to(device).contiguous(),
+            "opacities": gaussians.opacities.detach().float().to(device).contiguous(),
+        }
 
 
-def render_features(geometry: dict[str, Tensor], features: Tensor,  # [N, C]
-                    camera: Any) -> Tensor:  # -> [H * W, C]
+def render_features(
+    geometry: dict[str, Tensor],
+    features: Tensor,  # [N, C]
+    camera: Any,
+) -> Tensor:  # -> [H * W, C]
     """Rasterize per-Gaussian ``features`` (gradients flow to them only)."""
     from ..render import rasterize
 
-    out = rasterize(geometry["means"], geometry["quats"], geometry["scales"], geometry["opacities"],
-                    features, camera)
+    out = rasterize(geometry["means"], geometry["quats"], geometry["scales"], geometry["opacities"], features, camera)
     return out.features.reshape(-1, features.shape[1])
 
 
-def pixel_theta(field: NestedField, geometry: dict[str, Tensor], batch: PixelBatch, deferred: bool,
-                cameras: Optional[list] = None, cache: Optional[BlendCache] = None,
-                encoder: Optional[Callable[[], Tensor]] = None,
-                ) -> Tensor:  # -> theta [P, D] for the batch's pixels
+def pixel_theta(
+    field: NestedField,
+    geometry: dict[str, Tensor],
+    batch: PixelBatch,
+    deferred: bool,
+    cameras: Optional[list] = None,
+    cache: Optional[BlendCache] = None,
+    encoder: Optional[Callable[[], Tensor]] = None,
+) -> Tensor:  # -> theta [P, D] for the batch's pixels
     """theta(u) at the sampled pixels. Slot k of the batch is ``cameras[k]`` (rasterized now) or
     the k-th view of ``cache`` (cached blending weights). ``encoder``: the field's
     :meth:`~n2f2.field.model.NestedField.fixed_point_encoder` of the Gaussian centres (built here
@@ -306,25 +322,35 @@ def train_field(
         checkpoint = _load_checkpoint(ck_path)
         fmeta = checkpoint["field_meta"]
         if int(fmeta["embed_dim"]) != E:
-            raise InputError(bank_path, f"segment bank embeddings have dim {E} but the checkpoint "
-                                        f"{ck_path} was trained with E = {fmeta['embed_dim']} "
-                                        f"(encoder {fmeta.get('encoder_spec')!r})")
+            raise InputError(
+                bank_path,
+                f"segment bank embeddings have dim {E} but the checkpoint "
+                f"{ck_path} was trained with E = {fmeta['embed_dim']} "
+                f"(encoder {fmeta.get('encoder_spec')!r})",
+            )
         saved = FieldConfig.from_dict(fmeta["config"])
         if saved != field_config:
             raise InputError(ck_path, f"checkpoint field config {saved} differs from the requested {field_config}")
         if int(checkpoint["num_gaussians"]) != int(gaussians.means.shape[0]):
-            raise InputError(paths.get("gaussians"), f"the checkpoint was trained on {checkpoint['num_gaussians']} "
-                                                     f"Gaussians, this model has {gaussians.means.shape[0]}")
+            raise InputError(
+                paths.get("gaussians"),
+                f"the checkpoint was trained on {checkpoint['num_gaussians']} "
+                f"Gaussians, this model has {gaussians.means.shape[0]}",
+            )
 
     train_views, test_views = split_views(scene, config.holdout)
     if config.render_downscale < 1 or config.render_downscale != int(config.render_downscale):
         raise ValueError(f"render_downscale must be a positive integer, got {config.render_downscale}")
-    cameras = [c.downscaled(config.render_downscale) if config.render_downscale > 1 else c
-               for c in bank_cameras(scene, bank)]
+    cameras = [
+        c.downscaled(config.render_downscale) if config.render_downscale > 1 else c for c in bank_cameras(scene, bank)
+    ]
     geometry = frozen_geometry(gaussians, device)
     extent = float(scene.extent())
     if checkpoint is not None:
-        bbox_min, bbox_max = np.asarray(checkpoint["field_meta"]["bbox_min"]), np.asarray(checkpoint["field_meta"]["bbox_max"])
+        bbox_min, bbox_max = (
+            np.asarray(checkpoint["field_meta"]["bbox_min"]),
+            np.asarray(checkpoint["field_meta"]["bbox_max"]),
+        )
     else:
         bbox_min, bbox_max = bbox_from_points(geometry["means"])
     torch.manual_seed(config.seed)  # initial TriPlane / MLP weights
@@ -361,10 +387,15 @@ def train_field(
     if config.blend_cache:
         t0 = time.perf_counter()
         try:
-            cache = build_blend_cache(geometry, [cameras[v] for v in usable],
-                                      max_bytes=config.blend_cache_mb * 2**20, progress=progress)
-            cache_info = {"used": True, "mb": cache.nbytes / 2**20, "build_s": time.perf_counter() - t0,
-                          "entries_per_pixel": int(cache.gid.numel()) / max(1, int(cache.crow.numel()) - 1)}
+            cache = build_blend_cache(
+                geometry, [cameras[v] for v in usable], max_bytes=config.blend_cache_mb * 2**20, progress=progress
+            )
+            cache_info = {
+                "used": True,
+                "mb": cache.nbytes / 2**20,
+                "build_s": time.perf_counter() - t0,
+                "entries_per_pixel": int(cache.gid.numel()) / max(1, int(cache.crow.numel()) - 1),
+            }
         except MemoryError as e:  # large scenes: rasterize every step instead
             cache_info = {"used": False, "reason": str(e)}
 
@@ -374,13 +405,26 @@ def train_field(
     pool_all = SegmentPool.from_views([segments[v] for v in usable]) if every_view else None
 
     def checkpoint_blob() -> dict:
-        return {"format": _CHECKPOINT_FORMAT, "step": step,
-                "field_state": {k: v.detach().cpu().clone() for k, v in field.state_dict().items()},
-                "field_meta": {**meta, "config": field_config.to_dict(), "embed_dim": E,
-                               "bbox_min": list(map(float, bbox_min)), "bbox_max": list(map(float, bbox_max))},
-                "optimizer": optimizer.state_dict(), "rng": generator.get_state(),
-                "train_config": config.to_dict(), "curve": curve, "window": list(window), "train_time": train_time,
-                "num_gaussians": int(geometry["means"].shape[0]), "skipped": skipped}
+        return {
+            "format": _CHECKPOINT_FORMAT,
+            "step": step,
+            "field_state": {k: v.detach().cpu().clone() for k, v in field.state_dict().items()},
+            "field_meta": {
+                **meta,
+                "config": field_config.to_dict(),
+                "embed_dim": E,
+                "bbox_min": list(map(float, bbox_min)),
+                "bbox_max": list(map(float, bbox_max)),
+            },
+            "optimizer": optimizer.state_dict(),
+            "rng": generator.get_state(),
+            "train_config": config.to_dict(),
+            "curve": curve,
+            "window": list(window),
+            "train_time": train_time,
+            "num_gaussians": int(geometry["means"].shape[0]),
+            "skipped": skipped,
+        }
 
     def save_checkpoint() -> None:
         blob = checkpoint_blob()
@@ -392,19 +436,33 @@ def train_field(
     cpu_times: list[float] = []  # process CPU time (all threads): robust to other processes' load
     # Losses since the last curve point (checkpointed, so a resumed curve equals an uninterrupted one).
     window: list[tuple[float, float, float]] = [tuple(w) for w in checkpoint.get("window", [])] if checkpoint else []
-    bar = tqdm(total=config.iterations, initial=min(step, config.iterations), desc="train field",
-               disable=not progress, dynamic_ncols=True)
+    bar = tqdm(
+        total=config.iterations,
+        initial=min(step, config.iterations),
+        desc="train field",
+        disable=not progress,
+        dynamic_ncols=True,
+    )
     field.train()
     while step < config.iterations:
         t0, c0 = time.perf_counter(), time.process_time()
         if every_view:
             views, pool = usable, pool_all
         else:  # only the views rasterized this step
-            views = [usable[i] for i in torch.randperm(len(usable), generator=generator)[:config.views_per_step].tolist()]
+            views = [
+                usable[i] for i in torch.randperm(len(usable), generator=generator)[: config.views_per_step].tolist()
+            ]
             pool = SegmentPool.from_views([segments[v] for v in views])
         batch = pool.sample(config.pixels_per_step, generator)
-        theta = pixel_theta(field, geometry, _to(batch, device), config.deferred,
-                            cameras=[cameras[v] for v in views], cache=cache, encoder=encoder)
+        theta = pixel_theta(
+            field,
+            geometry,
+            _to(batch, device),
+            config.deferred,
+            cameras=[cameras[v] for v in views],
+            cache=cache,
+            encoder=encoder,
+        )
         scale = jitter_scales(batch.scale, config.scale_jitter, generator)
         mask = field.supervision_mask(scale.to(device))
         phi = field.project(theta, mask)
@@ -457,8 +515,12 @@ def train_field(
 
         lift = lift_features(cache, usable, bank, int(geometry["means"].shape[0]))
         save_lift(out / LIFT_NAME, lift, {"bank": bank_path, "gaussians": gpath})
-        lift_info = {"written": True, "path": str(out / LIFT_NAME), "seconds": lift.seconds["lift"],
-                     "blend_weights_s": cache_info.get("build_s")}
+        lift_info = {
+            "written": True,
+            "path": str(out / LIFT_NAME),
+            "seconds": lift.seconds["lift"],
+            "blend_weights_s": cache_info.get("build_s"),
+        }
     report = {
         "steps": step,
         "variant": field_config.variant,
@@ -488,9 +550,12 @@ def train_field(
 
 
 def _stopped(step: int, which: str) -> NonFiniteError:
-    return NonFiniteError(None, f"training stopped at step {step}: {which} had a NaN or infinite loss or "
-                                "gradient and were skipped (nothing non-finite was saved); check the segment "
-                                "bank's embeddings and the loss options (--cos-weight, --pixels-per-step)")
+    return NonFiniteError(
+        None,
+        f"training stopped at step {step}: {which} had a NaN or infinite loss or "
+        "gradient and were skipped (nothing non-finite was saved); check the segment "
+        "bank's embeddings and the loss options (--cos-weight, --pixels-per-step)",
+    )
 
 
 def _finite_step(loss: Tensor, params: Any) -> bool:

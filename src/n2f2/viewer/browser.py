@@ -7,8 +7,16 @@ from __future__ import annotations
 from typing import Any
 
 CHROMIUM_PATH = "/usr/bin/chromium"  # Debian package `chromium`
-CHROMIUM_ARGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                 "--disable-background-networking", "--disable-component-update", "--disable-sync")
+CHROMIUM_ARGS = (
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+)
 
 
 def launch_chromium(playwright: Any) -> Any:

@@ -117,8 +117,7 @@ class OrbitFrame:
 
     def camera(self, azimuth: float, elevation: float, radius: float) -> Camera:
         az, el = math.radians(azimuth), math.radians(elevation)
-        direction = (math.cos(el) * (math.cos(az) * self.x_axis + math.sin(az) * self.y_axis)
-                     + math.sin(el) * self.up)
+        direction = math.cos(el) * (math.cos(az) * self.x_axis + math.sin(az) * self.y_axis) + math.sin(el) * self.up
         R, t = look_at(self.center + radius * direction, self.center, self.up)
         k = self.intrinsics
         return Camera(k.fx, k.fy, k.cx, k.cy, k.width, k.height, R=R, t=t)
@@ -279,7 +278,7 @@ class Viewer:
     def parse_camera(self, body: Any) -> tuple[str, Any]:
         """Validate a CAMERA object -> (cache key, view index or Camera)."""
         if not isinstance(body, dict):
-            raise ApiError(422, "'camera' must be an object: {\"view\": int} or {\"orbit\": {...}}")
+            raise ApiError(422, '\'camera\' must be an object: {"view": int} or {"orbit": {...}}')
         if "view" in body:
             view = body["view"]
             if not isinstance(view, int) or isinstance(view, bool):
@@ -344,8 +343,7 @@ class Viewer:
             return cache, True
         # Room for the render in flight first, so that the cache and the request together stay
         # within the bound (the evicted renders are freed before the new one allocates).
-        self._renders.reserve(self.engine.view_cache_bytes(view, [mode], rgb=True)
-                              + self.limits.render_transient_bytes)
+        self._renders.reserve(self.engine.view_cache_bytes(view, [mode], rgb=True) + self.limits.render_transient_bytes)
         cache = self.engine.render_view(view, modes=[mode], rgb=True)
         compact_tensors(cache, self._shared)
         self._renders.put(key, cache)
@@ -388,16 +386,18 @@ class Viewer:
             overlay = rgb * (1 - weight) + heat.astype(np.float32) * (weight / 255.0)
             mask_rgba = np.zeros(mask.shape + (4,), np.uint8)
             mask_rgba[mask] = (255, 255, 255, 255)
-            out.append({
-                "query": text,
-                "max_relevancy": hi,
-                "localization": [col + 0.5, row + 0.5],
-                "mask_area": int(mask.sum()),
-                "mask_png": png_base64(mask_rgba),
-                "overlay_png": png_base64(overlay),
-                "relevancy_png": png_base64(heat),
-                "chosen_scale": labels[qi],
-            })
+            out.append(
+                {
+                    "query": text,
+                    "max_relevancy": hi,
+                    "localization": [col + 0.5, row + 0.5],
+                    "mask_area": int(mask.sum()),
+                    "mask_png": png_base64(mask_rgba),
+                    "overlay_png": png_base64(overlay),
+                    "relevancy_png": png_base64(heat),
+                    "chosen_scale": labels[qi],
+                }
+            )
         return out
 
     def selection_ply(self, text: str, mode: str, threshold: Optional[float]) -> tuple[bytes, int]:
@@ -479,13 +479,20 @@ def create_app(viewer: Viewer):
     @app.get("/api/scene")
     def scene_info():
         scene = viewer.scene
-        views = [{"index": i, "name": name, "width": cam.width, "height": cam.height,
-                  "orbit": viewer.orbit.orbit_of(cam)}
-                 for i, (name, cam) in enumerate(zip(scene.image_names, scene.cameras))]
-        return {"views": views, "modes": list(viewer.modes),
-                "encoder": viewer.encoder_description(),
-                "limits": {"max_queries": limits.max_queries, "max_query_chars": limits.max_query_chars,
-                           "max_body_bytes": limits.max_body_bytes}}
+        views = [
+            {"index": i, "name": name, "width": cam.width, "height": cam.height, "orbit": viewer.orbit.orbit_of(cam)}
+            for i, (name, cam) in enumerate(zip(scene.image_names, scene.cameras))
+        ]
+        return {
+            "views": views,
+            "modes": list(viewer.modes),
+            "encoder": viewer.encoder_description(),
+            "limits": {
+                "max_queries": limits.max_queries,
+                "max_query_chars": limits.max_query_chars,
+                "max_body_bytes": limits.max_body_bytes,
+            },
+        }
 
     # Plain (sync) handlers run in FastAPI's thread pool, so the event loop stays free while
     # the engine works; the Viewer's lock keeps the engine single-threaded.
@@ -498,8 +505,13 @@ def create_app(viewer: Viewer):
         t0 = time.perf_counter()
         cache, cached = await run_in_threadpool(viewer.render, key, view)
         rgb = cache.rgb.float().cpu().numpy()
-        return {"rgb_png": png_base64(rgb), "width": cache.width, "height": cache.height,
-                "cached": cached, "timing_ms": 1000 * (time.perf_counter() - t0)}
+        return {
+            "rgb_png": png_base64(rgb),
+            "width": cache.width,
+            "height": cache.height,
+            "cached": cached,
+            "timing_ms": 1000 * (time.perf_counter() - t0),
+        }
 
     @app.post("/api/query")
     async def query(request: Request):
@@ -511,9 +523,14 @@ def create_app(viewer: Viewer):
         key, view = viewer.parse_camera(data.get("camera", {"view": 0}))
         t0 = time.perf_counter()
         cache, results = await run_in_threadpool(viewer.render_and_query, key, view, texts, mode)
-        return {"rgb_png": png_base64(cache.rgb.float().cpu().numpy()), "width": cache.width,
-                "height": cache.height, "mode": mode, "results": results,
-                "timing_ms": 1000 * (time.perf_counter() - t0)}
+        return {
+            "rgb_png": png_base64(cache.rgb.float().cpu().numpy()),
+            "width": cache.width,
+            "height": cache.height,
+            "mode": mode,
+            "results": results,
+            "timing_ms": 1000 * (time.perf_counter() - t0),
+        }
 
     @app.post("/api/selection")
     async def selection(request: Request):
@@ -528,9 +545,11 @@ def create_app(viewer: Viewer):
             if threshold is None or not 0.0 <= threshold <= 1.0:
                 raise ApiError(422, "'threshold' must be a number in [0, 1] or null")
         payload, n = await run_in_threadpool(viewer.selection_ply, text, mode, threshold)
-        return Response(payload, media_type="application/octet-stream",
-                        headers={"Content-Disposition": 'attachment; filename="selection.ply"',
-                                 "X-Selected-Gaussians": str(n)})
+        return Response(
+            payload,
+            media_type="application/octet-stream",
+            headers={"Content-Disposition": 'attachment; filename="selection.ply"', "X-Selected-Gaussians": str(n)},
+        )
 
     return app
 
@@ -546,10 +565,16 @@ def json_error_protocol() -> type:
             import h11
 
             body = json.dumps({"error": f"malformed HTTP request ({msg.rstrip('.')})"}).encode()
-            headers = [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
-                       (b"connection", b"close")]
-            for data in (self.conn.send(h11.Response(status_code=400, headers=headers, reason=b"Bad Request")),
-                         self.conn.send(h11.Data(data=body)), self.conn.send(h11.EndOfMessage())):
+            headers = [
+                (b"content-type", b"application/json"),
+                (b"content-length", str(len(body)).encode()),
+                (b"connection", b"close"),
+            ]
+            for data in (
+                self.conn.send(h11.Response(status_code=400, headers=headers, reason=b"Bad Request")),
+                self.conn.send(h11.Data(data=body)),
+                self.conn.send(h11.EndOfMessage()),
+            ):
                 if data:
                     self.transport.write(data)
             self.transport.close()
@@ -582,6 +607,5 @@ def api_server(viewer: Viewer, host: str = "127.0.0.1", port: int = 7008) -> Any
 
     return_freed_buffers()
 
-    config = uvicorn.Config(create_app(viewer), host=host, port=port, log_level="warning",
-                            http=json_error_protocol())
+    config = uvicorn.Config(create_app(viewer), host=host, port=port, log_level="warning", http=json_error_protocol())
     return uvicorn.Server(config)

@@ -58,9 +58,10 @@ SELECTION_THRESHOLD = 0.4  # the evaluation protocol's mask threshold (LangSplat
 
 
 # ----------------------------------------------------------------------------- splat arrays
-def splat_covariances(scales: np.ndarray,  # [N, 3] standard deviations along the local axes
-                      quats: np.ndarray,  # [N, 4] wxyz, any norm
-                      ) -> np.ndarray:  # [N, 3, 3] float32 world-space covariances
+def splat_covariances(
+    scales: np.ndarray,  # [N, 3] standard deviations along the local axes
+    quats: np.ndarray,  # [N, 4] wxyz, any norm
+) -> np.ndarray:  # [N, 3, 3] float32 world-space covariances
     """``R diag(s^2) R^T`` per Gaussian, ``R`` the rotation of the normalised quaternion."""
     import torch
 
@@ -71,8 +72,9 @@ def splat_covariances(scales: np.ndarray,  # [N, 3] standard deviations along th
     return ((R * (s * s)[:, None, :]) @ R.transpose(1, 2)).numpy()
 
 
-def splat_colors(dc: np.ndarray,  # [N, 3] degree-0 SH coefficients
-                 ) -> np.ndarray:  # [N, 3] float32 in [0, 1]
+def splat_colors(
+    dc: np.ndarray,  # [N, 3] degree-0 SH coefficients
+) -> np.ndarray:  # [N, 3] float32 in [0, 1]
     """The colour a Gaussian shows from every direction: ``SH_C0 * dc + 0.5``, clipped."""
     import torch
 
@@ -117,8 +119,9 @@ def turbo_lut() -> np.ndarray:  # [256, 3] uint8
     return _TURBO
 
 
-def normalized_relevancy(relevancy: np.ndarray,  # [Q, N]
-                         ) -> np.ndarray:  # [N] float32 in [0, 1]
+def normalized_relevancy(
+    relevancy: np.ndarray,  # [Q, N]
+) -> np.ndarray:  # [N] float32 in [0, 1]
     """Per query min-max normalised relevancy (a constant query gives 0), maximum over queries."""
     rel = np.asarray(relevancy, dtype=np.float32)
     out = np.zeros(rel.shape[1], np.float32)
@@ -129,28 +132,32 @@ def normalized_relevancy(relevancy: np.ndarray,  # [Q, N]
     return out
 
 
-def heat_index(relevancy: np.ndarray,  # [Q, N]
-               ) -> np.ndarray:  # [N] int32 in [0, 256)
+def heat_index(
+    relevancy: np.ndarray,  # [Q, N]
+) -> np.ndarray:  # [N] int32 in [0, 256)
     """Turbo entry of :func:`normalized_relevancy`: ``floor(256 v)``, as matplotlib picks it."""
     v = normalized_relevancy(relevancy)
     v *= np.float32(256.0)
     return np.minimum(v.astype(np.int32), 255)
 
 
-def heat_colors(relevancy: np.ndarray,  # [Q, N]
-                ) -> np.ndarray:  # [N, 3] uint8
+def heat_colors(
+    relevancy: np.ndarray,  # [Q, N]
+) -> np.ndarray:  # [N, 3] uint8
     """Turbo colours of :func:`normalized_relevancy`."""
     return turbo_lut()[heat_index(relevancy)]
 
 
-def rgba_words(rgba: np.ndarray,  # [N, 4] uint8
-               ) -> np.ndarray:  # [N] uint32
+def rgba_words(
+    rgba: np.ndarray,  # [N, 4] uint8
+) -> np.ndarray:  # [N] uint32
     """RGBA bytes as the one 32-bit word per Gaussian that viser's splat buffer holds (word 7)."""
     return np.ascontiguousarray(rgba, dtype=np.uint8).view(np.uint32)[:, 0]
 
 
-def selection_scores(relevancy: np.ndarray,  # [Q, N]
-                     ) -> np.ndarray:  # [N] float32 in [0, 1]
+def selection_scores(
+    relevancy: np.ndarray,  # [Q, N]
+) -> np.ndarray:  # [N] float32 in [0, 1]
     """Per Gaussian, the largest over queries of the protocol's normalised relevancy
     (:func:`n2f2.eval.protocol.normalized_for_threshold`): selected = score > threshold."""
     from ..query.maps import normalized_for_threshold
@@ -162,9 +169,10 @@ def selection_scores(relevancy: np.ndarray,  # [Q, N]
     return out
 
 
-def selection_mask(relevancy: np.ndarray,  # [Q, N]
-                   threshold: float = SELECTION_THRESHOLD,
-                   ) -> np.ndarray:  # [N] bool
+def selection_mask(
+    relevancy: np.ndarray,  # [Q, N]
+    threshold: float = SELECTION_THRESHOLD,
+) -> np.ndarray:  # [N] bool
     """Gaussians selected by any query under the protocol's rule on normalised relevancy
     (``normalized_for_threshold(r) > threshold``)."""
     return selection_scores(relevancy) > threshold
@@ -173,9 +181,10 @@ def selection_mask(relevancy: np.ndarray,  # [Q, N]
 _DIM = (np.arange(256) * DIM_COLOR).astype(np.uint8), (np.arange(256) * DIM_OPACITY).astype(np.uint8)
 
 
-def dimmed(rgba: np.ndarray,  # [N, 4] uint8
-           keep: np.ndarray,  # [N] bool
-           ) -> np.ndarray:  # [N, 4] uint8
+def dimmed(
+    rgba: np.ndarray,  # [N, 4] uint8
+    keep: np.ndarray,  # [N] bool
+) -> np.ndarray:  # [N, 4] uint8
     """Unselected Gaussians darker (x DIM_COLOR) and more transparent (x DIM_OPACITY)."""
     low = np.empty_like(rgba)
     low[:, :3] = _DIM[0][rgba[:, :3]]
@@ -192,12 +201,13 @@ def pose_of(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
     return vtf.SO3.from_matrix(camera.R.T).wxyz, camera.center
 
 
-def camera_from_pose(wxyz: np.ndarray,  # [4] camera-to-world rotation, OpenCV axes
-                     position: np.ndarray,  # [3] camera centre
-                     fov: float,  # vertical field of view (radians)
-                     aspect: float,  # width / height
-                     width: int,  # pixels of the rendered image
-                     ) -> Camera:
+def camera_from_pose(
+    wxyz: np.ndarray,  # [4] camera-to-world rotation, OpenCV axes
+    position: np.ndarray,  # [3] camera centre
+    fov: float,  # vertical field of view (radians)
+    aspect: float,  # width / height
+    width: int,  # pixels of the rendered image
+) -> Camera:
     """An n2f2 pinhole camera (square pixels, centred principal point) for a browser view."""
     import viser.transforms as vtf
 
@@ -323,9 +333,16 @@ class SplatViewer:
         for i, (cam, name) in enumerate(zip(cams, self.scene.image_names)):
             wxyz, pos = pose_of(cam)
             handle = self.server.scene.add_camera_frustum(
-                f"/cameras/{i:04d}_{name}", fov=2.0 * math.atan(0.5 * cam.height / cam.fy),
-                aspect=cam.width / cam.height, scale=0.06 * spread, thickness=1.5, thickness_units="screen",
-                color=(40, 90, 200), wxyz=wxyz, position=pos)
+                f"/cameras/{i:04d}_{name}",
+                fov=2.0 * math.atan(0.5 * cam.height / cam.fy),
+                aspect=cam.width / cam.height,
+                scale=0.06 * spread,
+                thickness=1.5,
+                thickness_units="screen",
+                color=(40, 90, 200),
+                wxyz=wxyz,
+                position=pos,
+            )
             handle.on_click(lambda event, i=i: self.move_to_view(event.client, i))
             self.frustums.append(handle)
 
@@ -361,28 +378,41 @@ class SplatViewer:
         limits = self.viewer.limits
         modes = self.modes
         with gui.add_folder("Query"):
-            self.gui_text = gui.add_text("Queries", "", hint=f"one or more, separated by commas or semicolons "
-                                                             f"(at most {limits.max_queries})")
-            self.gui_mode = gui.add_dropdown("Mode", modes, initial_value=modes[0],
-                                             hint="composite: one relevancy per query (paper Sec. 3.3); "
-                                                  "explicit: the best scale per query")
+            self.gui_text = gui.add_text(
+                "Queries", "", hint=f"one or more, separated by commas or semicolons (at most {limits.max_queries})"
+            )
+            self.gui_mode = gui.add_dropdown(
+                "Mode",
+                modes,
+                initial_value=modes[0],
+                hint="composite: one relevancy per query (paper Sec. 3.3); explicit: the best scale per query",
+            )
             self.gui_run = gui.add_button("Query", hint="relevancy of every Gaussian")
-            self.gui_display = gui.add_dropdown("Colours", list(DISPLAYS), initial_value="heatmap",
-                                                hint="heatmap of the relevancy, the selection with the "
-                                                     "rest dimmed, or the Gaussians' own colours")
-            self.gui_threshold = gui.add_slider("Threshold", 0.0, 0.99, 0.01, SELECTION_THRESHOLD,
-                                                hint="selection: normalised relevancy above this "
-                                                     "(0.4 = the evaluation protocol)")
-            self.gui_status = gui.add_markdown("Computing per-Gaussian features…" if warm else
-                                               f"{self.num:,} Gaussians. Type a query.")
+            self.gui_display = gui.add_dropdown(
+                "Colours",
+                list(DISPLAYS),
+                initial_value="heatmap",
+                hint="heatmap of the relevancy, the selection with the rest dimmed, or the Gaussians' own colours",
+            )
+            self.gui_threshold = gui.add_slider(
+                "Threshold",
+                0.0,
+                0.99,
+                0.01,
+                SELECTION_THRESHOLD,
+                hint="selection: normalised relevancy above this (0.4 = the evaluation protocol)",
+            )
+            self.gui_status = gui.add_markdown(
+                "Computing per-Gaussian features…" if warm else f"{self.num:,} Gaussians. Type a query."
+            )
         with gui.add_folder("Render view"):
-            self.gui_render = gui.add_button("Render view", hint="2D relevancy, mask and localisation "
-                                                                 "of the current camera, rendered on the server")
+            self.gui_render = gui.add_button(
+                "Render view", hint="2D relevancy, mask and localisation of the current camera, rendered on the server"
+            )
             self.gui_image = gui.add_image(np.zeros((8, 8, 3), np.uint8), label="relevancy | mask", visible=False)
             self.gui_numbers = gui.add_markdown("")
         with gui.add_folder("Export"):
-            self.gui_export = gui.add_button("Export selection as PLY",
-                                             hint=f"written into {self.export_dir}")
+            self.gui_export = gui.add_button("Export selection as PLY", hint=f"written into {self.export_dir}")
             self.gui_export_status = gui.add_markdown("")
 
         self.gui_run.on_click(lambda _: self._guarded(self.run_query))
@@ -420,8 +450,9 @@ class SplatViewer:
                 self.engine.gaussian_cache(self.modes[0])
             turbo_lut()  # imports matplotlib once, not in the first query
             selection_mask(np.zeros((1, 2), np.float32))
-            self._set_status(f"Ready: {self.num:,} Gaussians (features in {time.perf_counter() - t0:.1f} s). "
-                             "Type a query.")
+            self._set_status(
+                f"Ready: {self.num:,} Gaussians (features in {time.perf_counter() - t0:.1f} s). Type a query."
+            )
         except Exception as e:
             self._set_status(f"**error** preparing features: {type(e).__name__}: {e}")
         finally:
@@ -481,8 +512,9 @@ class SplatViewer:
         self.server.flush()
         t3 = time.perf_counter()
         self.shown = display
-        self.timing = Timing(relevancy=(t1 - start), colors=t2 - t1, send=t3 - t2, total=t3 - start,
-                             bytes=int(buf.nbytes))
+        self.timing = Timing(
+            relevancy=(t1 - start), colors=t2 - t1, send=t3 - t2, total=t3 - start, bytes=int(buf.nbytes)
+        )
         self._show_query_status()
         return self.timing
 
@@ -491,15 +523,19 @@ class SplatViewer:
         if q is None:
             return
         n_sel = int(q.selected(float(self.gui_threshold.value)).sum())
-        lines = [f"**{len(q.texts)} quer{'y' if len(q.texts) == 1 else 'ies'}** ({q.mode}): "
-                 f"{n_sel:,} of {self.num:,} Gaussians selected at threshold "
-                 f"{float(self.gui_threshold.value):.2f}."]
+        lines = [
+            f"**{len(q.texts)} quer{'y' if len(q.texts) == 1 else 'ies'}** ({q.mode}): "
+            f"{n_sel:,} of {self.num:,} Gaussians selected at threshold "
+            f"{float(self.gui_threshold.value):.2f}."
+        ]
         for text, rel, scale in zip(q.texts, q.relevancy, q.chosen):
             extra = f", scale {scale}" if scale else ""
             lines.append(f"- {text}: relevancy {float(rel.min()):.3f} to {float(rel.max()):.3f}{extra}")
         t = self.timing
-        lines.append(f"\n{1000 * t.total:.0f} ms to colours sent (relevancy {1000 * t.relevancy:.0f}, "
-                     f"colours {1000 * t.colors:.0f}, send {1000 * t.send:.0f} ms; {t.bytes / 2**20:.1f} MB)")
+        lines.append(
+            f"\n{1000 * t.total:.0f} ms to colours sent (relevancy {1000 * t.relevancy:.0f}, "
+            f"colours {1000 * t.colors:.0f}, send {1000 * t.send:.0f} ms; {t.bytes / 2**20:.1f} MB)"
+        )
         self._set_status("\n".join(lines))
 
     # ------------------------------------------------------------------ render view
@@ -545,15 +581,19 @@ class SplatViewer:
             x, y = localize(rel, box)
             rows.append(np.concatenate([heatmap_overlay(rgb, rel), mask_overlay(rgb, mask, (x, y))], axis=1))
             scale = labels[qi]
-            lines.append(f"| {text} | {float(rel.max()):.3f} | ({x + 0.5:.1f}, {y + 0.5:.1f}) | "
-                         f"{int(mask.sum())} | {scale or '-'} |")
+            lines.append(
+                f"| {text} | {float(rel.max()):.3f} | ({x + 0.5:.1f}, {y + 0.5:.1f}) | "
+                f"{int(mask.sum())} | {scale or '-'} |"
+            )
         image = np.concatenate(rows, axis=0) if rows else rgb
         image = (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
         self.gui_image.image = image
         self.gui_image.visible = True
         ms = 1000 * (time.perf_counter() - t0)
-        header = (f"{camera.width}x{camera.height} px, {ms:.0f} ms, mask threshold {threshold:.2f}\n\n"
-                  "| query | max relevancy | localisation (x, y) px | mask px | scale |\n|---|---|---|---|---|\n")
+        header = (
+            f"{camera.width}x{camera.height} px, {ms:.0f} ms, mask threshold {threshold:.2f}\n\n"
+            "| query | max relevancy | localisation (x, y) px | mask px | scale |\n|---|---|---|---|---|\n"
+        )
         self.gui_numbers.content = header + "\n".join(lines) if lines else f"RGB only (no query), {ms:.0f} ms"
         return image
 
@@ -575,10 +615,18 @@ class SplatViewer:
         self.export_dir.mkdir(parents=True, exist_ok=True)
         with self.viewer.lock:
             n = self.engine.export_selection(torch.from_numpy(mask), path)
-        write_json(path.with_suffix(".json"), {"queries": q.texts, "mode": q.mode, "threshold": threshold,
-                                                "rule": "normalized_for_threshold(relevancy) > threshold, "
-                                                        "any query", "selected": n, "total": self.num,
-                                                "ply": path.name})
+        write_json(
+            path.with_suffix(".json"),
+            {
+                "queries": q.texts,
+                "mode": q.mode,
+                "threshold": threshold,
+                "rule": "normalized_for_threshold(relevancy) > threshold, any query",
+                "selected": n,
+                "total": self.num,
+                "ply": path.name,
+            },
+        )
         self.last_export = path
         self.gui_export_status.content = f"{n:,} Gaussians written to `{path}`"
         return path
