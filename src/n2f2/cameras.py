@@ -24,6 +24,7 @@ import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 # Flips OpenCV camera axes to OpenGL camera axes (and back: it is its own inverse).
 OPENCV_TO_OPENGL = np.diag([1.0, -1.0, -1.0])
@@ -209,7 +210,11 @@ def from_opengl_c2w(c2w: np.ndarray, fx: float, fy: float, cx: float, cy: float,
     return Camera(fx, fy, cx, cy, width, height, R=R, t=t)
 
 
-def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = (0.0, 0.0, 1.0)) -> tuple[np.ndarray, np.ndarray]:
+def look_at(
+    eye: ArrayLike,  # [3]
+    target: ArrayLike,  # [3]
+    up: ArrayLike = (0.0, 0.0, 1.0),  # [3]
+) -> tuple[np.ndarray, np.ndarray]:  # R [3, 3], t [3]
     """World-to-camera (R, t) for a camera at ``eye`` looking at ``target`` (OpenCV axes; the
     image's "up" is along ``up``)."""
     eye = np.asarray(eye, dtype=np.float64)

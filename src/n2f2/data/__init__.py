@@ -140,10 +140,14 @@ def load_scene(
         image_paths = [root / "images" / name for name in model.image_names]
         source_format, listing = f"colmap-{model.kind}", model.files["images"]
         keep = keep_present_images(image_paths, listing, root, skip_missing)
-        cameras, lenses, image_paths = ([seq[i] for i in keep] for seq in (cameras, lenses, image_paths))
+        cameras = [cameras[i] for i in keep]
+        lenses = [lenses[i] for i in keep]
+        image_paths = [image_paths[i] for i in keep]
 
     order = sorted(range(len(image_paths)), key=lambda i: relative_name(image_paths[i], root))
-    cameras, lenses, image_paths = ([seq[i] for i in order] for seq in (cameras, lenses, image_paths))
+    cameras = [cameras[i] for i in order]
+    lenses = [lenses[i] for i in order]
+    image_paths = [image_paths[i] for i in order]
     for a, b in zip(image_paths, image_paths[1:]):
         if a == b:
             raise InputError(listing, f"image {relative_name(a, root)} is listed twice")

@@ -178,7 +178,9 @@ def read_colmap_scene(sparse_dir: str | Path) -> ColmapScene:
     model names ``cameras.*``, a bad pose names ``images.*``."""
     sparse_dir = Path(sparse_dir)
     raw_cameras, images, points, colors = read_colmap_model(sparse_dir)
-    kind, files = find_model_files(sparse_dir)
+    found = find_model_files(sparse_dir)
+    assert found is not None  # read_colmap_model raised InputError when there is no model
+    kind, files = found
     if not images:
         raise InputError(files["images"], "lists no images")
     lenses = {
@@ -481,7 +483,11 @@ def _model_from_cameras(
         q = rotmat_to_qvec(cam.R)
         colmap_images.append(
             ColmapImage(
-                i + 1, tuple(float(v) for v in q), tuple(float(v) for v in cam.t), intrinsics_ids[key], str(name)
+                i + 1,
+                (float(q[0]), float(q[1]), float(q[2]), float(q[3])),  # q [4] wxyz
+                (float(cam.t[0]), float(cam.t[1]), float(cam.t[2])),  # t [3]
+                intrinsics_ids[key],
+                str(name),
             )
         )
     return colmap_cameras, colmap_images

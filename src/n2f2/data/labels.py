@@ -301,7 +301,11 @@ def read_frame_labels(path: str | Path) -> FrameLabels:
         ):
             raise InputError(path, f"{where}.segmentation must be a non-empty list of [x, y] numbers")
         objects.append(
-            LabelObject(o["category"], tuple(float(v) for v in bbox), [[float(x), float(y)] for x, y in seg])
+            LabelObject(
+                o["category"],
+                (float(bbox[0]), float(bbox[1]), float(bbox[2]), float(bbox[3])),  # checked above: 4 numbers
+                [[float(x), float(y)] for x, y in seg],
+            )
         )
     return FrameLabels(frame, int(info["height"]), int(info["width"]), objects)
 

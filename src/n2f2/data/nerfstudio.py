@@ -374,7 +374,7 @@ def read_ply_points(path: str | Path) -> tuple[np.ndarray, Optional[np.ndarray]]
                 f"file is truncated: expected {count} vertices with {len(props)} "
                 f"values each, found {table.size} values",
             )
-        columns = {n: table.reshape(count, len(props))[:, k] for k, n in enumerate(names)}
+        columns: dict[str, np.ndarray] = {n: table.reshape(count, len(props))[:, k] for k, n in enumerate(names)}
     elif fmt in ("binary_little_endian", "binary_big_endian"):
         order = "<" if fmt == "binary_little_endian" else ">"
         dtype = np.dtype([(n, order + t) for n, t in props])

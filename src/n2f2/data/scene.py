@@ -229,11 +229,14 @@ def load_image(path: Path, width: int, height: int) -> np.ndarray:
             if _is_16bit(im, path):
                 arr = _read_16bit(im, path)
                 if arr.shape[:2] != (height, width):
-                    arr = _resize_float(arr, width, height, Image.BICUBIC if width < arr.shape[1] else Image.BILINEAR)
+                    # Pillow puts its filter names into the module at import; Image.Resampling needs Pillow 9.1.
+                    resample = Image.BICUBIC if width < arr.shape[1] else Image.BILINEAR  # pyright: ignore[reportAttributeAccessIssue]
+                    arr = _resize_float(arr, width, height, resample)
             else:
                 im = im.convert("RGB")
                 if im.size != (width, height):
-                    im = im.resize((width, height), Image.BICUBIC if width < im.size[0] else Image.BILINEAR)
+                    resample = Image.BICUBIC if width < im.size[0] else Image.BILINEAR  # pyright: ignore[reportAttributeAccessIssue]
+                    im = im.resize((width, height), resample)
                 arr = np.asarray(im, dtype=np.float32) / 255.0
         except Image.DecompressionBombError as e:
             raise InputError(path, f"image is too large to decode safely ({e})") from None

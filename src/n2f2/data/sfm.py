@@ -32,7 +32,7 @@ import shutil
 import time
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
-from typing import Callable, Optional
+from typing import Callable, Optional, TypeVar
 
 from ..errors import InputError
 from ..io import write_json
@@ -49,6 +49,8 @@ __all__ = [
     "posed_scene_path",
     "run_sfm",
 ]
+
+_T = TypeVar("_T")
 
 REPORT_NAME = "sfm_report.json"
 WORK_DIR = "colmap"
@@ -417,7 +419,7 @@ class _Stages:
         os.replace(undistorted / "sparse", dest / "sparse" / "0")
         shutil.rmtree(undistorted)  # the dense-stereo folder and scripts are not used
 
-    def timed(self, name: str, fn, describe: Callable[[object], str] = lambda r: ""):
+    def timed(self, name: str, fn: Callable[[], _T], describe: Callable[[_T], str] = lambda r: "") -> _T:
         start = time.perf_counter()
         result = fn()
         self.timings[name] = round(time.perf_counter() - start, 2)

@@ -59,6 +59,7 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from ..cameras import Camera, look_at
 from ..io import atomic_path, write_json, write_npy, write_png
@@ -189,7 +190,7 @@ def _rot_z(angle: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
-def _frame_z(axis: Sequence[float]) -> np.ndarray:
+def _frame_z(axis: ArrayLike) -> np.ndarray:  # axis [3]
     """A rotation whose third column (local z) is ``axis``."""
     z = np.asarray(axis, dtype=np.float64)
     z = z / np.linalg.norm(z)
@@ -200,7 +201,7 @@ def _frame_z(axis: Sequence[float]) -> np.ndarray:
     return np.stack([x, y, z], axis=1)
 
 
-def _normalize(v: Sequence[float]) -> np.ndarray:
+def _normalize(v: ArrayLike) -> np.ndarray:  # v [3]
     v = np.asarray(v, dtype=np.float64)
     return v / np.linalg.norm(v)
 
@@ -245,7 +246,7 @@ class _Builder:
             )
         )
 
-    def posed(self, xy: Sequence[float], yaw: float, z0: float = TABLE_HEIGHT):
+    def posed(self, xy: np.ndarray | Sequence[float], yaw: float, z0: float = TABLE_HEIGHT):  # xy [2]
         """Returns ``add_local(kind, center_local, rotation_local, size, material, ...)``."""
         R = _rot_z(yaw)
         offset = np.array([xy[0], xy[1], z0])
@@ -301,8 +302,9 @@ def _tabletop_scene(seed: int) -> DemoScene:
     def jitter(xy, amount=0.015):
         return np.asarray(xy, dtype=np.float64) + rng.uniform(-amount, amount, size=2)
 
-    def tint(color, amount=0.04):
-        return tuple(float(np.clip(c + rng.uniform(-amount, amount), 0.0, 1.0)) for c in color)
+    def tint(color: tuple[float, float, float], amount: float = 0.04) -> tuple[float, float, float]:
+        red, green, blue = (float(np.clip(c + rng.uniform(-amount, amount), 0.0, 1.0)) for c in color)
+        return red, green, blue
 
     # ---- regions (ids are assigned in this order; unique across levels)
     room = b.region(2, "room", "the room around the table", None)
@@ -548,8 +550,9 @@ def _lounge_scene(seed: int) -> DemoScene:
     def jitter(xy, amount=0.012):
         return np.asarray(xy, dtype=np.float64) + rng.uniform(-amount, amount, size=2)
 
-    def tint(color, amount=0.04):
-        return tuple(float(np.clip(c + rng.uniform(-amount, amount), 0.0, 1.0)) for c in color)
+    def tint(color: tuple[float, float, float], amount: float = 0.04) -> tuple[float, float, float]:
+        red, green, blue = (float(np.clip(c + rng.uniform(-amount, amount), 0.0, 1.0)) for c in color)
+        return red, green, blue
 
     # ---- regions (ids are assigned in this order; unique across levels)
     room = b.region(2, "room", "the living room", None)
@@ -942,6 +945,7 @@ def _nearest(*candidates: np.ndarray) -> np.ndarray:
     for c in candidates:
         c = np.where(np.isfinite(c) & (c > _EPS), c, np.inf)
         out = c if out is None else np.minimum(out, c)
+    assert out is not None  # every caller passes at least one candidate
     return out
 
 
@@ -1627,7 +1631,9 @@ def write_contact_sheet(scene_dir: str | Path, out_png: str | Path, max_views: i
     by_id = {r["id"]: r for r in reg_info["regions"]}
     for lv in range(len(levels)):
         handles = [
-            Patch(color=_palette(np.array(rid)), label=by_id[rid]["caption"]) for rid in sorted(seen_per_level[lv])
+            # matplotlib takes an RGB array as a colour; its ColorType alias lists only tuples and strings.
+            Patch(color=_palette(np.array(rid)), label=by_id[rid]["caption"])  # pyright: ignore[reportArgumentType]
+            for rid in sorted(seen_per_level[lv])
         ]
         axes[lv + 1, -1].legend(
             handles=handles,

@@ -131,7 +131,8 @@ def _undistort_points(
     if lens.kind == FISHEYE:
         out = cv2.fisheye.undistortPoints(src, K, D, criteria=criteria)
     elif hasattr(cv2, "undistortPointsIter"):  # OpenCV 4.x
-        out = cv2.undistortPointsIter(src, K, D, None, None, criteria)
+        # Absent from the stubs of OpenCV versions that lack it; hasattr() above guards the call.
+        out = cv2.undistortPointsIter(src, K, D, None, None, criteria)  # pyright: ignore[reportAttributeAccessIssue]
     else:  # OpenCV 5: undistortPoints takes the criteria
         out = cv2.undistortPoints(src, K, D, criteria=criteria)
     return out.reshape(-1, 2)

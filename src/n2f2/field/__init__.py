@@ -2,7 +2,23 @@
 the Gaussian centres, and the zero-initialised scale-aware projection ``W [E, D]``
 (paper Sec. 3.1-3.2)."""
 
+from typing import TYPE_CHECKING
+
 from .._lazy import lazy_exports
+
+if TYPE_CHECKING:  # the lazily exported names, for static analysis
+    from .model import FieldConfig as FieldConfig
+    from .model import NestedField as NestedField
+    from .model import bbox_from_points as bbox_from_points
+    from .model import build_field as build_field
+    from .model import check_embed_dim as check_embed_dim
+    from .model import gaussian_features as gaussian_features
+    from .model import level_blocks as level_blocks
+    from .model import load_field as load_field
+    from .model import prefix_mask as prefix_mask
+    from .model import save_field as save_field
+    from .triplane import PositionalEncoding as PositionalEncoding
+    from .triplane import TriPlane as TriPlane
 
 __getattr__, __all__ = lazy_exports(
     __name__,

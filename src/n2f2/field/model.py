@@ -29,7 +29,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, ClassVar, Optional
+from typing import TYPE_CHECKING, Any, Callable, ClassVar, Optional
 
 import numpy as np
 import torch
@@ -40,6 +40,9 @@ from ..errors import InputError
 from ..io import load_torch, save_torch
 from ..validate import _non_finite
 from .triplane import PositionalEncoding, TriPlane
+
+if TYPE_CHECKING:
+    from ..gaussians.model import Gaussians
 
 BACKBONES = ("triplane", "mlp")
 VARIANTS = ("nested", "flat", "levels")
@@ -86,7 +89,7 @@ class FieldConfig(ConfigDict):
     @staticmethod
     def paper(**overrides: Any) -> "FieldConfig":
         """The paper's sizes (appendix "Feature Field Optimization")."""
-        base = dict(dim=512, plane_resolution=512, plane_channels=64, hidden=256, num_layers=3)
+        base: dict[str, Any] = dict(dim=512, plane_resolution=512, plane_channels=64, hidden=256, num_layers=3)
         base.update(overrides)
         return FieldConfig(**base)
 
@@ -144,10 +147,14 @@ class NestedField(nn.Module):
         bmax = torch.as_tensor(np.asarray(bbox_max, dtype=np.float32)).reshape(3)
         if not bool((bmax > bmin).all()):
             raise ValueError(f"bounding box must have positive size, got {bmin.tolist()} .. {bmax.tolist()}")
+        self.bbox_min: Tensor  # [3] registered buffer
+        self.bbox_max: Tensor  # [3] registered buffer
         self.register_buffer("bbox_min", bmin)
         self.register_buffer("bbox_max", bmax)
         if config.backbone == "triplane":
-            self.backbone: nn.Module = TriPlane(config.plane_resolution, config.plane_channels, config.plane_reduce)
+            self.backbone: TriPlane | PositionalEncoding = TriPlane(
+                config.plane_resolution, config.plane_channels, config.plane_reduce
+            )
         else:
             self.backbone = PositionalEncoding(config.pe_frequencies)
         self.mlp = mlp(self.backbone.out_dim, config.hidden, config.dim, config.num_layers)
@@ -183,9 +190,10 @@ class NestedField(nn.Module):
         (the frozen Gaussian centres), with what does not depend on the parameters computed
         once: the TriPlane's bilinear taps, or the whole (parameter-free) positional encoding."""
         xyz_n = self.normalize(xyz.detach())
-        if isinstance(self.backbone, TriPlane):
-            taps = self.backbone.taps(xyz_n)
-            return lambda: self.backbone.sample(taps)
+        backbone = self.backbone
+        if isinstance(backbone, TriPlane):
+            taps = backbone.taps(xyz_n)
+            return lambda: backbone.sample(taps)
         encoded = self.encode(xyz_n).detach()
         return lambda: encoded
 
@@ -253,12 +261,12 @@ class NestedField(nn.Module):
 @torch.no_grad()
 def gaussian_features(
     field: NestedField,
-    means: Tensor,  # [N, 3] world-space Gaussian centres (or a Gaussians model)
+    means: Tensor | Gaussians,  # [N, 3] world-space Gaussian centres (or a Gaussians model)
     chunk: int = 65536,
 ) -> Tensor:  # -> Theta [N, D]
     """Full D-dim features at the Gaussian centres, no deferral (appendix: at test time the
     MLP runs per Gaussian so features can be pre-multiplied, e.g. by gamma^3D)."""
-    if hasattr(means, "means"):  # a Gaussians model
+    if not isinstance(means, Tensor):  # a Gaussians model
         means = means.means
     means = means.detach()
     device = next(field.parameters()).device

@@ -122,6 +122,7 @@ class TriPlane(nn.Module):
             corners = self.planes[p].reshape(C, R * R).index_select(1, taps.index[p]).view(C, n, 4)
             value = (corners * taps.weight[p]).sum(-1)  # [C, N]
             out = value if out is None else (out + value if self.reduce == "sum" else out * value)
+        assert out is not None  # the loop over the three planes ran
         return out.t()
 
     def extra_repr(self) -> str:
@@ -137,6 +138,7 @@ class PositionalEncoding(nn.Module):
         if num_frequencies < 0:
             raise ValueError(f"number of PE frequencies must be >= 0, got {num_frequencies}")
         self.num_frequencies = int(num_frequencies)
+        self.freqs: Tensor  # [L] registered buffer
         self.register_buffer(
             "freqs", math.pi * 2.0 ** torch.arange(num_frequencies, dtype=torch.float32), persistent=False
         )

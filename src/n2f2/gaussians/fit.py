@@ -183,7 +183,9 @@ class FitConfig(ConfigDict):
         train, _ = split_views(scene, self.test_every)
         cams = [scene.cameras[i] for i in train]
         if _has_points(scene):
-            uncovered = float(np.mean([uncovered_cells(scene.points, c).mean() for c in cams]))
+            points = scene.points
+            assert points is not None  # _has_points checked it
+            uncovered = float(np.mean([uncovered_cells(points, c).mean() for c in cams]))
         else:
             uncovered = 1.0
         backdrop = uncovered > BACKDROP_UNCOVERED
@@ -388,10 +390,13 @@ class GaussianAdam:
         live = {name: p for name, p in params.items() if p.grad is not None}
         limit = math.sqrt(torch.finfo(torch.float32).max) / 16.0
         for p in live.values():
-            if not bool(torch.isfinite(p.grad).all()) or bool((p.grad.abs() > limit).any()):
+            grad = p.grad
+            assert grad is not None  # live holds only parameters with a gradient
+            if not bool(torch.isfinite(grad).all()) or bool((grad.abs() > limit).any()):
                 return False
         for name, p in live.items():
             g = p.grad
+            assert g is not None  # as above
             if name not in self.exp_avg:
                 self.exp_avg[name], self.exp_avg_sq[name] = torch.zeros_like(p), torch.zeros_like(p)
             m, v = self.exp_avg[name], self.exp_avg_sq[name]
@@ -694,7 +699,8 @@ def border_color(scene: Scene, views: list[int]) -> tuple[float, float, float]:
     for i in pick:
         im = scene.image(i)
         rings += [im[0], im[-1], im[:, 0], im[:, -1]]
-    return tuple(float(v) for v in np.median(np.concatenate(rings), axis=0))
+    red, green, blue = np.median(np.concatenate(rings), axis=0)  # scene images are [H, W, 3]
+    return float(red), float(green), float(blue)
 
 
 def resolution_factor(config: FitConfig, step: int) -> float:
@@ -886,7 +892,8 @@ def fit_gaussians(
         sampler.stack = list(ck["view_stack"])
         start, loss_curve, skipped, train_time = ck["step"], list(ck["loss_curve"]), ck["skipped"], ck["train_time"]
 
-    env, env_adam = None, None
+    env: Optional[Environment] = None
+    env_adam: Optional[torch.optim.Adam] = None
     if config.background_sh_degree >= 0:
         env = Environment(config.background_sh_degree, config.background).to(device)
         env_adam = torch.optim.Adam(env.parameters(), lr=config.background_lr, eps=config.adam_eps)
@@ -904,6 +911,7 @@ def fit_gaussians(
         ):  # never persist a broken state
             state = _checkpoint(step, g, adam, stats, config, generator, sampler, loss_curve, skipped, train_time)
             if env is not None:
+                assert env_adam is not None  # created together with env
                 state["environment"] = {"sh": env.sh.detach().cpu().clone(), "optimizer": env_adam.state_dict()}
             save_torch(ck_path, state)
 
@@ -942,6 +950,7 @@ def fit_gaussians(
             loss = loss + config.depth_spread_weight * depth_spread_penalty(spread)
         g.zero_grad(set_to_none=True)
         if env is not None:
+            assert env_adam is not None  # created together with env
             env_adam.zero_grad(set_to_none=True)
         loss.backward()
         # Parameter gradients are checked by the optimiser; it refuses non-finite steps.
@@ -951,6 +960,7 @@ def fit_gaussians(
         env_ok = env is None or (env.sh.grad is not None and bool(torch.isfinite(env.sh.grad).all()))
         ok = grads_ok and env_ok and adam.step(g.params(), learning_rates(config, step, extent, k, device))
         if ok and env is not None:
+            assert env_adam is not None  # created together with env
             env_adam.step()
         g.zero_grad(set_to_none=True)
         if not ok:

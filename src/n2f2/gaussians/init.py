@@ -20,7 +20,7 @@ def knn_scale(points: np.ndarray, k: int = 3) -> np.ndarray:  # [P, 3] -> [P]
 
     Clamped below (3DGS clamps the squared distance at 1e-7) so duplicate points do not get a
     zero (log -inf) scale."""
-    from scipy.spatial import cKDTree
+    from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  # compiled, no stubs
 
     points = np.asarray(points, dtype=np.float64)
     p = len(points)

@@ -16,7 +16,7 @@ Conventions are those of :mod:`n2f2.cameras` (OpenCV axes, pixel centres at +0.5
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any, Sequence, overload
 
 import torch
 from torch import Tensor
@@ -58,6 +58,50 @@ def _check_inputs(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tenso
     for name, x in (("quats", quats), ("scales", scales), ("opacities", opacities), ("features", features)):
         if x.device != means.device or x.dtype != means.dtype:
             raise ValueError(f"rasterize: {name} is {x.dtype} on {x.device}, means is {means.dtype} on {means.device}")
+
+
+@overload
+def rasterize(
+    means: Tensor,  # [N, 3] world-space centres
+    quats: Tensor,  # [N, 4] wxyz rotations (normalised inside)
+    scales: Tensor,  # [N, 3] standard deviations (actual scales, not log)
+    opacities: Tensor,  # [N] in (0, 1)
+    features: Tensor,  # [N, C] any C
+    camera: Camera,
+    *,
+    backend: str = "auto",
+    near: float = 0.01,
+    far: float = 1e10,
+    eps2d: float = 0.3,  # low-pass dilation added to the 2D covariance (pixels^2)
+    alpha_clamp: float = 0.99,  # per-Gaussian alpha cap (3DGS; gsplat has 0.999 built in)
+    alpha_min: float = 1.0 / 255.0,  # alphas below are skipped
+    transmittance_min: float = 1e-4,  # early termination threshold
+    tile_size: int = 8,  # torch backend only
+    background: Tensor | Sequence[float] | None = None,  # [C]
+    rows: tuple[int, int] | None = None,  # only image rows [y0, y1), y0 a multiple of tile_size (CPU backends)
+) -> RenderOutput: ...
+
+
+@overload
+def rasterize(
+    means: Tensor,  # [N, 3] world-space centres
+    quats: Tensor,  # [N, 4] wxyz rotations (normalised inside)
+    scales: Tensor,  # [N, 3] standard deviations (actual scales, not log)
+    opacities: Tensor,  # [N] in (0, 1)
+    features: Tensor,  # [N, C] any C
+    camera: Sequence[Camera],
+    *,
+    backend: str = "auto",
+    near: float = 0.01,
+    far: float = 1e10,
+    eps2d: float = 0.3,  # low-pass dilation added to the 2D covariance (pixels^2)
+    alpha_clamp: float = 0.99,  # per-Gaussian alpha cap (3DGS; gsplat has 0.999 built in)
+    alpha_min: float = 1.0 / 255.0,  # alphas below are skipped
+    transmittance_min: float = 1e-4,  # early termination threshold
+    tile_size: int = 8,  # torch backend only
+    background: Tensor | Sequence[float] | None = None,  # [C]
+    rows: tuple[int, int] | None = None,  # only image rows [y0, y1), y0 a multiple of tile_size (CPU backends)
+) -> list[RenderOutput]: ...
 
 
 def rasterize(
@@ -233,6 +277,8 @@ def rasterize_in_bands(
         means2d = band.means2d
         pairs += band.n_pairs or 0
         del band
+    # Camera heights are positive, so the loop ran at least once and set both.
+    assert means2d is not None and radii is not None
     return RenderOutput(features=out, alpha=alpha, depth=depth, means2d=means2d, radii=radii, n_pairs=pairs)
 
 

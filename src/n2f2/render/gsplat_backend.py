@@ -42,7 +42,7 @@ def gsplat_usable(device: torch.device) -> bool:
     if device.type != "cuda" or not torch.cuda.is_available():
         return False
     try:
-        import gsplat  # noqa: F401
+        import gsplat  # noqa: F401  # pyright: ignore[reportMissingImports]  # optional, CUDA machines only
     except Exception:  # ImportError, or a missing transitive dependency such as `packaging`
         return False
     return True
@@ -67,7 +67,7 @@ def rasterize_gsplat(
     if means.device.type != "cuda" or not torch.cuda.is_available():
         raise N2F2Error("the gsplat backend needs CUDA tensors and a CUDA device; use backend='torch'")
     try:
-        from gsplat.cuda._wrapper import (
+        from gsplat.cuda._wrapper import (  # pyright: ignore[reportMissingImports]  # optional, CUDA machines only
             fully_fused_projection,
             isect_offset_encode,
             isect_tiles,

@@ -48,13 +48,15 @@ from n2f2.render.torch_backend import Bins, CompositeConfig, rasterize_torch
 try:  # optional at import time: the "auto" backend falls back to torch without it
     import numba
     from numba import njit, prange
+    from numba.core import config as numba_config
 except ImportError:  # pragma: no cover - numba is a declared dependency
     numba = None
 else:
     # numba's OpenMP layer leaves its threads spinning after each kernel, which slows the torch
     # operations around it several times over; the plain thread pool does not spin.
     if "NUMBA_THREADING_LAYER" not in os.environ:
-        numba.config.THREADING_LAYER = "workqueue"
+        # numba fills its config module from the environment at import time, so stubs lack the names.
+        numba_config.THREADING_LAYER = "workqueue"  # pyright: ignore[reportAttributeAccessIssue]
 
 _LOCK = threading.Lock()
 _LN2 = math.log(2.0)
@@ -298,7 +300,10 @@ def _pixel_basis(tile_size: int, dtype: np.dtype) -> np.ndarray:  # [5, p]
 
 
 def _threads() -> int:
-    n = max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS))
+    assert numba is not None  # only called beside the kernels, which exist only when numba imports
+    # NUMBA_NUM_THREADS is set in numba's config module from the environment at import time.
+    n_numba = numba_config.NUMBA_NUM_THREADS  # pyright: ignore[reportAttributeAccessIssue]
+    n = max(1, min(torch.get_num_threads(), n_numba))
     numba.set_num_threads(n)
     return n
 

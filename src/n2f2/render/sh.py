@@ -42,16 +42,16 @@ def sh_basis(dirs: Tensor, degree: int) -> Tensor:  # dirs [N, 3] unit -> [N, K]
             SH_C2[3] * x * z,
             SH_C2[4] * (xx - yy),
         ]
-    if degree >= 3:
-        out += [
-            SH_C3[0] * y * (3 * xx - yy),
-            SH_C3[1] * x * y * z,
-            SH_C3[2] * y * (4 * zz - xx - yy),
-            SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy),
-            SH_C3[4] * x * (4 * zz - xx - yy),
-            SH_C3[5] * z * (xx - yy),
-            SH_C3[6] * x * (xx - 3 * yy),
-        ]
+        if degree >= 3:
+            out += [
+                SH_C3[0] * y * (3 * xx - yy),
+                SH_C3[1] * x * y * z,
+                SH_C3[2] * y * (4 * zz - xx - yy),
+                SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy),
+                SH_C3[4] * x * (4 * zz - xx - yy),
+                SH_C3[5] * z * (xx - yy),
+                SH_C3[6] * x * (xx - 3 * yy),
+            ]
     return torch.stack(out, dim=-1)
 
 

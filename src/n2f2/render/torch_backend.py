@@ -33,9 +33,9 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Literal, overload
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 LOG2E = 1.0 / math.log(2.0)
@@ -295,7 +295,21 @@ def _thresholds(cfg: CompositeConfig, dtype: torch.dtype) -> tuple[float, float,
     return math.log2(cfg.alpha_min), math.log2(cfg.alpha_clamp), below(cfg.alpha_min), below(cfg.transmittance_min)
 
 
-def _chunk(kc: Tensor, P: Tensor, T: Tensor, th: tuple[float, float, float, float], for_backward: bool = False):
+@overload
+def _chunk(
+    kc: Tensor, P: Tensor, T: Tensor, th: tuple[float, float, float, float], for_backward: Literal[False] = False
+) -> tuple[Tensor, Tensor, None]: ...
+
+
+@overload
+def _chunk(
+    kc: Tensor, P: Tensor, T: Tensor, th: tuple[float, float, float, float], for_backward: Literal[True]
+) -> tuple[Tensor, Tensor, Tensor]: ...
+
+
+def _chunk(
+    kc: Tensor, P: Tensor, T: Tensor, th: tuple[float, float, float, float], for_backward: bool = False
+) -> tuple[Tensor, Tensor, Tensor | None]:
     """Blending of one chunk of ``k`` Gaussians over a batch of ``b`` tiles of ``p`` pixels.
 
     kc [b, 6, k] pair coefficients (padding gives log2 alpha = -1e4), P [p, 6] pixel basis,
@@ -318,17 +332,18 @@ def _chunk(kc: Tensor, P: Tensor, T: Tensor, th: tuple[float, float, float, floa
     # 1 where alpha is below the clamp (depends on k), 0 where clamped.
     smooth = (log_clamp - la).sign_() if for_backward else None
     alpha = la.exp2_()
-    F.threshold_(alpha, alpha_cut, 0.0)
+    torch.threshold_(alpha, alpha_cut, 0.0)
     one_m = 1.0 - alpha
     odds = alpha.div_(one_m)  # alpha is not needed any more
     one_m[:, :, 0] *= T  # so that the cumprod starts from the incoming transmittance
     T_next = one_m.cumprod_(2)
     # A pixel stops before the Gaussian that would take T below transmittance_min; T_next is
     # non-increasing, so zeroing it there zeroes every later weight too.
-    F.threshold_(T_next, t_cut, 0.0)
+    torch.threshold_(T_next, t_cut, 0.0)
     if not for_backward:
         return odds.mul_(T_next), T_next, None
     w = odds * T_next
+    assert smooth is not None  # computed above whenever for_backward is set
     odds.mul_(smooth.mul_(torch.sign(T_next)))  # not blended: T_next == 0
     return w, T_next, odds
 

@@ -13,7 +13,31 @@ Names are imported lazily, so ``import n2f2.segments`` (the CLI does it) stays c
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from .._lazy import lazy_exports
+
+if TYPE_CHECKING:  # the lazily exported names, for static analysis
+    from .bank import ImageSegments as ImageSegments
+    from .bank import SegmentAndEncode as SegmentAndEncode
+    from .bank import SegmentBank as SegmentBank
+    from .bank import build_bank as build_bank
+    from .bins import QuantileScaleBins as QuantileScaleBins
+    from .bins import scale_to_dims as scale_to_dims
+    from .bins import three_level_groups as three_level_groups
+    from .encoders import CaptionEncoder as CaptionEncoder
+    from .encoders import ClipEncoder as ClipEncoder
+    from .encoders import get_encoder as get_encoder
+    from .langsplat import LangSplatSource as LangSplatSource
+    from .langsplat import read_langsplat as read_langsplat
+    from .lifting import LiftSettings as LiftSettings
+    from .lifting import segment_scales as segment_scales
+    from .segmenters import ClassicalSegmenter as ClassicalSegmenter
+    from .segmenters import GroundTruthSegmenter as GroundTruthSegmenter
+    from .segmenters import SamSegmenter as SamSegmenter
+    from .segmenters import SegmentSet as SegmentSet
+    from .segmenters import get_segmenter as get_segmenter
+    from .segmenters import mask_nms as mask_nms
 
 _EXPORTS = {
     "SegmentBank": "bank",

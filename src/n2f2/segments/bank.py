@@ -55,8 +55,11 @@ RECORD_FILES = ("layers.npy", "embeddings.npy", "scales.npy", "areas.npy", "vali
 class SegmentSource(Protocol):
     """Where a view's segments and embeddings come from (segmenter + encoder, or LangSplat)."""
 
-    segmenter_spec: dict
-    encoder_spec: dict
+    @property
+    def segmenter_spec(self) -> dict: ...
+
+    @property
+    def encoder_spec(self) -> dict: ...
 
     def prepare(self, stems: list[str]) -> None: ...
 
@@ -558,5 +561,6 @@ def ground_truth_scale_check(
     for lv in sorted(set(level.tolist())):
         name = names[lv] if lv < len(names) else str(lv)
         medians[name] = float(np.median(scales[level == lv]))
-    rho = float(spearmanr(scales, extent)[0]) if scales.size > 1 else float("nan")
+    # scipy builds its result class at runtime, so its items have no static type.
+    rho = float(spearmanr(scales, extent)[0]) if scales.size > 1 else float("nan")  # pyright: ignore[reportArgumentType]
     return {"spearman_scale_vs_true_extent": rho, "segments": int(scales.size), "median_scale_by_level": medians}

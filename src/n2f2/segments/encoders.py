@@ -40,8 +40,10 @@ CLIP_STD = (0.26862954, 0.26130258, 0.27577711)
 class Encoder(Protocol):
     name: str
     dim: int
-    description: str
     requires_captions: bool
+
+    @property
+    def description(self) -> str: ...
 
     @property
     def spec(self) -> dict: ...

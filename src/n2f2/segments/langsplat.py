@@ -167,7 +167,7 @@ def langsplat_encoder_spec(name: str, model_id: Optional[str] = None) -> dict:
     if name == "clip":
         model_id = model_id or DEFAULT_CLIP_MODEL
         dim = LANGSPLAT_CLIP_DIM if model_id == DEFAULT_CLIP_MODEL else _config_dim(model_id, "projection_dim")
-        spec = {
+        spec: dict[str, str | int] = {
             "name": "clip",
             "model_id": model_id,
             "description": "LangSplat language_features (OpenCLIP ViT-B/16 laion2b_s34b_b88k image "

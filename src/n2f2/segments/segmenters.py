@@ -569,11 +569,10 @@ class SamSegmenter:
     def _nms(
         self, masks: list[Tensor], iou: list[Tensor], stability: list[Tensor], settled: int
     ) -> tuple[Tensor, Tensor, Tensor]:
-        parts = masks
-        masks, iou, stability = torch.cat(parts), torch.cat(iou), torch.cat(stability)
-        parts.clear()  # the caller's list: only the concatenated copy stays alive
-        kept = greedy_mask_nms(masks, iou, self.settings.box_nms_thresh, settled=settled)
-        return masks[kept], iou[kept], stability[kept]
+        all_masks, all_iou, all_stability = torch.cat(masks), torch.cat(iou), torch.cat(stability)
+        masks.clear()  # the caller's list: only the concatenated copy stays alive
+        kept = greedy_mask_nms(all_masks, all_iou, self.settings.box_nms_thresh, settled=settled)
+        return all_masks[kept], all_iou[kept], all_stability[kept]
 
     def __call__(
         self,

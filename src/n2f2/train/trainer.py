@@ -241,6 +241,7 @@ def pixel_theta(
     if cache is not None:
         rendered = cache.blend(per_gaussian, batch.slot, batch.pixel)  # [P, C]
     else:
+        assert cameras is not None  # without a cache the batch's views are rasterized from these
         order, rows = [], []
         for k, cam in enumerate(cameras):
             sel = torch.nonzero(batch.slot == k).squeeze(1)  # [p] rows of the batch from view slot k
@@ -453,6 +454,7 @@ def train_field(
                 usable[i] for i in torch.randperm(len(usable), generator=generator)[: config.views_per_step].tolist()
             ]
             pool = SegmentPool.from_views([segments[v] for v in views])
+        assert pool is not None  # pool_all is built whenever every_view is set
         batch = pool.sample(config.pixels_per_step, generator)
         theta = pixel_theta(
             field,
