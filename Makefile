@@ -19,10 +19,11 @@ venv: $(BIN)/n2f2
 demo: venv
 	$(BIN)/n2f2 demo --out $(DEMO_OUT)
 
-# Lint and format checks of src/ first (settings in pyproject.toml), then the suite.
+# Lint, format and type checks of src/ first (settings in pyproject.toml), then the suite.
 lint: venv
 	$(BIN)/ruff check src
 	$(BIN)/ruff format --check src
+	$(BIN)/pyright
 
 test: lint
 	$(BIN)/python -m pytest tests

@@ -101,7 +101,7 @@ def frame_view_index(name: str) -> int:
 
 # ----------------------------------------------------------------------------- masks <-> polygons
 def polygon_to_mask(
-    polygon: Sequence[Sequence[float]],  # [K, 2] (x, y) pixel indices
+    polygon: np.ndarray | Sequence[Sequence[float]],  # [K, 2] (x, y) pixel indices
     height: int,
     width: int,
 ) -> np.ndarray:

@@ -104,7 +104,8 @@ def read_ovs3d_segmentations(
                 try:
                     im = im.convert("L")
                     if size is not None and im.size != tuple(size):
-                        im = im.resize(tuple(size), Image.NEAREST)
+                        # Pillow puts its filter names into the module at import; Image.Resampling needs Pillow 9.1.
+                        im = im.resize(tuple(size), Image.NEAREST)  # pyright: ignore[reportAttributeAccessIssue]
                     masks.append(np.asarray(im) == 255)  # (v / 255).astype(int8) == 1
                 except Image.DecompressionBombError as e:
                     raise InputError(p, f"mask is too large to decode safely ({e})") from None

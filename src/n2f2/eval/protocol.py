@@ -280,7 +280,9 @@ def frame_targets(
         polygon = np.asarray(obj.polygon, dtype=np.float64).reshape(-1, 2)
         if scale != (1.0, 1.0):
             polygon = polygon * np.asarray(scale)
-        m = polygon_to_mask(polygon, shape[0], shape[1])  # clipped to the image, like LangSplat
+        # Clipped to the image, like LangSplat. polygon_to_mask reads any [K, 2] array-like through
+        # np.asarray; its annotation names only sequences.
+        m = polygon_to_mask(polygon, shape[0], shape[1])
         if not m.any():
             dropped += 1
             continue

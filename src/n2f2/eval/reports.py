@@ -10,11 +10,15 @@ from __future__ import annotations
 import math
 import numbers
 from pathlib import Path
-from typing import Mapping, Optional, Sequence, Union
+from typing import TYPE_CHECKING, Mapping, Optional, Sequence, Union
 
 import numpy as np
 
 from ..io import atomic_path
+
+if TYPE_CHECKING:
+    from .metrics import QueryDeltas, RetrievalScores
+    from .protocol import SceneScores
 
 # What `n2f2 eval` writes into OUT (n2f2.eval.runner.write_eval_outputs), plots by pattern.
 RESULT_NAMES = ("eval.json", "eval.md", "relevancy", "scores.png", "simple_compound.png", "recall_at_k.png")
@@ -44,7 +48,7 @@ def _fmt(value: object, digits: int = 1, percent: bool = False) -> str:
     return str(value)
 
 
-def _cell(text: str) -> str:
+def _cell(text: object) -> str:
     return str(text).replace("|", "\\|").replace("\n", " ")
 
 
@@ -66,7 +70,7 @@ def markdown_table(
 
 
 def scene_scores_table(
-    scores: Mapping[str, object],  # scene name -> protocol.SceneScores
+    scores: Mapping[str, SceneScores],  # scene name -> scores
     mean_row: bool = True,
 ) -> str:
     """One row per scene: mIoU and localization accuracy (%), pairs, box size and majority radius
@@ -117,7 +121,7 @@ def scene_scores_table(
     )
 
 
-def pairs_table(scores: object) -> str:  # protocol.SceneScores
+def pairs_table(scores: SceneScores) -> str:
     """Every (frame, category) pair: IoU, hit, chosen levels."""
     rows = [
         [
@@ -134,7 +138,7 @@ def pairs_table(scores: object) -> str:  # protocol.SceneScores
     return markdown_table(["frame", "category", "IoU %", "hit", "seg level", "loc level", "IoU % per level"], rows)
 
 
-def deltas_table(deltas: object, name_a: str = "a", name_b: str = "b", percent: bool = True) -> str:
+def deltas_table(deltas: QueryDeltas, name_a: str = "a", name_b: str = "b", percent: bool = True) -> str:
     """Top and bottom per-query deltas (metrics.QueryDeltas)."""
     rows = []
     for tag, items in (("top", deltas.top), ("bottom", deltas.bottom)):
@@ -151,7 +155,7 @@ def deltas_table(deltas: object, name_a: str = "a", name_b: str = "b", percent: 
     return markdown_table(["", "query", name_a, name_b, "delta"], rows, ["l", "l", "r", "r", "r"])
 
 
-def retrieval_table(results: Mapping[str, object]) -> str:  # name -> metrics.RetrievalScores
+def retrieval_table(results: Mapping[str, RetrievalScores]) -> str:  # run name -> scores
     ks = sorted({k for r in results.values() for k in r.ks})
     rows = [
         [name]
@@ -230,7 +234,7 @@ def plot_lines(
 
 def plot_query_deltas(
     path: Union[str, Path],
-    deltas: object,  # metrics.QueryDeltas
+    deltas: QueryDeltas,
     title: str = "per-query delta",
     percent: bool = True,
 ) -> Path:
@@ -253,7 +257,7 @@ def plot_query_deltas(
 
 def plot_level_histogram(
     path: Union[str, Path],
-    scores: object,  # protocol.SceneScores
+    scores: SceneScores,
     title: str = "chosen levels",
 ) -> Path:
     """How often each level was chosen for segmentation and for localization."""

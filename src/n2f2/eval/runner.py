@@ -73,7 +73,7 @@ import time
 from dataclasses import asdict, dataclass, replace
 from dataclasses import field as dc_field
 from pathlib import Path
-from typing import Any, Callable, Mapping, Optional, Sequence, Union
+from typing import Any, Callable, Literal, Mapping, Optional, Sequence, Union
 
 import numpy as np
 
@@ -106,7 +106,7 @@ class EvalConfig:
     """Settings of :func:`evaluate_run`. Defaults: LangSplat's protocol, labels must match."""
 
     modes: Optional[tuple[str, ...]] = None  # None = every mode the field supports
-    missing_frames: str = "error"  # label of a frame not in the scene: "error" | "skip" (counted)
+    missing_frames: Literal["error", "skip"] = "error"  # label of a frame not in the scene (skips counted)
     rescale_labels: bool = False  # labels drawn at another size: False raises, True rescales
     ks: tuple[int, ...] = DEFAULT_KS  # R@K cut-offs
     retrieval_iou: float = RETRIEVAL_IOU  # segment/label IoU for a retrieval match
@@ -114,8 +114,10 @@ class EvalConfig:
 
     def protocols(self) -> dict[str, ProtocolConfig]:
         """The two protocol settings every number is reported under."""
-        kw = dict(missing_frames=self.missing_frames, rescale_labels=self.rescale_labels)
-        return {"exact": ProtocolConfig(**kw), "scaled": ProtocolConfig.scaled(**kw)}
+        return {
+            "exact": ProtocolConfig(missing_frames=self.missing_frames, rescale_labels=self.rescale_labels),
+            "scaled": ProtocolConfig.scaled(missing_frames=self.missing_frames, rescale_labels=self.rescale_labels),
+        }
 
 
 @dataclass
@@ -657,7 +659,11 @@ def evaluate_run(
             files = relevancy_files.setdefault(view.name, {})
             for k, c in enumerate(categories):
                 path = Path(relevancy_dir) / view.name / f"{slugs[c]}.npy"
-                arr = maps["composite"]["exact"]["seg"][k] if npy_mode == "composite" else all_scales[k]
+                if npy_mode == "composite":
+                    arr = maps["composite"]["exact"]["seg"][k]
+                else:
+                    assert all_scales is not None  # npy_mode "levels" with relevancy_dir: _scale_maps kept them
+                    arr = all_scales[k]
                 write_npy(path, np.ascontiguousarray(arr, dtype=np.float32))
                 files[c] = str(path)
 
@@ -665,6 +671,7 @@ def evaluate_run(
             rec = bank_obj.record(bank_obj.index(scene_obj.image_names[idx]))
             layers = np.asarray(rec.layers)
             if layers.shape[1:] != (view.height, view.width):
+                assert bank_path is not None  # set together with bank_obj
                 raise InputError(
                     Path(bank_path) / "bank.json",
                     f"segments of {view.name} are {layers.shape[2]}x{layers.shape[1]} but the "

@@ -94,7 +94,7 @@ class BenchConfig:
     @staticmethod
     def quick(**overrides: Any) -> "BenchConfig":
         """A few minutes: small generated scene, D = 32, short training, fewer timing repeats."""
-        base = dict(
+        base: dict[str, Any] = dict(
             iterations=150,
             dim=32,
             pixels_per_step=2048,

@@ -6,9 +6,12 @@ from __future__ import annotations
 
 import functools
 import json
-from typing import Any, Sequence
+from typing import TYPE_CHECKING, Any, Optional, Sequence
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from torch.autograd.graph import saved_tensors_hooks
 
 
 class ActivationMeter:
@@ -24,7 +27,7 @@ class ActivationMeter:
         self._seen: set = set()
         self._bytes = 0
         self.steps: list[int] = []
-        self._ctx = None
+        self._ctx: Optional[saved_tensors_hooks] = None  # set by __enter__
 
     @staticmethod
     def _key(t: Any) -> int:
@@ -57,6 +60,7 @@ class ActivationMeter:
         return self
 
     def __exit__(self, *exc: Any) -> None:
+        assert self._ctx is not None  # __exit__ follows __enter__, which sets it
         self._ctx.__exit__(*exc)
 
 

@@ -70,6 +70,7 @@ def train_variant(
     extend = (
         inputs_ok
         and not same
+        and saved is not None  # implied by inputs_ok; narrows the type of saved
         and saved[0] == field_config
         and replace(saved[1], **ignore) == replace(train_config, **ignore)
         and _checkpoint_step(run_dir) <= train_config.iterations

@@ -65,9 +65,9 @@ class StageCache:
         rec = self.records.get(name)
         return bool(rec and rec.get("key") == key and all(p.exists() for p in outputs))
 
-    def run(self, name: str, key: str, outputs: list[Path], fn: Callable[[], None], log=print) -> bool:
-        """Run ``fn`` unless stage ``name`` already ran with ``key`` and its outputs exist.
-        Returns True when the stage ran."""
+    def run(self, name: str, key: str, outputs: list[Path], fn: Callable[[], object], log=print) -> bool:
+        """Run ``fn`` unless stage ``name`` already ran with ``key`` and its outputs exist (what
+        ``fn`` returns is dropped). Returns True when the stage ran."""
         if self.fresh(name, key, outputs):
             log(f"[{name}] up to date (key {key}), skipped")
             return False

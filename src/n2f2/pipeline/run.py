@@ -7,7 +7,7 @@ from __future__ import annotations
 import shutil
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Callable
+from typing import Callable, TypedDict
 
 from ..errors import InputError
 from . import stages
@@ -15,6 +15,16 @@ from .cache import StageCache, file_digest, scene_digest, stage_key, tree_digest
 from .presets import DEFAULT_PRESET, get_preset
 
 DEFAULT_MODES = ("composite", "explicit", "oracle")
+
+
+class _StageOptions(TypedDict):
+    """The keyword settings every stage of a run shares."""
+
+    downscale: float
+    skip_missing: bool
+    device: str
+    progress: bool
+    log: Callable[[str], None]
 
 
 @dataclass
@@ -99,7 +109,9 @@ def run_pipeline(opt: RunOptions, log: Callable[[str], None] = print) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     cache = StageCache.open(out)
     progress = not opt.quiet
-    common = dict(downscale=opt.downscale, skip_missing=opt.skip_missing, device=opt.device, progress=progress, log=log)
+    common = _StageOptions(
+        downscale=opt.downscale, skip_missing=opt.skip_missing, device=opt.device, progress=progress, log=log
+    )
     from ..data.sfm import posed_scene_path
 
     data = posed_scene_path(data, out / "sfm", progress=progress, log=log)  # photos: pose them first
@@ -161,6 +173,8 @@ def run_pipeline(opt: RunOptions, log: Callable[[str], None] = print) -> dict:
         )
 
         def build() -> None:
+            # resolve_defaults filled in both.
+            assert opt.segmenter is not None and opt.encoder is not None
             stages.build_segment_bank(
                 data,
                 bank,

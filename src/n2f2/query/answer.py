@@ -7,7 +7,10 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Optional, Sequence, Union
+from typing import TYPE_CHECKING, Any, Optional, Sequence, Union
+
+if TYPE_CHECKING:
+    from .maps import BoxSize
 
 
 def listed_results(out: Path) -> list[str]:
@@ -59,7 +62,7 @@ def answer_queries(
     three_d: bool = False,
     threshold: Optional[float] = None,
     mask_threshold: float,
-    box_size: Union[int, str],
+    box_size: BoxSize,
     temperature: float = 1.0,
     canonical: Optional[tuple[str, ...]] = None,
     selection: str = "smoothed",
@@ -81,7 +84,7 @@ def answer_queries(
     # A finished query is refused before anything is loaded; the per-view names are checked
     # once the scene is (they hold its image names).
     claim_out_dir(out, ["query.json"], force=force, resume_flag=None)
-    overrides = {"canonical": tuple(canonical)} if canonical else {}
+    overrides: dict[str, Any] = {"canonical": tuple(canonical)} if canonical else {}  # QueryConfig keywords
     config = QueryConfig(temperature=temperature, selection=selection, box_size=box_size, **overrides)
     engine = QueryEngine.from_run(run_dir, device=device, scene=scene, config=config)
     view_names = [engine.camera(i)[2] for i in views]  # fail before any work on a bad index

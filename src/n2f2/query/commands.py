@@ -153,6 +153,7 @@ def run(args: argparse.Namespace) -> int:
             )
     sel3d = summary.get("selection_3d")
     for t, s in (sel3d["selections"] if sel3d else {}).items():
+        assert sel3d is not None  # the loop runs over sel3d's selections only
         print(
             f"3D {t!r}: {s['count']} of {sel3d['num_gaussians']} Gaussians"
             + (f" -> {out / s['ply']}" if s["ply"] else " (empty selection, no PLY written)")

@@ -57,6 +57,7 @@ from .composite import (
 from .maps import (
     LANGSPLAT_BOX_SIZE,
     LANGSPLAT_THRESHOLD,
+    BoxSize,
     mask_iou,
     normalized_for_threshold,
     resolve_box_size,
@@ -81,7 +82,7 @@ class QueryConfig:
     negatives: tuple[str, ...] = DEFAULT_NEGATIVES  # negatives of the relevancy (LERF)
     temperature: float = 1.0  # gamma = softmax(score / T); 1 = paper (near-uniform gamma)
     selection: str = "smoothed"  # explicit/levels 2D scale choice: "smoothed" (LangSplat) | "max"
-    box_size: Union[int, str, None] = None  # protocol mean filter (px) or "scaled"; None = protocol's
+    box_size: Optional[BoxSize] = None  # protocol mean filter (px) or "scaled"; None = protocol's
     chunk: int = 65536  # points per block when building caches (bounds [chunk, E] memory)
 
     def __post_init__(self) -> None:
@@ -728,7 +729,7 @@ def _oracle_scores(
     return torch.tensor(ious, dtype=torch.float32, device=rel.device)
 
 
-def _box(config: QueryConfig) -> Union[int, str]:
+def _box(config: QueryConfig) -> BoxSize:
     """The configured mean-filter size, or the evaluation protocol's default."""
 
     return LANGSPLAT_BOX_SIZE if config.box_size is None else config.box_size
@@ -741,7 +742,7 @@ def _load_run_scene(run_dir: Path, meta: dict, scene: Optional[Union[str, Path]]
     from ..data import load_scene
 
     if scene is None:
-        candidates = [meta.get("scene"), meta.get("scene_path")]
+        candidates: list[Optional[str]] = [meta.get("scene"), meta.get("scene_path")]  # recorded folders
         report = run_dir / "train_report.json"
         if report.is_file():
             try:
