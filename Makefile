@@ -23,7 +23,7 @@ demo: venv
 lint: venv
 	$(BIN)/ruff check src
 	$(BIN)/ruff format --check src
-	$(BIN)/pyright
+	$(BIN)/pyright -p .
 
 test: lint
 	$(BIN)/python -m pytest tests
