@@ -218,38 +218,27 @@ class FitConfig(ConfigDict):
 
     @staticmethod
     def cpu() -> "FitConfig":
-        """A short schedule for small scenes on a CPU (the built-in demo scene in about 2.5
+        """A short schedule for small scenes on a CPU (the built-in demo scene in under 1.5
         minutes on 2 cores): fewer steps, earlier and capped densification, faster SH schedule;
         the decay of the position learning rate is compressed to the shorter run.
 
-        Two 3DGS rules are off because a 1500-step run has no time to recover from them
-        (measured on the demo scene against a variant with 3DGS's rules, 1500 steps, same cap:
-        held-out PSNR 28.2 vs 27.5 dB, median depth error 3.9 % vs 5.4 % of the extent): no
+        Two 3DGS rules are off because a 1500-step run has no time to recover from them: no
         opacity reset (3DGS resets every 3000 steps and trains 27k more), and so, as in 3DGS
         before its first reset, no pruning of Gaussians larger than 0.1 x extent (the far floor
         and wall need large ones).
 
         One rule is added: the depth-spread regulariser (``depth_spread_weight=1.0``), because
-        segment lifting needs the rendered depth. Held-out median depth error (% of the extent)
-        and PSNR by weight on the demo scene, same seed, 1 thread: 0 -> 3.94 % / 28.2 dB,
-        0.3 -> 2.14 % / 27.9 dB, 1 -> 1.83 % / 27.3 dB, 1.5 -> 1.60 % / 26.4 dB (1.5 until the
-        fit had to keep 27 dB on the demo; 1.0 keeps both under 2 % and over 27 dB). What it fixes
-        is the surfaces seen with parallax: median error on the table 1.08 -> 0.51 cm, teapot
-        1.7 -> 1.0 cm. The far floor and walls, seen by the ring of cameras at low parallax,
-        stay ~12 cm off (8-9 % of the extent) with or without it; they are half the pixels, so
-        the overall median sits at their edge. For comparison, 3DGS's own schedule to 7k steps
-        on a GPU (300k Gaussians) reaches 2.62 %, and the squared form of the regulariser
-        2.21 % at 27.2 dB (weight 4) or 1.71 % at 25.4 dB (weight 7).
+        segment lifting needs the rendered depth; 1.0 keeps the demo's held-out depth error under
+        2 % of the extent and its PSNR over 27 dB. It fixes the surfaces seen with parallax; the
+        far floor and walls, seen by the ring of cameras at low parallax, stay off with or
+        without it.
 
         For scenes it was not tuned on (real photos, captures without sparse points): initial
         scales at most 0.1 x extent (the size 3DGS prunes above), and the background learned
-        over ray directions from the views' border colour (``background_sh_degree=2``). On the
-        real plush-dog capture (70 training views at 370x246, 1500 steps, 1 thread) held-out
-        PSNR was 21.9 dB with the border colour as a constant background, 23.0 dB with the
-        learned one, and 22.4 dB with backdrop Gaussians added (``init_extra_random=1``, so left
-        off); with a black background and backdrop Gaussians the held-out views filled with
-        backdrop-coloured floaters (17.5 dB after 1000 steps). ``sized_for`` then fits steps,
-        cap and schedule to the scene."""
+        over ray directions from the views' border colour (``background_sh_degree=2``) where the
+        sparse points leave a backdrop uncovered. ``sized_for`` then fits steps, cap, schedule
+        and initialisation to the scene. The measurements behind each rule are in
+        docs/measurements.md ("The cpu fit preset")."""
         return FitConfig(
             steps=1500,
             depth_spread_weight=1.0,
