@@ -292,7 +292,8 @@ def write_transforms(
 
 
 # ================================================================================== PLY
-_PLY_TYPES = {
+# PLY scalar type names (both spellings) -> numpy dtype character.
+PLY_TYPES = {
     "char": "i1",
     "int8": "i1",
     "uchar": "u1",
@@ -348,9 +349,9 @@ def read_ply_points(path: str | Path) -> tuple[np.ndarray, Optional[np.ndarray]]
                 raise InputError(path, f"malformed header line {line!r}")
             if words[1] == "list":
                 raise InputError(path, "vertex element has a list property; not a point cloud")
-            if words[1] not in _PLY_TYPES or len(words) < 3:
+            if words[1] not in PLY_TYPES or len(words) < 3:
                 raise InputError(path, f"unsupported property {line!r}")
-            props.append((words[2], _PLY_TYPES[words[1]]))
+            props.append((words[2], PLY_TYPES[words[1]]))
     names = [n for n, _ in props]
     if element != "vertex" or not {"x", "y", "z"} <= set(names):
         raise InputError(path, "needs a 'vertex' element with x, y, z properties")

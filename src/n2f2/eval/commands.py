@@ -98,7 +98,7 @@ def run(args: argparse.Namespace) -> int:
     from ..errors import InputError
     from ..io import claim_out_dir, remove_results
     from ..query.engine import QueryConfig
-    from .reports import eval_results
+    from .reports import eval_results, mode_summary_lines
     from .runner import EvalConfig, evaluate_run, load_eval, write_eval_outputs
 
     if not args.temperature > 0:
@@ -158,13 +158,8 @@ def run(args: argparse.Namespace) -> int:
             engine=engine,
         )
     write_eval_outputs(result, out, compare=args.compare)
-    for m in result.modes:
-        parts = [
-            f"{b}: loc {100 * s.loc_accuracy:.1f}% mIoU {100 * s.miou:.1f}% mAP {100 * result.ap[m][b]['map']:.1f}% "
-            f"(box {','.join(map(str, s.box_sizes))} px)"
-            for b, s in result.scores[m].items()
-        ]
-        print(f"eval {m}: " + "; ".join(parts))
+    for line in mode_summary_lines(result):
+        print(line)
     if result.budget:
         from .budget import budget_table
 

@@ -19,10 +19,24 @@ from ..io import atomic_path
 if TYPE_CHECKING:
     from .metrics import QueryDeltas, RetrievalScores
     from .protocol import SceneScores
+    from .runner import EvalResult
 
 # What `n2f2 eval` writes into OUT (n2f2.eval.runner.write_eval_outputs), plots by pattern.
 RESULT_NAMES = ("eval.json", "eval.md", "relevancy", "scores.png", "simple_compound.png", "recall_at_k.png")
 RESULT_PATTERNS = ("scales_*.png", "delta_*.png")
+
+
+def mode_summary_lines(result: EvalResult) -> list[str]:
+    """One line per mode of an evaluation result: loc, mIoU and mAP at every box."""
+    lines = []
+    for m in result.modes:
+        parts = [
+            f"{b}: loc {100 * s.loc_accuracy:.1f}% mIoU {100 * s.miou:.1f}% mAP {100 * result.ap[m][b]['map']:.1f}% "
+            f"(box {','.join(map(str, s.box_sizes))} px)"
+            for b, s in result.scores[m].items()
+        ]
+        lines.append(f"eval {m}: " + "; ".join(parts))
+    return lines
 
 
 def eval_results(out: Union[str, Path]) -> list[str]:

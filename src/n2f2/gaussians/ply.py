@@ -23,30 +23,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ..data.nerfstudio import PLY_TYPES
 from ..errors import InputError
 from ..io import atomic_path
 from ..validate import NonFiniteError
 from .model import Gaussians, num_sh_bases, sh_degree_from_bases
 
-# PLY scalar type names (both spellings) -> numpy dtype character.
-_PLY_TYPES = {
-    "char": "i1",
-    "int8": "i1",
-    "uchar": "u1",
-    "uint8": "u1",
-    "short": "i2",
-    "int16": "i2",
-    "ushort": "u2",
-    "uint16": "u2",
-    "int": "i4",
-    "int32": "i4",
-    "uint": "u4",
-    "uint32": "u4",
-    "float": "f4",
-    "float32": "f4",
-    "double": "f8",
-    "float64": "f8",
-}
 _FORMATS = {"binary_little_endian": "<", "binary_big_endian": ">", "ascii": None}
 _REQUIRED = (
     "x",
@@ -143,8 +125,8 @@ def _parse_header(path: Path, f) -> tuple[str, list[tuple[str, int, list[tuple[s
                 raise InputError(path, f"PLY property before any element: {line!r}")
             if len(words) >= 2 and words[1] == "list":
                 elements[-1][2].append((words[-1], "list"))
-            elif len(words) == 3 and words[1] in _PLY_TYPES:
-                elements[-1][2].append((words[2], _PLY_TYPES[words[1]]))
+            elif len(words) == 3 and words[1] in PLY_TYPES:
+                elements[-1][2].append((words[2], PLY_TYPES[words[1]]))
             else:
                 raise InputError(path, f"bad PLY property line {line!r}")
         else:

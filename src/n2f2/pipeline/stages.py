@@ -223,7 +223,7 @@ def evaluate(
 ) -> "EvalResult":
     """Score a run on LangSplat-format labels into ``out`` (``eval.json``, ``eval.md``, plots,
     relevancy maps unless ``relevancy`` is False), as ``n2f2 eval``."""
-    from ..eval.reports import eval_results
+    from ..eval.reports import eval_results, mode_summary_lines
     from ..eval.runner import EvalConfig, evaluate_run, write_eval_outputs
     from ..io import remove_results
     from ..query.engine import QueryConfig
@@ -247,12 +247,8 @@ def evaluate(
         on_ready=lambda: remove_results(out, present),
     )
     write_eval_outputs(result, out)
-    for m in result.modes:
-        parts = [
-            f"{b}: loc {100 * s.loc_accuracy:.1f}% mIoU {100 * s.miou:.1f}% (box {','.join(map(str, s.box_sizes))} px)"
-            for b, s in result.scores[m].items()
-        ]
-        log(f"eval {m}: " + "; ".join(parts))
+    for line in mode_summary_lines(result):
+        log(line)
     for note in result.notes:
         log(f"note: {note}")
     log(f"eval: {result.scores[result.modes[0]]['exact'].num_pairs} pairs in {result.seconds:.1f} s -> {out}")
