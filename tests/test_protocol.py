@@ -17,7 +17,7 @@ from n2f2.errors import InputError
 from n2f2.eval import ovs3d
 from n2f2.eval.protocol import (ProtocolConfig, box_filter, evaluate_frame_category,
                                 evaluate_label_dir, evaluate_scene, frame_targets,
-                                langsplat_relevancy, localization_hit, majority_filter,
+                                localization_hit, majority_filter,
                                 resolve_box_size, resolve_majority_radius, segmentation_mask,
                                 smoothed_relevancy)
 
@@ -266,31 +266,26 @@ def test_pair_matches_literal_langsplat_port(seed, size):
 
 
 # ------------------------------------------------------------------------- relevancy
-def test_langsplat_relevancy_matches_softmax_argmin_port():
+def test_relevancy_is_langsplats_softmax_argmin_on_normalised_features():
+    """n2f2's one relevancy (query.relevancy) against a literal port of LangSplat's
+    OpenCLIPNetwork.get_relevancy, applied to the unit-normalised features it scores."""
+    from n2f2.query.relevancy import relevancy
     g = torch.Generator().manual_seed(0)
     f = torch.randn(50, 16, generator=g, dtype=torch.float64) * 0.3  # unnormalised, as rendered
     pos = torch.randn(3, 16, generator=g, dtype=torch.float64)
     neg = torch.randn(4, 16, generator=g, dtype=torch.float64)
     pn, nn_ = pos / pos.norm(dim=-1, keepdim=True), neg / neg.norm(dim=-1, keepdim=True)
+    fn = f / f.norm(dim=-1, keepdim=True)
     expected = torch.empty(50, 3, dtype=torch.float64)
     for k in range(3):  # OpenCLIPNetwork.get_relevancy, one positive at a time
-        out = f @ torch.cat([pn, nn_]).T
+        out = fn @ torch.cat([pn, nn_]).T
         sims = torch.stack((out[:, k:k + 1].repeat(1, 4), out[:, 3:]), dim=-1)
         soft = torch.softmax(10 * sims, dim=-1)
         best = soft[..., 0].argmin(dim=1)
         expected[:, k] = torch.gather(soft, 1, best[:, None, None].expand(50, 4, 2))[:, 0, 0]
-    got = langsplat_relevancy(f, pos, neg)
-    torch.testing.assert_close(got, expected, rtol=0, atol=1e-12)
-    # numpy in, numpy out; a single text gives [...]
-    one = langsplat_relevancy(f.numpy(), pos[0].numpy(), neg.numpy())
-    assert isinstance(one, np.ndarray) and one.shape == (50,)
-    np.testing.assert_allclose(one, expected[:, 0].numpy(), atol=1e-12)
-    # features are used as rendered: scaling them changes the relevancy ...
-    assert not torch.allclose(langsplat_relevancy(3 * f, pos, neg), got)
-    # ... unless normalisation is asked for, which is the shared query relevancy
-    from n2f2.query.relevancy import relevancy
-    torch.testing.assert_close(langsplat_relevancy(3 * f, pos, neg, normalize_features=True),
-                               relevancy(f, pn, nn_))
+    torch.testing.assert_close(relevancy(f, pn, nn_), expected, rtol=0, atol=1e-12)
+    # the scale of a rendered feature does not change its relevancy
+    torch.testing.assert_close(relevancy(3 * f, pn, nn_), expected, rtol=0, atol=1e-12)
 
 
 # ------------------------------------------------------------------------- box size option

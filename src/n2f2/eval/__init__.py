@@ -30,7 +30,6 @@ __getattr__, __all__ = lazy_exports(
         "evaluate_frame_category": "protocol",
         "evaluate_label_dir": "protocol",
         "evaluate_scene": "protocol",
-        "langsplat_relevancy": "protocol",
         "localization_hit": "protocol",
         "majority_filter": "protocol",
         "resolve_box_size": "protocol",

@@ -6,8 +6,8 @@ the code that applies it; where this module differs (bad input, an optional box 
 difference is opt-in or only concerns input LangSplat would crash on or silently mis-score.
 
 Inputs are relevancy maps, not features: the query stage renders features and turns them into
-relevancy with the LangSplat formula (:func:`langsplat_relevancy`), so the protocol itself never
-sees a model. Per (frame, category) pair the protocol scores
+relevancy with the LangSplat formula (:func:`n2f2.query.relevancy.relevancy`, on normalised
+features), so the protocol itself never sees a model. Per (frame, category) pair the protocol scores
 
 * **segmentation** (IoU). For each level ``R``: ``R' = 0.5 * (box(R) + R)``; ``R'`` is min-max
   normalised, mapped to [-1, 1], clipped to [0, 1] and thresholded at 0.4; the binary mask goes
@@ -113,48 +113,6 @@ class ProtocolConfig:
     def scaled(cls, ref_width: int = LERF_REFERENCE_WIDTH, **kwargs: Any) -> "ProtocolConfig":
         """LangSplat's rules with both pixel sizes (box, majority window) scaled to the image width."""
         return cls(box_size="scaled", majority_radius="scaled", box_ref_width=ref_width, **kwargs)
-
-
-# ------------------------------------------------------------------------------ relevancy
-def langsplat_relevancy(
-    features,  # [..., E] rendered features (numpy array or torch tensor)
-    texts,  # [K, E] or [E] text embeddings of the queries
-    negatives,  # [N, E] text embeddings of the negatives (query.relevancy.DEFAULT_NEGATIVES)
-    normalize_features: bool = False,  # False: features used as rendered (LangSplat's eval)
-):  # -> [..., K] (or [...] for a single [E] text), numpy in -> numpy out
-    """LangSplat's relevancy (``OpenCLIPNetwork.get_relevancy``): for each negative c,
-    ``softmax(10 * [f.t, f.c])``; the relevancy is the positive probability of the negative
-    that gives the smallest one, ``= sigmoid(10 * (f.t - max_c f.c))`` (the team's
-    :func:`n2f2.query.relevancy.relevancy_from_scores`).
-
-    Text embeddings are L2-normalised (LangSplat normalises them). The features are used as
-    rendered, as LangSplat's evaluation does with its decoder's output; the shared
-    :func:`n2f2.query.relevancy.relevancy` normalises them instead, which
-    ``normalize_features=True`` reproduces. Runs in the features' dtype and device."""
-    import torch
-
-    from ..query.relevancy import inverse_norm, relevancy_from_scores
-
-    is_numpy = isinstance(features, np.ndarray)
-    f = torch.as_tensor(features)
-    if not f.is_floating_point():
-        f = f.float()
-    t = torch.as_tensor(texts).to(device=f.device, dtype=torch.float64)
-    neg = torch.as_tensor(negatives).to(device=f.device, dtype=torch.float64)
-    single = t.dim() == 1
-    t = t.reshape(-1, t.shape[-1])
-    if neg.dim() != 2 or neg.shape[-1] != f.shape[-1] or t.shape[-1] != f.shape[-1]:
-        raise ValueError(
-            f"embedding sizes differ: features {tuple(f.shape)}, texts {tuple(t.shape)}, negatives {tuple(neg.shape)}"
-        )
-    t = (t / t.norm(dim=-1, keepdim=True)).to(f.dtype)
-    neg = (neg / neg.norm(dim=-1, keepdim=True)).to(f.dtype)
-    if normalize_features:
-        f = f * inverse_norm(f)
-    rel = relevancy_from_scores(f @ t.T, (f @ neg.T).amax(dim=-1, keepdim=True))  # [..., K]
-    if single:
-        rel = rel[..., 0]
-    return rel.cpu().numpy() if is_numpy else rel
 
 
 def points_in_boxes(

@@ -12,11 +12,8 @@ Differences from the torch backend (compare accordingly):
 * gsplat's tile size is 16 (its only tested value); binning does not change the image.
 * ``radii`` come from gsplat's own (opacity-aware) screen extent.
 
-Measured against the torch backend (``benchmarks/compare_gsplat.py``, H100, gsplat 1.5.3, torch
-backend on the same GPU with ``alpha_clamp=0.999``): largest absolute difference 1.9e-3 in the
-feature image, 7e-6 in alpha and 1.6e-3 in expected depth on random scenes of 5k-100k Gaussians
-(C = 3, 64, 512); gradients agree to 1.8e-3 of their largest magnitude. Over the 40 views of the
-fitted demo scene the largest pixel difference was 2.9e-3 (mean 4e-7), gradients 5e-3.
+How far it differs from the torch backend on the same GPU: ``docs/measurements.md`` ("gsplat
+against the torch backend").
 
 The low-level gsplat functions are used rather than ``gsplat.rasterization`` so the ``[N, 2]``
 ``means2d`` we return is itself on the autograd path (``retain_grad()`` then works, as the

@@ -18,11 +18,7 @@ Pipeline (the same maths as 3DGS / gsplat "classic" mode, OpenCV camera, pixel c
    finished tiles dropped. The backward pass recomputes every chunk front to back instead of
    storing it, so memory stays bounded by the inputs plus one batch.
 
-Measured on an idle 2-core CPU (benchmarks/bench_rasterizer.py, 2 threads, OpenMP's default
-wait policy): forward + backward costs about 35-45 ns of wall time per evaluated pixel-Gaussian
-pair at C = 3, 45-55 ns at C = 64 and 155-190 ns at C = 512, where the feature products
-dominate. With OMP_WAIT_POLICY=PASSIVE two threads were slower than one (70-80 vs ~40 ns at
-C = 3); under CPU contention ``torch.set_num_threads(1)`` is the faster setting.
+Cost per evaluated pixel-Gaussian pair: ``docs/measurements.md`` ("CPU rasterizer").
 
 Rules (3DGS): ``alpha = min(o * exp(-d^T conic d / 2), alpha_clamp)``; ``alpha < alpha_min``
 contributes nothing; the Gaussian that would bring the transmittance below
