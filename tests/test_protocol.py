@@ -17,7 +17,7 @@ from n2f2.errors import InputError
 from n2f2.eval import ovs3d
 from n2f2.eval.protocol import (ProtocolConfig, box_filter, evaluate_frame_category,
                                 evaluate_label_dir, evaluate_scene, frame_targets,
-                                localization_hit, majority_filter,
+                                localization_hit, majority_filter, mask_from_smoothed,
                                 resolve_box_size, resolve_majority_radius, segmentation_mask,
                                 smoothed_relevancy)
 
@@ -263,6 +263,28 @@ def test_pair_matches_literal_langsplat_port(seed, size):
     iou, hit, seg_level, loc_level = ref_pair(rel, gt.astype(np.uint8), boxes, size=size)
     assert res.iou == pytest.approx(iou, abs=1e-12)
     assert (res.hit, res.seg_level, res.loc_level) == (hit, seg_level, loc_level)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_every_level_of_a_pair_matches_the_port_level_by_level(seed):
+    """The stacked masks, IoUs and hits of all levels equal the literal port run on each level
+    alone (the oracle reads these per-level values)."""
+    rng = np.random.default_rng(10 + seed)
+    h, w = 30, 40
+    rel = blobs(rng, 5, h, w)
+    gt = np.roll(rel[2] > np.quantile(rel[2], 0.8), 2, axis=0)
+    ys, xs = np.nonzero(gt)
+    boxes = np.array([[xs.min(), ys.min(), xs.max(), ys.max()]])
+    res = evaluate_frame_category(rel, gt, boxes, box_size=7)
+    for lvl in range(5):
+        iou, hit, _, _ = ref_pair(rel[lvl:lvl + 1], gt.astype(np.uint8), boxes, size=7)
+        assert res.iou_per_level[lvl] == pytest.approx(iou, abs=1e-12)
+        assert res.hit_per_level[lvl] == hit
+    smoothed = smoothed_relevancy(rel, 7)
+    stacked = mask_from_smoothed(smoothed, 0.4, 3)
+    for lvl in range(5):
+        np.testing.assert_array_equal(stacked[lvl], mask_from_smoothed(smoothed[lvl], 0.4, 3))
+    assert len(set(res.hit_per_level)) == 2 or len(set(np.round(res.iou_per_level, 6))) > 1  # levels differ
 
 
 # ------------------------------------------------------------------------- relevancy

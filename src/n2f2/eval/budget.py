@@ -178,7 +178,7 @@ def loss_budget(
         "query_config": query_config,
         "device": device,
     }
-    field_modes = ("composite", "explicit", "oracle") if base.variant != "levels" else ("levels", "oracle")
+    field_modes = base.modes()  # the field variant's: composite / explicit / oracle, or levels / oracle
     if field_result is None or any(m not in field_result.modes for m in field_modes):
         field_result = evaluate_run(
             run_dir, label_dir, config=replace(config, modes=field_modes), encoder=encoder, engine=base, **common
@@ -198,10 +198,11 @@ def loss_budget(
 
     results = {"teacher": teacher_result, "lift": lift_result, "field": field_result}
     rows = []
-    for name, source, mode in ROWS:
-        if source == "field" and base.variant == "levels":
-            mode = {"composite": None, "explicit": "levels"}.get(mode, mode)
-            name = {"explicit": "levels field, 3 levels"}.get(name, name)
+    for name, source, row_mode in ROWS:
+        # A field answers each row with its own variant's mode (a levels field: explicit -> levels).
+        mode = base.kind.mode_for(row_mode) if source == "field" else row_mode
+        if mode is not None and mode != row_mode:
+            name = f"{base.variant} field, {len(base.scale_labels)} {mode}"
         if mode is None or mode not in results[source].modes:
             continue
         rows.append(_row(name, source, mode, results[source]))

@@ -70,6 +70,7 @@ from ..query.maps import (  # noqa: F401  (re-exported: the protocol's rules, wr
     majority_filter,
     mask_from_smoothed,
     mask_iou,
+    mask_ious,
     max_locations,
     normalized_for_threshold,
     resolve_box_size,
@@ -153,6 +154,7 @@ class PairResult:
     seg_level: int  # level whose R' has the highest maximum (first one on ties)
     loc_level: int  # level whose box(R) has the highest maximum (first one on ties)
     iou_per_level: list[float]  # IoU of every level (the oracle level is max of these)
+    hit_per_level: list[bool]  # localization hit of every level's box(R)
     box_size: int  # mean-filter size used, pixels
     majority_radius: int  # majority half-window used, pixels
 
@@ -182,18 +184,20 @@ def evaluate_frame_category(
     # Segmentation: R' per level; the reported level is the one with the highest max R'.
     filtered = box_filter(rel, box_size)  # [L, H, W]; bitwise the same as per-level filtering
     smoothed = np.float32(LANGSPLAT_MIX) * (filtered + rel)
-    ious = [mask_iou(mask_from_smoothed(s, threshold, majority_radius), gt) for s in smoothed]
+    ious = mask_ious(mask_from_smoothed(smoothed, threshold, majority_radius), gt)  # [L], level by level
     seg_level = int(np.argmax(smoothed.reshape(len(rel), -1).max(axis=1)))
 
     # Localization: box(R) without the mix; the level with the highest filtered maximum.
-    loc_level = int(np.argmax(filtered.reshape(len(rel), -1).max(axis=1)))
-    hit = points_in_boxes(max_locations(filtered[loc_level]), boxes)
+    peaks = filtered.reshape(len(rel), -1).max(axis=1)  # [L]
+    loc_level = int(np.argmax(peaks))
+    hits = [points_in_boxes(max_locations(f), boxes) for f in filtered]
     return PairResult(
-        iou=ious[seg_level],
-        hit=hit,
+        iou=float(ious[seg_level]),
+        hit=hits[loc_level],
         seg_level=seg_level,
         loc_level=loc_level,
         iou_per_level=[float(v) for v in ious],
+        hit_per_level=hits,
         box_size=int(box_size),
         majority_radius=int(majority_radius),
     )

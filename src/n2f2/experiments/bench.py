@@ -353,7 +353,7 @@ def run_bench(
         "steps": {
             name: scaled_step(VARIANTS[v].paper_step, config.dim)
             for v, name in variant_runs.items()
-            if VARIANTS[v].variant == "nested"
+            if VARIANTS[v].kind.uses_step
         },
         "runs": {name: _run_summary(entry) for name, entry in runs.items()},
         "gamma": gamma,

@@ -6,10 +6,20 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from ..config import add_config_options, config_overrides
 from ..errors import InputError
-from ..segments.lifting import SCALE_MEASURES
-from ..validate import nonneg_float, positive_float, positive_int
+from ..segments.lifting import LiftSettings
+from ..validate import positive_float, positive_int
 from .variants import PAPER_DIM, VARIANTS
+
+
+def _stage_configs() -> dict[type, tuple[str, ...]]:
+    """Settings of the cpu preset's stages the bench can change in every run (BenchConfig fields
+    of the same names), by config class: their help, type and choices are the fields' own
+    (n2f2.config.option)."""
+    from ..train.trainer import TrainConfig
+
+    return {LiftSettings: ("scale_measure",), TrainConfig: ("scale_jitter",)}
 
 
 def _add_arguments(p: argparse.ArgumentParser) -> None:
@@ -66,19 +76,8 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
         help=f"composite temperatures evaluated on the N2F2 run (default "
         f"{' '.join(f'{t:g}' for t in full.temperatures)}; 1 = paper)",
     )
-    p.add_argument(
-        "--scale-measure",
-        choices=list(SCALE_MEASURES),
-        default=None,
-        help=f"segment scale measure of the bank the bench builds (default {full.scale_measure}, as the "
-        "cpu preset; eigenvalue = the paper's)",
-    )
-    p.add_argument(
-        "--scale-jitter",
-        type=nonneg_float,
-        default=None,
-        help=f"TrainConfig.scale_jitter of every run (default {full.scale_jitter:g}, as the cpu preset; 0 = the paper)",
-    )
+    for cls, names in _stage_configs().items():  # values shown: the bench's (full and --quick)
+        add_config_options(p, cls, names, presets={"full": full, "quick": quick})
     p.add_argument(
         "--quick",
         action="store_true",
@@ -115,9 +114,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         over["variants"] = tuple(args.variants)
     if args.temperatures:
         over["temperatures"] = tuple(args.temperatures)
-    for name in ("scale_measure", "scale_jitter"):
-        if getattr(args, name) is not None:
-            over[name] = getattr(args, name)
+    for cls, names in _stage_configs().items():
+        over.update(config_overrides(args, cls, names))
     try:
         config = BenchConfig.quick(**over) if args.quick else BenchConfig(**over)
     except ValueError as e:

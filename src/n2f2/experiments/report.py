@@ -94,7 +94,7 @@ def markdown_bench(result: Mapping, runs: Mapping[str, dict], variant_runs: Mapp
     k_map = ", ".join(
         f"k={VARIANTS[v].paper_step} -> {steps[n]}"
         for v, n in variant_runs.items()
-        if VARIANTS[v].variant == "nested" and VARIANTS[v].backbone == "triplane"
+        if VARIANTS[v].kind.uses_step and VARIANTS[v].backbone == "triplane"
     )
     out.append(
         f"- scene: `{result['data']['scene']}` ({any_ev['scene']}), Gaussians `{result['data']['gaussians']}` "

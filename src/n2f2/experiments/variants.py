@@ -11,6 +11,8 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
+from ..field.variants import FieldVariant, get_variant
+
 if TYPE_CHECKING:
     from ..field.model import FieldConfig
 
@@ -29,6 +31,11 @@ class VariantSpec:
     paper_step: int = 1  # k of paper Table 6 (scaled to D by scaled_step)
     modes: tuple[str, ...] = ("composite", "explicit", "oracle")
     cosine: bool = True  # per-level cosine to the teacher on held-out views
+
+    @property
+    def kind(self) -> FieldVariant:
+        """The field variant it trains (:mod:`n2f2.field.variants`)."""
+        return get_variant(self.variant)
 
 
 VARIANTS: dict[str, VariantSpec] = {
@@ -54,10 +61,10 @@ def scaled_step(paper_k: int, dim: int) -> int:
 def run_name(spec: VariantSpec, dim: int) -> str:
     """Run folder of a variant, named by what is trained (paper k values that map to the same
     k at this D share one run)."""
-    if spec.variant != "nested":
-        return spec.variant + ("" if spec.backbone == "triplane" else f"-{spec.backbone}")
-    k = scaled_step(spec.paper_step, dim)
-    return f"nested-k{k}" + ("" if spec.backbone == "triplane" else f"-{spec.backbone}")
+    backbone = "" if spec.backbone == "triplane" else f"-{spec.backbone}"
+    if not spec.kind.uses_step:
+        return spec.variant + backbone
+    return f"{spec.variant}-k{scaled_step(spec.paper_step, dim)}" + backbone
 
 
 def variant_field_config(spec: VariantSpec, dim: int) -> "FieldConfig":
@@ -65,5 +72,5 @@ def variant_field_config(spec: VariantSpec, dim: int) -> "FieldConfig":
     to ``dim``."""
     from ..pipeline.presets import get_preset
 
-    step = scaled_step(spec.paper_step, dim) if spec.variant == "nested" else 1
+    step = spec.kind.step_size(scaled_step(spec.paper_step, dim))
     return replace(get_preset("cpu").field, dim=dim, variant=spec.variant, backbone=spec.backbone, step_size=step)

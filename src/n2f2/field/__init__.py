@@ -1,6 +1,6 @@
 """The nested feature field: TriPlane+MLP (or PE+MLP) backbone ``Theta: R^3 -> R^D`` queried at
 the Gaussian centres, and the zero-initialised scale-aware projection ``W [E, D]``
-(paper Sec. 3.1-3.2)."""
+(paper Sec. 3.1-3.2), and its variants (:mod:`.variants`: nested, flat, levels) as objects."""
 
 from typing import TYPE_CHECKING
 
@@ -13,12 +13,16 @@ if TYPE_CHECKING:  # the lazily exported names, for static analysis
     from .model import build_field as build_field
     from .model import check_embed_dim as check_embed_dim
     from .model import gaussian_features as gaussian_features
-    from .model import level_blocks as level_blocks
     from .model import load_field as load_field
     from .model import prefix_mask as prefix_mask
     from .model import save_field as save_field
     from .triplane import PositionalEncoding as PositionalEncoding
     from .triplane import TriPlane as TriPlane
+    from .variants import LEVEL_NAMES as LEVEL_NAMES
+    from .variants import VARIANTS as VARIANTS
+    from .variants import FieldVariant as FieldVariant
+    from .variants import get_variant as get_variant
+    from .variants import level_blocks as level_blocks
 
 __getattr__, __all__ = lazy_exports(
     __name__,
@@ -29,11 +33,15 @@ __getattr__, __all__ = lazy_exports(
         "build_field": "model",
         "check_embed_dim": "model",
         "gaussian_features": "model",
-        "level_blocks": "model",
         "load_field": "model",
         "prefix_mask": "model",
         "save_field": "model",
         "PositionalEncoding": "triplane",
         "TriPlane": "triplane",
+        "FieldVariant": "variants",
+        "LEVEL_NAMES": "variants",
+        "VARIANTS": "variants",
+        "get_variant": "variants",
+        "level_blocks": "variants",
     },
 )

@@ -35,18 +35,19 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from ..config import ConfigDict
+from ..config import ConfigDict, option
 from ..errors import InputError
 from ..io import load_torch, save_torch
-from ..validate import _non_finite
+from ..validate import _non_finite, nonneg_int, positive_int
 from .triplane import PositionalEncoding, TriPlane
+from .variants import NUM_LEVELS, FieldVariant, get_variant, level_blocks, level_to_block
+from .variants import VARIANTS as FIELD_VARIANTS
 
 if TYPE_CHECKING:
     from ..gaussians.model import Gaussians
 
 BACKBONES = ("triplane", "mlp")
-VARIANTS = ("nested", "flat", "levels")
-NUM_LEVELS = 3  # part, object, group (fine to coarse), as the demo ground truth and LangSplat
+VARIANTS = tuple(FIELD_VARIANTS)  # the names of the variants (n2f2.field.variants)
 FIELD_FORMAT = "n2f2-field"
 FIELD_VERSION = 1
 
@@ -58,16 +59,29 @@ class FieldConfig(ConfigDict):
 
     PRESETS: ClassVar[tuple[str, ...]] = ("cpu", "paper")  # see the static methods of those names
 
-    backbone: str = "triplane"  # "triplane" (TriPlane + MLP) | "mlp" (positional encoding + MLP)
-    dim: int = 128  # D, feature-field dims = number of quantized scales (paper: 512)
-    plane_resolution: int = 128  # TriPlane side (paper: 512)
-    plane_channels: int = 32  # TriPlane channels = dims rasterized by deferred rendering (paper: 64)
+    # Options of `n2f2 train` (and `run`'s --dim, --variant); their help lists each preset's value.
+    backbone: str = option(
+        "triplane",
+        help="triplane: TriPlane + 3-layer MLP (paper); mlp: positional encoding + MLP",
+        choices=BACKBONES,
+    )
+    dim: int = option(128, help="D, feature-field dims = number of quantized scales", type=positive_int)
+    plane_resolution: int = option(128, help="TriPlane resolution: the side of each plane", type=positive_int)
+    plane_channels: int = option(
+        32, help="TriPlane channels = dims rasterized by deferred rendering", type=positive_int
+    )
     plane_reduce: str = "sum"  # how the three plane samples combine: "sum" | "product"
-    hidden: int = 256  # MLP hidden width (paper: 256)
+    hidden: int = option(256, help="MLP hidden width", type=positive_int)
     num_layers: int = 3  # MLP linear layers (paper: 3)
-    pe_frequencies: int = 8  # frequencies of the positional encoding (MLP-only backbone)
-    variant: str = "nested"  # "nested" | "flat" (non-nested ablation) | "levels" (3-group baseline)
-    step_size: int = 1  # k of the dimension-scale mapping (paper Table 6: 1, 8, 32, 128, 170)
+    pe_frequencies: int = option(8, help="positional-encoding frequencies of the MLP backbone", type=nonneg_int)
+    variant: str = option(
+        "nested",
+        help="nested (N2F2), flat (non-nested ablation), levels (3 scale groups, LangSplat-like)",
+        choices=VARIANTS,
+    )
+    step_size: int = option(
+        1, help="k of the dimension-scale mapping; paper Table 6: 1, 8, 32, 128, 170", type=positive_int
+    )
 
     def __post_init__(self) -> None:
         if self.backbone not in BACKBONES:
@@ -93,6 +107,11 @@ class FieldConfig(ConfigDict):
         base.update(overrides)
         return FieldConfig(**base)
 
+    @property
+    def kind(self) -> FieldVariant:
+        """The variant as an object (:mod:`n2f2.field.variants`): its scales, step rule and modes."""
+        return get_variant(self.variant)
+
 
 def mlp(in_dim: int, hidden: int, out_dim: int, num_layers: int) -> nn.Sequential:
     """``num_layers`` linear layers with ReLU between them (none after the last)."""
@@ -108,18 +127,6 @@ def mlp(in_dim: int, hidden: int, out_dim: int, num_layers: int) -> nn.Sequentia
 def prefix_mask(M: Tensor, dim: int, dtype: torch.dtype = torch.float32) -> Tensor:
     """B(s): ``[B, D]`` mask with ones in the first ``M[b]`` columns of row b. M [B] integer."""
     return (torch.arange(dim, device=M.device) < M.unsqueeze(-1)).to(dtype)
-
-
-def level_blocks(dim: int) -> list[tuple[int, int]]:
-    """``[start, end)`` of the 3 contiguous blocks of the "levels" variant, block 0 first
-    (sizes differ by at most one when 3 does not divide D)."""
-    edges = [round(i * dim / NUM_LEVELS) for i in range(NUM_LEVELS + 1)]
-    return [(edges[i], edges[i + 1]) for i in range(NUM_LEVELS)]
-
-
-def level_to_block(level: Tensor | int) -> Tensor | int:
-    """Hierarchy level (0 = part, finest .. 2 = group, coarsest) -> block (0 = first dims)."""
-    return NUM_LEVELS - 1 - level
 
 
 class NestedField(nn.Module):
@@ -175,6 +182,11 @@ class NestedField(nn.Module):
     @property
     def variant(self) -> str:
         return self.config.variant
+
+    @property
+    def kind(self) -> FieldVariant:
+        """The variant as an object (:mod:`n2f2.field.variants`)."""
+        return self.config.kind
 
     # ------------------------------------------------------------------ field
     def normalize(self, xyz: Tensor) -> Tensor:  # xyz [N, 3] world -> [N, 3] in [-1, 1]

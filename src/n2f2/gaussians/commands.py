@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import argparse
 
-from ..validate import finite_float, nonneg_float, nonneg_int, positive_float, positive_int, unit_interval
+from ..config import add_config_options, config_overrides, option_flag
+from ..validate import finite_float, nonneg_int, positive_float, positive_int, unit_interval
 
 
 def register(subparsers) -> None:
+    from .fit import FitConfig
+
     p = subparsers.add_parser(
         "fit-gaussians",
         help="fit 3D Gaussians to a scene's images (writes gaussians.ply and fit_report.json)",
@@ -25,11 +28,12 @@ def register(subparsers) -> None:
         "--preset",
         choices=["cpu", "paper"],
         default="cpu",
-        help="cpu: a few minutes for small scenes (default); paper: 3DGS's 30k steps",
+        help="cpu: a few minutes for small scenes, sized to the scene (default); paper: 3DGS's "
+        f"{FitConfig.paper().steps} steps",
     )
-    p.add_argument(
-        "--steps", type=positive_int, default=None, help="number of optimisation steps (overrides the preset)"
-    )
+    # Every option() field of FitConfig (n2f2.config): --steps, --depth-spread, --max-gaussians,
+    # --checkpoint-every; None keeps the preset's (or the checkpoint's) value.
+    add_config_options(p, FitConfig)
     p.add_argument("--resume", action="store_true", help="continue from DIR/checkpoint.pt")
     p.add_argument(
         "--force",
@@ -46,22 +50,6 @@ def register(subparsers) -> None:
         help="initialisation: the scene's sparse points, random Gaussians in the camera frusta, or "
         "an INRIA 3DGS PLY trained elsewhere in the same world frame, fitted further "
         "(default: sparse points when the scene has them, else random)",
-    )
-    p.add_argument(
-        "--checkpoint-every",
-        type=nonneg_int,
-        default=None,
-        metavar="N",
-        help="write a checkpoint every N steps (default: the preset's; 0: only at the end)",
-    )
-    p.add_argument("--max-gaussians", type=positive_int, default=None, metavar="N", help="cap on the Gaussian count")
-    p.add_argument(
-        "--depth-spread",
-        type=nonneg_float,
-        default=None,
-        metavar="W",
-        dest="depth_spread_weight",
-        help="weight of the depth-spread regulariser (cpu preset 1.0, paper 0 = off as 3DGS)",
     )
     p.add_argument("--seed", type=nonneg_int, default=0, help="random seed (default 0)")
     p.add_argument(
@@ -95,15 +83,10 @@ def run(args: argparse.Namespace) -> int:
     )
     from .ply import read_ply
 
-    for name, flag in (
-        ("steps", "--steps"),
-        ("checkpoint_every", "--checkpoint-every"),
-        ("max_gaussians", "--max-gaussians"),
-        ("depth_spread_weight", "--depth-spread"),
-    ):
-        value = getattr(args, name)
-        if value is not None and not value >= 0:  # NaN too
-            raise InputError(None, f"{flag} must be >= 0, got {value}")
+    overrides = config_overrides(args, FitConfig)
+    for name, value in overrides.items():
+        if not value >= 0:  # NaN too
+            raise InputError(None, f"{option_flag(FitConfig, name)} must be >= 0, got {value}")
     if args.downscale <= 0:
         raise InputError(None, f"--downscale must be > 0, got {args.downscale}")
     results = (PLY_NAME, CHECKPOINT_NAME, REPORT_NAME, BACKGROUND_NAME, TEST_RENDERS_DIR)
@@ -127,13 +110,7 @@ def run(args: argparse.Namespace) -> int:
         base = replace(FitConfig.preset(args.preset), seed=args.seed)
         if args.preset == "cpu":  # a --steps keeps the schedule's fractions
             base = base.sized_for(scene, steps=args.steps, init=init)
-    config = replace(base, device=args.device)
-    overrides = {
-        k: getattr(args, k)
-        for k in ("steps", "checkpoint_every", "max_gaussians", "depth_spread_weight")
-        if getattr(args, k) is not None
-    }
-    config = replace(config, **overrides)
+    config = replace(base, device=args.device, **overrides)
     if args.force:  # the inputs are read: now the old results go
         remove_results(args.out, present)
     report = fit_gaussians(scene, config, args.out, resume=args.resume, init=init, progress=not args.quiet)

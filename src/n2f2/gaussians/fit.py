@@ -28,11 +28,11 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ..config import ConfigDict
+from ..config import ConfigDict, option
 from ..data.scene import Scene
 from ..errors import InputError
 from ..io import load_torch, save_torch, write_json
-from ..validate import MAX_BAD_STEPS, NonFiniteError
+from ..validate import MAX_BAD_STEPS, NonFiniteError, nonneg_float, nonneg_int, positive_int
 from .init import (
     background_shell,
     init_from_points,
@@ -61,7 +61,14 @@ class FitConfig(ConfigDict):
 
     PRESETS: ClassVar[tuple[str, ...]] = ("cpu", "paper")  # see the static methods of those names
 
-    steps: int = 30_000
+    # Fields declared with option() are flags of `n2f2 fit-gaussians`; their help lists each
+    # preset's value.
+    steps: int = option(
+        30_000,
+        help="optimisation steps of the Gaussian fit; the cpu preset sizes its count to the scene (shown: the "
+        "demo scene's) and keeps its schedule's fractions of a count given here",
+        type=positive_int,
+    )
     sh_degree: int = 3  # maximum SH degree of the model
     sh_degree_interval: int = 1000  # raise the active SH degree by one every this many steps
     lambda_dssim: float = 0.2
@@ -71,7 +78,14 @@ class FitConfig(ConfigDict):
     # distortion loss (see FitConfig.cpu for what it does on the demo scene). The square root
     # keeps pixels on depth edges (table rim against the far floor) from dominating; the
     # squared form cost 2-3x more PSNR for the same depth gain. 0: off, as in 3DGS.
-    depth_spread_weight: float = 0.0
+    depth_spread_weight: float = option(
+        0.0,
+        help="weight of the depth-spread regulariser, which pulls the Gaussians a ray meets onto one depth; "
+        "0 = off, as 3DGS",
+        type=nonneg_float,
+        flag="depth-spread",
+        metavar="W",
+    )
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)  # colour behind the Gaussians
     # Replace ``background`` at the start of a fit by the median colour of the training views'
     # border pixels (recorded in the checkpoint and report). A plain backdrop then needs no
@@ -106,7 +120,13 @@ class FitConfig(ConfigDict):
     opacity_reset_every: int = 3000  # 0: never (and then large Gaussians are never pruned)
     prune_opacity: float = 0.005
     prune_world_size: float = 0.1  # prune Gaussians larger than this x extent (after 1st reset)
-    max_gaussians: Optional[int] = None  # cap; densification keeps the largest gradients
+    max_gaussians: Optional[int] = option(
+        None,
+        help="cap on the Gaussian count, densification keeping the largest gradients; the cpu preset sizes "
+        "it to the views' pixels (shown: the demo scene's)",
+        type=positive_int,
+        metavar="N",
+    )
     # Also split Gaussians whose screen radius exceeded this fraction of the image size since the
     # last densification (gsplat's grow_scale2d); None: off, as in 3DGS.
     split_screen_size: Optional[float] = None
@@ -147,7 +167,9 @@ class FitConfig(ConfigDict):
 
     # Evaluation and bookkeeping.
     test_every: int = 8  # hold out every n-th view when scene.json lists no test views; 0: none
-    checkpoint_every: int = 1000  # 0: only at the end
+    checkpoint_every: int = option(
+        1000, help="write a checkpoint every N steps; 0: only at the end", type=nonneg_int, metavar="N"
+    )
     seed: int = 0
     device: str = "cpu"
     log_every: int = 10  # loss-curve sampling and progress-bar refresh

@@ -7,12 +7,31 @@ import argparse
 import time
 from pathlib import Path
 
+from ..config import add_config_options, config_overrides
 from ..distributed import add_executor_options
 from ..errors import InputError
-from ..segments.lifting import SCALE_MEASURES
+from ..field.model import FieldConfig
+from ..gaussians.fit import FitConfig
+from ..segments.lifting import LiftSettings
+from ..train.trainer import TrainConfig
 from ..validate import nonneg_int, positive_float, positive_int
-from .presets import DEFAULT_PRESET, PRESETS, per_preset
+from .presets import DEFAULT_PRESET, PRESETS
 from .run import DEFAULT_MODES, DemoScene, RunOptions
+
+# The stage settings `run` can change: {Preset attribute: (its config class, {field: flag})}.
+# Each flag's help, type and choices are the field's own (n2f2.config.option), followed by its
+# value under every preset.
+STAGE_FLAGS: dict[str, tuple[type, dict[str, str]]] = {
+    "fit": (FitConfig, {"steps": "fit-steps"}),
+    "train": (TrainConfig, {"iterations": "train-steps"}),
+    "field": (FieldConfig, {"dim": "dim", "variant": "variant"}),
+    "lift": (LiftSettings, {"scale_measure": "scale-measure"}),
+}
+
+
+def _add_stage_options(p: argparse.ArgumentParser, stage: str) -> None:
+    cls, flags = STAGE_FLAGS[stage]
+    add_config_options(p, cls, flags, presets={name: getattr(make(), stage) for name, make in PRESETS.items()})
 
 
 def _add_run_options(p: argparse.ArgumentParser, per_scene_inputs: bool = True) -> None:
@@ -52,40 +71,15 @@ def _add_run_options(p: argparse.ArgumentParser, per_scene_inputs: bool = True) 
         default=DEFAULT_PRESET,
         help="settings of every stage, n2f2.pipeline.presets (default %(default)s)",
     )
-    p.add_argument("--fit-steps", type=positive_int, default=None, help="override the fit preset's step count")
-    p.add_argument(
-        "--train-steps",
-        type=positive_int,
-        default=None,
-        help=f"override the train preset's iterations ({per_preset(lambda p: p.train.iterations)})",
-    )
-    p.add_argument(
-        "--dim",
-        type=positive_int,
-        default=None,
-        help=f"override the preset's feature-field dims D ({per_preset(lambda p: p.field.dim)})",
-    )
-    p.add_argument(
-        "--variant",
-        choices=["nested", "flat", "levels"],
-        default=None,
-        help=f"field variant (default: the preset's: {per_preset(lambda p: p.field.variant)})",
-    )
+    for stage in ("fit", "train", "field"):  # None: the --preset's value
+        _add_stage_options(p, stage)
     p.add_argument(
         "--depth-source",
         choices=["render", "gt"],
         default="render",
         help="lift segments with the Gaussians' rendered depth (default) or the demo scene's exact depth",
     )
-    p.add_argument(
-        "--scale-measure",
-        choices=list(SCALE_MEASURES),
-        default=None,
-        help="segment scale: eigenvalue = largest covariance eigenvalue of its 3D points (paper); "
-        "extent = squared diagonal of their robust oriented box (not in the paper; fewer "
-        "segments measured smaller than their own parts). Default: the preset's "
-        f"({per_preset(lambda p: p.lift.scale_measure)})",
-    )
+    _add_stage_options(p, "lift")
     p.add_argument(
         "--modes", nargs="+", default=list(DEFAULT_MODES), help=f"evaluation modes (default: {' '.join(DEFAULT_MODES)})"
     )
@@ -102,10 +96,11 @@ def _add_run_options(p: argparse.ArgumentParser, per_scene_inputs: bool = True) 
 
 
 def _run_options(args: argparse.Namespace, data: Path, out: Path) -> RunOptions:
-    for flag in ("fit_steps", "train_steps", "dim"):
-        value = getattr(args, flag)
-        if value is not None and value <= 0:
-            raise InputError(None, f"--{flag.replace('_', '-')} must be > 0, got {value}")
+    given = {stage: config_overrides(args, cls, flags) for stage, (cls, flags) in STAGE_FLAGS.items()}
+    for stage, over in given.items():
+        for name, value in over.items():
+            if isinstance(value, int) and value <= 0:
+                raise InputError(None, f"--{STAGE_FLAGS[stage][1][name]} must be > 0, got {value}")
     return RunOptions(
         data=data,
         out=out,
@@ -116,12 +111,12 @@ def _run_options(args: argparse.Namespace, data: Path, out: Path) -> RunOptions:
         langsplat_features=Path(args.langsplat_features) if args.langsplat_features else None,
         labels=Path(args.labels) if args.labels else None,
         preset=args.preset,
-        fit_steps=args.fit_steps,
-        train_steps=args.train_steps,
-        dim=args.dim,
-        variant=args.variant,
+        fit_steps=given["fit"].get("steps"),
+        train_steps=given["train"].get("iterations"),
+        dim=given["field"].get("dim"),
+        variant=given["field"].get("variant"),
         depth_source=args.depth_source,
-        scale_measure=args.scale_measure,
+        scale_measure=given["lift"].get("scale_measure"),
         downscale=args.downscale,
         skip_missing=args.skip_missing,
         modes=tuple(args.modes),

@@ -140,7 +140,7 @@ def answer_queries(
             "variant": engine.variant,
             "D": engine.dim,
             "step_size": engine.step,
-            "num_scales": len(engine.scale_dims) if engine.variant != "levels" else 3,
+            "num_scales": len(engine.scale_labels),
         },
         "composite": {"canonical": list(config.canonical), "temperature": config.temperature},
         "relevancy": {"negatives": list(config.negatives), "feature_normalisation": "L2 (cosine)"},

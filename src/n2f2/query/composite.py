@@ -35,16 +35,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
+# The scales (prefix lengths) are defined once, with the dimension-scale mapping M(s).
+from ..segments.bins import supervised_dims as supervised_dims
+
 # Canonical phrases of paper Eq. 6 ("object", "stuff", "thing", "part", "texture").
 DEFAULT_CANONICAL: tuple[str, ...] = ("object", "stuff", "thing", "part", "texture")
-
-
-def supervised_dims(dim: int, step: int = 1) -> list[int]:
-    """Prefix lengths (1-based) that are scales of a field with ``dim`` dimensions and step size
-    ``step``: ``[step, 2 step, ..., step * floor(dim / step)]``."""
-    if dim < 1 or step < 1 or step > dim:
-        raise ValueError(f"need 1 <= step <= dim, got dim={dim}, step={step}")
-    return list(range(step, step * (dim // step) + 1, step))
 
 
 def to_blocks(

@@ -23,8 +23,9 @@ from torch import Tensor
 
 from ..errors import InputError
 from ..field.lift import LIFT_LEVELS, LevelBlocks, Lift, lift_features, load_lift
-from ..field.model import NUM_LEVELS
-from .engine import LinearCache, QueryEngine
+from ..field.variants import NUM_LEVELS, LevelsVariant
+from .caches import LinearCache
+from .engine import QueryEngine
 from .relevancy import inverse_norm
 
 
@@ -75,7 +76,8 @@ class LevelBlockEngine(QueryEngine):
         scene: Any = None,
         run_dir: Any = None,
     ) -> None:
-        meta = {**meta, "config": {"variant": "levels", "dim": NUM_LEVELS * int(embed_dim)}, "variant": "levels"}
+        levels = LevelsVariant.name  # answered as the 3-level field is
+        meta = {**meta, "config": {"variant": levels, "dim": NUM_LEVELS * int(embed_dim)}, "variant": levels}
         super().__init__(LevelBlocks(embed_dim, device), gaussians, encoder, meta, config, device, scene, run_dir)
 
     def level_maps(self) -> Tensor:  # [3, E, 3E]

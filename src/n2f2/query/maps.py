@@ -88,20 +88,25 @@ def smoothed_relevancy(
     return np.float32(LANGSPLAT_MIX) * (box_filter(r, size) + r)
 
 
-def normalized_for_threshold(smoothed: np.ndarray) -> np.ndarray:  # [H, W] -> float32 [H, W]
+def normalized_for_threshold(
+    smoothed: np.ndarray,  # [...] one map (any shape: an image, or per-Gaussian scores)
+    stack: bool = False,  # True: ``smoothed`` is [..., H, W], each [H, W] map normalised alone
+) -> np.ndarray:  # float32, same shape
     """LangSplat's map before thresholding: subtract the minimum, divide by (max + 1e-9), map
-    [0, 1] to [-1, 1] and clip to [0, 1]. Computed in float32 in LangSplat's order."""
+    [0, 1] to [-1, 1] and clip to [0, 1]. Computed in float32 in LangSplat's order (a stack
+    gives bitwise the same maps as one map at a time)."""
     out = np.asarray(smoothed, dtype=np.float32)
-    out = out - out.min()
-    out = out / (out.max() + np.float32(1e-9))
+    axes = (-2, -1) if stack else None
+    out = out - out.min(axis=axes, keepdims=stack)
+    out = out / (out.max(axis=axes, keepdims=stack) + np.float32(1e-9))
     out = out * np.float32(2.0) + np.float32(-1.0)
     return np.clip(out, np.float32(0.0), np.float32(1.0))
 
 
 def majority_filter(
-    mask: np.ndarray,  # [H, W] binary (bool or 0/1)
+    mask: np.ndarray,  # [..., H, W] binary (bool or 0/1); a stack is filtered map by map
     radius: int = LANGSPLAT_MAJORITY_RADIUS,
-) -> np.ndarray:  # uint8 [H, W], 0/1
+) -> np.ndarray:  # uint8 [..., H, W], 0/1
     """LangSplat's ``utils.smooth``, vectorised with an integral image.
 
     Pixel (i, j) becomes the majority value of the window rows
@@ -111,25 +116,25 @@ def majority_filter(
     (``argmax(bincount)`` returns the first maximum). Needs H, W >= 2 (LangSplat's window is
     empty otherwise and its code raises)."""
     m = np.asarray(mask)
-    if m.ndim != 2:
-        raise ValueError(f"mask must be [H, W], got shape {m.shape}")
-    h, w = m.shape
+    if m.ndim < 2:
+        raise ValueError(f"mask must be [..., H, W], got shape {m.shape}")
+    h, w = m.shape[-2:]
     if h < 2 or w < 2:
         raise ValueError(f"majority filter needs an image of at least 2x2 pixels, got {h}x{w}")
     if m.dtype != bool and not np.isin(m, (0, 1)).all():
         raise ValueError("majority filter expects a binary mask")
-    ones = (m != 0).astype(np.int64)
-    integral = np.zeros((h + 1, w + 1), dtype=np.int64)
-    integral[1:, 1:] = ones.cumsum(0).cumsum(1)
+    ones = (m != 0).astype(np.int32)  # window counts fit easily: at most H * W
+    integral = np.zeros((*m.shape[:-2], h + 1, w + 1), dtype=np.int32)
+    integral[..., 1:, 1:] = ones.cumsum(-2).cumsum(-1)
     i = np.arange(h)
     j = np.arange(w)
     r0, r1 = np.maximum(0, i - radius), np.minimum(i + radius + 1, h - 1)
     c0, c1 = np.maximum(0, j - radius), np.minimum(j + radius + 1, w - 1)
     count = (
-        integral[r1[:, None], c1[None, :]]
-        - integral[r0[:, None], c1[None, :]]
-        - integral[r1[:, None], c0[None, :]]
-        + integral[r0[:, None], c0[None, :]]
+        integral[..., r1[:, None], c1[None, :]]
+        - integral[..., r0[:, None], c1[None, :]]
+        - integral[..., r1[:, None], c0[None, :]]
+        + integral[..., r0[:, None], c0[None, :]]
     )
     n = (r1 - r0)[:, None] * (c1 - c0)[None, :]
     return (2 * count > n).astype(np.uint8)  # strictly more ones than zeros; ties -> 0
@@ -147,11 +152,11 @@ def segmentation_mask(
 
 
 def mask_from_smoothed(
-    smoothed: np.ndarray,  # [H, W] R' = smoothed_relevancy(R)
+    smoothed: np.ndarray,  # [..., H, W] R' = smoothed_relevancy(R), one map or a stack
     threshold: float = LANGSPLAT_THRESHOLD,
     majority_radius: int = LANGSPLAT_MAJORITY_RADIUS,
-) -> np.ndarray:  # uint8 [H, W]
-    binary = (normalized_for_threshold(smoothed) > threshold).astype(np.uint8)
+) -> np.ndarray:  # uint8 [..., H, W]
+    binary = normalized_for_threshold(smoothed, stack=np.ndim(smoothed) > 2) > threshold
     return majority_filter(binary, majority_radius)
 
 
@@ -166,6 +171,22 @@ def mask_iou(pred: np.ndarray, gt: np.ndarray) -> float:  # [H, W], [H, W] -> Io
     if union == 0:
         raise ValueError("IoU of two empty masks is undefined")
     return int(np.logical_and(pred, gt).sum()) / union
+
+
+def mask_ious(
+    preds: np.ndarray,  # [L, H, W] predicted masks
+    gt: np.ndarray,  # [H, W] ground-truth mask, non-empty
+) -> np.ndarray:  # float64 [L]
+    """:func:`mask_iou` of every mask of a stack against one ground truth."""
+    p = np.asarray(preds) != 0
+    g = np.asarray(gt) != 0
+    if p.shape[1:] != g.shape:
+        raise ValueError(f"mask shapes differ: {p.shape[1:]} vs {g.shape}")
+    if not g.any():
+        raise ValueError("IoU of two empty masks is undefined")
+    inter = np.logical_and(p, g).sum(axis=(1, 2))
+    union = np.logical_or(p, g).sum(axis=(1, 2))
+    return inter / union
 
 
 def max_locations(filtered: np.ndarray) -> np.ndarray:  # [H, W] -> int64 [P, 2] as (x, y)

@@ -89,21 +89,35 @@ class QuantileScaleBins:
         return QuantileScaleBins(knots=knots, references=refs)
 
 
+def num_scales(D: int, k: int = 1) -> int:
+    """``floor(D / k)``: how many scales (distinct prefix lengths) a nested field of ``D`` dims
+    with step size ``k`` has (paper Table 6)."""
+    D, k = int(D), int(k)
+    if k < 1 or D < k:
+        raise ValueError(f"step size k must satisfy 1 <= k <= D, got k={k}, D={D}")
+    return D // k
+
+
+def supervised_dims(D: int, k: int = 1) -> list[int]:
+    """The scales of a nested field of ``D`` dims with step size ``k``: the prefix lengths
+    ``[k, 2k, ..., k floor(D / k)]`` (1-based), coarse (short prefix) to fine, i.e. the values
+    :func:`scale_to_dims` takes. With ``k = 1`` every ``d = 1..D`` is a scale, as in the paper."""
+    return [k * (i + 1) for i in range(num_scales(D, k))]
+
+
 def scale_to_dims(s: ArrayLike, D: int, k: int = 1):
     """Feature dimension used for quantised scale ``s`` in [0, 1):
     ``M(s) = k * ceil(floor(D / k) * (1 - s))``.
 
     With ``k = 1`` this is the paper's ``M(s) = ceil(D (1 - s))``. With a step size ``k``
     (paper Table 6) scales are quantised to ``floor(D / k)`` values and only the dimensions
-    ``{k, 2k, ..., k floor(D / k)}`` are used. Larger ``s`` (coarser segment) -> fewer
-    dimensions. Works on numpy arrays (returns int64) and torch tensors (returns long, same
-    device); values are clamped to ``[k, k floor(D / k)]`` so s slightly outside [0, 1) from
-    rounding is harmless.
+    :func:`supervised_dims` ``= {k, 2k, ..., k floor(D / k)}`` are used. Larger ``s`` (coarser
+    segment) -> fewer dimensions. Works on numpy arrays (returns int64) and torch tensors
+    (returns long, same device); values are clamped to ``[k, k floor(D / k)]`` so s slightly
+    outside [0, 1) from rounding is harmless.
     """
     D, k = int(D), int(k)
-    if k < 1 or D < k:
-        raise ValueError(f"step size k must satisfy 1 <= k <= D, got k={k}, D={D}")
-    n = D // k  # number of distinct quantised scales
+    n = num_scales(D, k)  # number of distinct quantised scales
     if torch is not None and isinstance(s, torch.Tensor):
         m = torch.ceil(n * (1.0 - s.double())).clamp_(1, n).long()
         return m * k

@@ -11,9 +11,10 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from ..config import add_config_options, config_overrides
 from ..distributed import add_executor_options
 from ..validate import positive_float
-from .lifting import SCALE_MEASURES, LiftSettings
+from .lifting import LiftSettings
 from .setup import SegmentsSetup
 
 
@@ -38,14 +39,7 @@ def _common(p: argparse.ArgumentParser) -> None:
         default="render",
         help="render: expected depth of --gaussians (paper, default); gt: the demo scene's exact depth maps",
     )
-    p.add_argument(
-        "--scale-measure",
-        choices=list(SCALE_MEASURES),
-        default=LiftSettings.scale_measure,
-        help="segment scale from its 3D points: eigenvalue = largest eigenvalue of their "
-        "covariance (paper); extent = squared diagonal of their robust oriented box "
-        "(2nd-98th percentile along each principal axis; not in the paper). Default: %(default)s",
-    )
+    add_config_options(p, LiftSettings)  # --scale-measure; None keeps LiftSettings' default
     p.add_argument(
         "--downscale", type=positive_float, default=1.0, help="image downscale factor, as 3DGS -r (default 1)"
     )
@@ -180,7 +174,7 @@ def _finish(report: dict) -> int:
 
 
 def _lift_settings(args: argparse.Namespace) -> LiftSettings:
-    return LiftSettings(scale_measure=args.scale_measure)
+    return LiftSettings(**config_overrides(args, LiftSettings))
 
 
 def run_segments(args: argparse.Namespace) -> int:

@@ -19,6 +19,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from ..cameras import Camera
+from ..config import option
 from ..errors import InputError
 
 SCALE_DESCRIPTIONS = {  # LiftSettings.scale_measure -> what bank.json records
@@ -50,7 +51,13 @@ class LiftSettings:
     # eigenvalue of a segment can be smaller than that of one of its parts (on the demo scene
     # in ~14 % of (view, parent, part) triples, often the room below its own wall); the
     # extent in ~4 %.
-    scale_measure: str = "eigenvalue"
+    scale_measure: str = option(
+        "eigenvalue",
+        help="segment scale from its lifted 3D points: eigenvalue = largest eigenvalue of their covariance "
+        "(paper); extent = squared diagonal of their robust oriented box, a percentile range along each "
+        "principal axis, not in the paper: fewer segments come out smaller than their own parts",
+        choices=SCALE_MEASURES,
+    )
     extent_percentile: float = 2.0
 
     def __post_init__(self) -> None:

@@ -6,43 +6,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..validate import nonneg_float, nonneg_int, positive_float, positive_int
-
-# Field options: name -> (type, help). None = keep the preset's (or the checkpoint's) value.
-_FIELD_OPTIONS = {
-    "backbone": (str, "triplane: TriPlane + 3-layer MLP (paper); mlp: positional encoding + MLP"),
-    "dim": (positive_int, "D, feature-field dims = number of quantized scales"),
-    "plane_resolution": (positive_int, "TriPlane resolution"),
-    "plane_channels": (positive_int, "TriPlane channels, rasterized by deferred rendering"),
-    "hidden": (positive_int, "MLP hidden width"),
-    "pe_frequencies": (nonneg_int, "positional-encoding frequencies of the MLP backbone"),
-    "variant": (str, "nested (N2F2), flat (non-nested ablation), levels (3 scale groups, LangSplat-like)"),
-    "step_size": (positive_int, "k of the dimension-scale mapping, paper Table 6"),
-}
-_TRAIN_OPTIONS = {
-    "iterations": (positive_int, "optimisation steps"),
-    "views_per_step": (positive_int, "views rasterized per step without --blend-cache"),
-    "render_downscale": (positive_int, "render training views downscaled by this integer factor (1 = bank resolution)"),
-    "pixels_per_step": (positive_int, "sampled pixels per step"),
-    "checkpoint_every": (nonneg_int, "write checkpoint.pt every N steps; 0: only at the end"),
-    "cos_weight": (nonneg_float, "lambda of the cosine loss"),
-    "scale_jitter": (
-        nonneg_float,
-        "uniform noise added to each sampled quantized scale before B(s) (0 = off, the paper's; not in the paper)",
-    ),
-}
-
-
-def _preset_values(name: str) -> str:
-    """``(cpu X, paper Y)`` of a FieldConfig or TrainConfig setting, read from the presets."""
-    from ..field.model import FieldConfig
-    from .trainer import TrainConfig
-
-    cls = FieldConfig if name in _FIELD_OPTIONS else TrainConfig
-    values = {p: getattr(cls.preset(p), name) for p in cls.PRESETS}
-    if len(set(values.values())) == 1:
-        return f"({next(iter(values.values()))})"
-    return "(" + ", ".join(f"{p} {v}" for p, v in values.items()) + ")"
+from ..config import add_config_options, config_overrides, option_flag
+from ..validate import nonneg_int, positive_float
 
 
 def _preset_summary(name: str) -> str:
@@ -54,12 +19,15 @@ def _preset_summary(name: str) -> str:
 
 
 def register(subparsers) -> None:
+    from ..field.model import FieldConfig
+    from .trainer import TrainConfig
+
     p = subparsers.add_parser(
         "train",
         help="train the nested feature field (writes field.pt and train_report.json)",
         description="Optimise N2F2's nested feature field on a scene with frozen 3D Gaussians and a "
         "segment bank: TriPlane+MLP at the Gaussian centres, deferred rendering, "
-        "scale-masked projection W, L2 + 0.001 cosine loss. Writes DIR/field.pt, "
+        f"scale-masked projection W, L2 + {TrainConfig.paper().cos_weight:g} cosine loss. Writes DIR/field.pt, "
         "DIR/train_report.json, DIR/checkpoint.pt and DIR/gaussians.ply.",
     )
     p.add_argument("data", metavar="DATA", help="scene folder (COLMAP sparse/0 or nerfstudio transforms.json)")
@@ -73,26 +41,10 @@ def register(subparsers) -> None:
         help=f"cpu: small field, {_preset_summary('cpu')} (default without CUDA); paper: the paper's "
         f"field, {_preset_summary('paper')} (default with --device cuda)",
     )
-    for name, (typ, text) in {**_FIELD_OPTIONS, **_TRAIN_OPTIONS}.items():
-        flag = "--" + name.replace("_", "-")
-        kw = (
-            {"choices": {"backbone": ["triplane", "mlp"], "variant": ["nested", "flat", "levels"]}[name]}
-            if name in ("backbone", "variant")
-            else {}
-        )
-        p.add_argument(flag, type=typ, default=None, help=f"{text} {_preset_values(name)}", **kw)
-    p.add_argument(
-        "--no-deferred",
-        action="store_true",
-        help="rasterize D-dim features (MLP per Gaussian) instead of deferred rendering",
-    )
-    p.add_argument(
-        "--blend-cache",
-        action=argparse.BooleanOptionalAction,
-        default=None,
-        help="precompute each view's blending weights once instead of rasterizing every step "
-        "(exact; default on for the cpu preset, off for paper)",
-    )
+    # Every option() field of the two configs (n2f2.config); None keeps the preset's (or the
+    # checkpoint's) value.
+    add_config_options(p, FieldConfig)
+    add_config_options(p, TrainConfig)
     p.add_argument(
         "--train-on-all",
         action="store_true",
@@ -156,6 +108,7 @@ def run_train(args: argparse.Namespace) -> int:
 
     from ..data import load_scene
     from ..errors import InputError
+    from ..field.model import FieldConfig
     from ..gaussians import read_ply
     from ..io import claim_out_dir, remove_results
     from ..segments import SegmentBank
@@ -163,16 +116,16 @@ def run_train(args: argparse.Namespace) -> int:
 
     device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
     preset = args.preset or ("paper" if str(device).startswith("cuda") else "cpu")
-    for name in list(_FIELD_OPTIONS) + list(_TRAIN_OPTIONS):
-        value = getattr(args, name)
-        if isinstance(value, (int, float)) and not isinstance(value, bool) and value < 0:
-            raise InputError(None, f"--{name.replace('_', '-')} must be >= 0, got {value}")
+    field_over = config_overrides(args, FieldConfig)
+    train_over = config_overrides(args, TrainConfig)
+    for cls, over in ((FieldConfig, field_over), (TrainConfig, train_over)):
+        for name, value in over.items():
+            if isinstance(value, (int, float)) and not isinstance(value, bool) and value < 0:
+                raise InputError(None, f"{option_flag(cls, name)} must be >= 0, got {value}")
     if args.downscale <= 0:
         raise InputError(None, f"--downscale must be > 0, got {args.downscale}")
 
     present = claim_out_dir(args.out, RESULT_NAMES, resume=args.resume, force=args.force)
-    field_over = {k: getattr(args, k) for k in _FIELD_OPTIONS if getattr(args, k) is not None}
-    train_over = {k: getattr(args, k) for k in _TRAIN_OPTIONS if getattr(args, k) is not None}
     saved = saved_configs(args.out) if args.resume else None
     try:
         if saved is not None:  # a resumed run keeps the checkpoint's settings; flags may change them
@@ -182,10 +135,6 @@ def run_train(args: argparse.Namespace) -> int:
             field_config = field_preset(preset, **field_over)
             config = replace(TrainConfig.preset(preset), seed=args.seed)
         config = replace(config, device=device, **train_over)
-        if args.no_deferred:
-            config = replace(config, deferred=False)
-        if args.blend_cache is not None:
-            config = replace(config, blend_cache=args.blend_cache)
         if args.train_on_all:
             config = replace(config, holdout=False)
     except ValueError as e:

@@ -41,12 +41,20 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ..config import ConfigDict
+from ..config import ConfigDict, option
 from ..errors import InputError
 from ..field.model import FieldConfig, NestedField, bbox_from_points, save_field
 from ..io import load_torch, save_torch, write_json
 from ..segments.bins import ONE_MINUS_EPS
-from ..validate import MAX_BAD_STEPS, NonFiniteError, check_finite, finite_array
+from ..validate import (
+    MAX_BAD_STEPS,
+    NonFiniteError,
+    check_finite,
+    finite_array,
+    nonneg_float,
+    nonneg_int,
+    positive_int,
+)
 from .blend import BlendCache, build_blend_cache
 from .sampling import PixelBatch, SegmentPool, ViewSegments
 
@@ -67,32 +75,53 @@ class TrainConfig(ConfigDict):
 
     PRESETS: ClassVar[tuple[str, ...]] = ("cpu", "paper")  # see the static methods of those names
 
-    iterations: int = 30_000
-    views_per_step: int = 1  # views rendered per step; pixels are sampled across them
-    # Training renders views downscaled by this integer factor (segment layers resampled to
-    # match); 1 = the bank's resolution (paper). Test time always renders at full resolution.
-    render_downscale: int = 1
-    # Precompute each training view's sparse blending weights once (the Gaussians are frozen,
-    # so rasterizing is a fixed linear map; see train/blend.py) instead of rasterizing every
-    # step; then every step samples pixels across all training views. Exact, ~1.8x faster on
-    # CPU (86 vs 157 ms per demo step); falls back to rasterizing when the cache would exceed
-    # blend_cache_mb.
-    blend_cache: bool = False
+    # Fields declared with option() are flags of `n2f2 train`; their help lists each preset's value.
+    iterations: int = option(30_000, help="optimisation steps of the field", type=positive_int)
+    views_per_step: int = option(
+        1, help="views rasterized per step without --blend-cache; pixels are sampled across them", type=positive_int
+    )
+    # Test time always renders at full resolution.
+    render_downscale: int = option(
+        1,
+        help="render training views downscaled by this integer factor, segment layers resampled to match; "
+        "1 = bank resolution",
+        type=positive_int,
+    )
+    # The Gaussians are frozen, so rasterizing is a fixed linear map (train/blend.py). ~1.8x
+    # faster on CPU (86 vs 157 ms per demo step); falls back to rasterizing when the cache would
+    # exceed blend_cache_mb.
+    blend_cache: bool = option(
+        False,
+        help="precompute each view's blending weights once instead of rasterizing every step (exact); "
+        "every step then samples pixels across all training views",
+    )
     blend_cache_mb: float = 1024.0
     # With the blend cache: after training, average the bank's features onto the Gaussians with
     # the cached weights (the training-free `lift` baseline, field/lift.py) into RUN/lift.pt.
     lift: bool = False
-    pixels_per_step: int = 4096  # sampled pixels (each with one sampled segment) per step
+    pixels_per_step: int = option(
+        4096, help="sampled pixels per step, each with one sampled segment", type=positive_int
+    )
     lr_triplane: float = 0.0016  # x scene extent (paper)
     lr_mlp: float = 0.00125  # MLP and W (paper)
-    cos_weight: float = 0.001  # lambda of the cosine term (paper)
-    # Not in the paper: add uniform noise in [-scale_jitter, scale_jitter] to each sampled
-    # segment's quantized scale before B(s) (0 = off, the paper). A segment's lifted scale
-    # varies from view to view, so its M(s) does too; jitter makes phi(u, s) vary smoothly in s.
-    scale_jitter: float = 0.0
-    deferred: bool = True  # rasterize backbone features, MLP per pixel (paper, training only)
+    cos_weight: float = option(0.001, help="lambda of the cosine loss", type=nonneg_float)
+    # A segment's lifted scale varies from view to view, so its M(s) does too; jitter makes
+    # phi(u, s) vary smoothly in s.
+    scale_jitter: float = option(
+        0.0,
+        help="half-width of the uniform noise added to each sampled quantized scale before B(s), not in the "
+        "paper; 0 = off, as the paper",
+        type=nonneg_float,
+    )
+    deferred: bool = option(
+        True,
+        help="deferred rendering (paper, training only): rasterize the backbone's features, MLP per pixel; "
+        "--no-deferred: rasterize D-dim features, MLP per Gaussian",
+    )
     holdout: bool = True  # leave scene.json's test_views out of training
-    checkpoint_every: int = 500  # 0: only at the end
+    checkpoint_every: int = option(
+        500, help="write checkpoint.pt every N steps; 0: only at the end", type=nonneg_int, metavar="N"
+    )
     log_every: int = 10  # loss-curve sampling and progress-bar refresh
     seed: int = 0
     device: str = "cpu"

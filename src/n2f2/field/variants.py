@@ -1,0 +1,161 @@
+"""The variants of the feature field (the paper's ablations) as objects, one class each, so that
+code outside the field asks a field's variant what it needs instead of switching on its name.
+
+``FieldConfig.variant`` and every file that records it (``field.pt``, ``train_report.json``,
+``eval.json``, ``bench.json``) keep the name; :data:`VARIANTS` maps the name to the object
+(``FieldConfig.kind``, ``NestedField.kind``, ``QueryEngine.kind``).
+
+For a field of ``D`` dims configured with step size ``k`` (``FieldConfig.step_size``):
+
+* :meth:`~FieldVariant.scales`: the theta dims ``[start, end)`` of each scale the variant
+  supervises and answers with, in the order of :meth:`~FieldVariant.scale_labels` (their names in
+  reports and query results);
+* :meth:`~FieldVariant.step`: the step of its prefix scales (what the query engine and
+  ``eval.json`` call the step); :meth:`~FieldVariant.step_size`: the ``step_size`` a field of it is
+  trained with when step size ``k`` is asked for (the bench's step-size sweep);
+* :attr:`~FieldVariant.modes`: the query modes it answers; :attr:`~FieldVariant.answers_with`:
+  ``"prefix"`` or ``"levels"``, the score cache its per-query scale choice and its ``oracle`` run
+  on, i.e. what the oracle picks among (prefixes or level blocks);
+  :meth:`~FieldVariant.mode_for`: which of its modes plays the part of a nested field's mode.
+
+    variant  scales at D = 12, k = 3   labels             step        modes
+    nested   [0,3) [0,6) [0,9) [0,12)  d=3 d=6 d=9 d=12   k           composite explicit oracle
+    flat     [0,12)                    d=12               D           composite explicit oracle
+    levels   [8,12) [4,8) [0,4)        part object group  k (unused)  levels oracle
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from typing import TYPE_CHECKING, ClassVar, Optional
+
+from ..segments.bins import supervised_dims
+
+if TYPE_CHECKING:
+    from torch import Tensor
+
+NUM_LEVELS = 3  # part, object, group (fine to coarse), as the demo ground truth and LangSplat
+LEVEL_NAMES = ("part", "object", "group")  # hierarchy level 0, 1, 2: the levels field's scale labels
+
+
+def level_blocks(dim: int) -> list[tuple[int, int]]:
+    """``[start, end)`` of the 3 contiguous blocks of the "levels" variant, block 0 first
+    (sizes differ by at most one when 3 does not divide D)."""
+    edges = [round(i * dim / NUM_LEVELS) for i in range(NUM_LEVELS + 1)]
+    return [(edges[i], edges[i + 1]) for i in range(NUM_LEVELS)]
+
+
+def level_to_block(level: Tensor | int) -> Tensor | int:
+    """Hierarchy level (0 = part, finest .. 2 = group, coarsest) -> block (0 = first dims)."""
+    return NUM_LEVELS - 1 - level
+
+
+class FieldVariant(ABC):
+    """What a field variant supervises and how it is queried (see the module docstring). The
+    variants are stateless: one instance each, in :data:`VARIANTS`."""
+
+    name: ClassVar[str]  # FieldConfig.variant, as stored in files
+    description: ClassVar[str]  # one line for help texts
+    modes: ClassVar[tuple[str, ...]] = ("composite", "explicit", "oracle")  # query modes it answers
+    answers_with: ClassVar[str] = "prefix"  # "prefix" | "levels": what explicit choice / oracle pick among
+    uses_step: ClassVar[bool] = False  # whether the step size k changes what it supervises
+    other_modes_hint: ClassVar[str]  # the advice for a user who asks for a mode it does not answer
+
+    @abstractmethod
+    def scales(self, dim: int, step_size: int = 1) -> list[tuple[int, int]]:
+        """``[start, end)`` of the theta dims each scale reads, in the order of :meth:`scale_labels`."""
+
+    @abstractmethod
+    def scale_labels(self, dim: int, step_size: int = 1) -> list[str]:
+        """The names of its scales in reports and query results."""
+
+    def step(self, dim: int, step_size: int) -> int:
+        """The step of its prefix scales at ``dim`` dims, configured step size ``step_size``.
+        ``step(dim, step(dim, k)) == step(dim, k)``, so it may be given either."""
+        return int(step_size)
+
+    def step_size(self, k: int) -> int:
+        """``FieldConfig.step_size`` of a field of this variant asked for step size ``k``: ``k`` when
+        the variant uses a step size, else 1 (the field would ignore it)."""
+        return int(k) if self.uses_step else 1
+
+    def mode_for(self, mode: str) -> Optional[str]:
+        """Its mode that plays the part of ``mode`` (one of a nested field's modes: composite,
+        explicit, oracle), or None when it has none."""
+        return mode if mode in self.modes else None
+
+    def __repr__(self) -> str:
+        return f"<field variant {self.name!r}>"
+
+
+class PrefixVariant(FieldVariant):
+    """A variant whose scales are prefixes ``theta[:d]`` answered by ``W[:, :d]``."""
+
+    def scale_dims(self, dim: int, step_size: int = 1) -> list[int]:
+        """The prefix lengths ``d`` of its scales, coarse (short) to fine."""
+        return supervised_dims(dim, self.step(dim, step_size))
+
+    def scales(self, dim: int, step_size: int = 1) -> list[tuple[int, int]]:
+        return [(0, d) for d in self.scale_dims(dim, step_size)]
+
+    def scale_labels(self, dim: int, step_size: int = 1) -> list[str]:
+        return [f"d={d}" for d in self.scale_dims(dim, step_size)]
+
+
+class NestedVariant(PrefixVariant):
+    """N2F2: a segment of quantized scale s supervises the first ``M(s)`` dims, so the scales are
+    the prefixes ``k, 2k, ..., k floor(D / k)`` (:func:`n2f2.segments.bins.supervised_dims`)."""
+
+    name = "nested"
+    description = "nested (N2F2)"
+    uses_step = True
+    other_modes_hint = "mode 'levels' needs a field trained with variant 'levels'"
+
+
+class FlatVariant(PrefixVariant):
+    """The non-nested ablation: every scale supervises all D dims (``B(s) = 1``), so there is one
+    scale, the whole of theta, and the step is D whatever was configured."""
+
+    name = "flat"
+    description = "flat (non-nested ablation)"
+    other_modes_hint = NestedVariant.other_modes_hint
+
+    def step(self, dim: int, step_size: int) -> int:
+        return int(dim)
+
+
+class LevelsVariant(FieldVariant):
+    """The LangSplat-like 3-level baseline: theta is split into 3 contiguous blocks
+    (:func:`level_blocks`), each supervised by one tercile of the quantized scale; hierarchy level
+    ``l`` (0 = part) lives in block ``2 - l``. It answers with its level blocks: ``levels`` mode
+    (LangSplat's level choice) and ``oracle`` over the same 3 levels. Its step size is recorded as
+    configured and not used."""
+
+    name = "levels"
+    description = "levels (3 scale groups, LangSplat-like)"
+    modes = ("levels", "oracle")
+    answers_with = "levels"
+    other_modes_hint = "it was trained as the 3-level baseline: use --mode levels"
+
+    def scales(self, dim: int, step_size: int = 1) -> list[tuple[int, int]]:
+        blocks = level_blocks(dim)
+        return [blocks[int(level_to_block(level))] for level in range(NUM_LEVELS)]
+
+    def scale_labels(self, dim: int, step_size: int = 1) -> list[str]:
+        return list(LEVEL_NAMES)
+
+    def mode_for(self, mode: str) -> Optional[str]:
+        """``explicit`` -> ``levels`` (its per-query scale choice); no ``composite``."""
+        return super().mode_for("levels" if mode == "explicit" else mode)
+
+
+# The registry: FieldConfig.variant -> its variant. Order = the order of help texts and choices.
+VARIANTS: dict[str, FieldVariant] = {v.name: v for v in (NestedVariant(), FlatVariant(), LevelsVariant())}
+
+
+def get_variant(name: str) -> FieldVariant:
+    """The variant named ``name`` (ValueError naming the choices for an unknown one)."""
+    try:
+        return VARIANTS[name]
+    except KeyError:
+        raise ValueError(f"variant must be one of {tuple(VARIANTS)}, got {name!r}") from None
