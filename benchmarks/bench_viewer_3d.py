@@ -129,7 +129,7 @@ def main() -> None:
     import torch
 
     from n2f2.viewer.commands import launch
-    from n2f2.viewer.splats import splat_arrays, turbo_lut
+    from n2f2.viewer.splat_colors import splat_arrays, turbo_lut
 
     print(f"torch threads {torch.get_num_threads()}, OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}")
     tmp = None

@@ -16,8 +16,8 @@ from n2f2.errors import InputError, MissingModelError
 from n2f2.io import write_png
 from n2f2.segments.bank import SegmentAndEncode, SegmentBank, build_bank
 from n2f2.segments.encoders import CaptionEncoder, ClipEncoder, get_encoder, segment_crops
-from n2f2.segments.segmenters import (ClassicalSegmenter, ClassicalSettings, SamSegmenter, SamSettings,
-                                      segment_layers)
+from n2f2.segments.sam import SamSegmenter, SamSettings
+from n2f2.segments.segmenters import ClassicalSegmenter, ClassicalSettings, segment_layers
 
 
 @pytest.fixture(scope="module")
@@ -238,7 +238,7 @@ def test_sam_postprocess_equals_sams_two_step_upsampling(tiny_sam_model, H, W):
 def test_sam_filter_masks_in_chunks_matches_sams_stability(tiny_sam_model, monkeypatch):
     """Stability on the image-resolution logits (SAM's definition, computed here from the
     reference upsampling), the same whether masks are upsampled all at once or one by one."""
-    import n2f2.segments.segmenters as segmenters
+    import n2f2.segments.sam as sam
 
     st = SamSettings(stability_score_thresh=0.8)
     seg = SamSegmenter(tiny_sam_model, st)
@@ -259,7 +259,7 @@ def test_sam_filter_masks_in_chunks_matches_sams_stability(tiny_sam_model, monke
     want = torch.nonzero((stability >= 0.8) & (logits > 0).flatten(1).any(1)).flatten()
     assert 0 < len(want) < 12  # the random logits give both kinds
     for budget in (1 << 24, 1):  # all at once; one mask per chunk
-        monkeypatch.setattr(segmenters, "UPSAMPLE_BUDGET", budget)
+        monkeypatch.setattr(sam, "UPSAMPLE_BUDGET", budget)
         masks, stab, kept = seg.filter_masks(low, (h, w), (H, W))
         assert kept.tolist() == want.tolist()
         assert torch.equal(masks, logits[want] > 0)

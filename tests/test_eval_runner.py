@@ -16,8 +16,8 @@ from n2f2.cli import main as cli_main
 from n2f2.data.labels import read_label_dir
 from n2f2.errors import InputError
 from n2f2.eval.protocol import ProtocolConfig, evaluate_label_dir, resolve_box_size
-from n2f2.eval.runner import (EvalConfig, compare_evals, evaluate_run, read_query_types,
-                              write_eval_outputs)
+from n2f2.eval.reports import write_eval_outputs
+from n2f2.eval.runner import EvalConfig, compare_evals, evaluate_run, read_query_types
 from n2f2.query.outputs import unique_slugs
 
 

@@ -19,9 +19,10 @@ from n2f2.cli import main as cli_main
 from n2f2.data.scene import Scene
 from n2f2.gaussians import Gaussians, read_ply
 from n2f2.gaussians import fit as fit_mod
-from n2f2.gaussians.fit import (
-    DensifyStats, FitConfig, GaussianAdam, densify_and_prune, fit_gaussians, photometric_loss,
-    reset_opacity, split_views, ssim,
+from n2f2.gaussians.fit import fit_gaussians
+from n2f2.gaussians.fit_config import FitConfig, split_views
+from n2f2.gaussians.optim import (
+    DensifyStats, GaussianAdam, densify_and_prune, photometric_loss, reset_opacity, ssim,
 )
 from n2f2.io import write_json, write_png
 from n2f2.render import render_rgb

@@ -16,10 +16,9 @@ from n2f2.cameras import Camera, look_at
 from n2f2.cli import main as cli_main
 from n2f2.data.scene import Scene
 from n2f2.gaussians import Gaussians, write_ply
-from n2f2.gaussians.fit import (
-    DensifyStats, FitConfig, GaussianAdam, densify_and_prune, downsample_image, fit_gaussians,
-    initial_gaussians, resolution_factor,
-)
+from n2f2.gaussians.fit import downsample_image, fit_gaussians, initial_gaussians, resolution_factor
+from n2f2.gaussians.fit_config import FitConfig
+from n2f2.gaussians.optim import DensifyStats, GaussianAdam, densify_and_prune
 from n2f2.gaussians.init import init_from_points, random_points_in_frusta
 from n2f2.gaussians.model import sh_to_rgb
 from n2f2.gaussians.orbit import orbit_cameras, render_views

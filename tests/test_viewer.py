@@ -80,6 +80,27 @@ def test_query_returns_relevancy_mask_and_localization(client, trained_run):
     assert overlay.shape == rgb.shape and np.abs(overlay.astype(int) - rgb.astype(int)).max() > 0
 
 
+def test_query_overlay_is_the_query_commands_heatmap(client, viewer, trained_run):
+    """The API's overlay is ``n2f2 query``'s heatmap, one opacity for both: turbo of the min-max
+    normalised relevancy v over the RGB, opacity HEATMAP_ALPHA * v; the relevancy PNG is turbo(v)."""
+    from matplotlib import colormaps
+
+    from n2f2.query.outputs import HEATMAP_ALPHA
+
+    texts = [trained_run.part_query, "teapot"]
+    data = client.post("/api/query", json={"queries": texts, "camera": {"view": 0}}).json()
+    view, result = viewer.query_view("view:0", 0, texts, "composite")  # the same cached render
+    rgb = view.rgb.float().numpy()
+    for qi, res in enumerate(data["results"]):
+        r = result.relevancy[qi].float().numpy()
+        v = (r - float(r.min())) / (float(r.max()) - float(r.min()))
+        turbo = colormaps["turbo"](v)[..., :3]
+        a = HEATMAP_ALPHA * v[..., None]
+        want = rgb * (1 - a) + turbo * a
+        assert np.abs(_png(res["overlay_png"]) / 255.0 - want).max() <= 1.0 / 255
+        assert np.abs(_png(res["relevancy_png"]) / 255.0 - turbo).max() <= 1.0 / 255
+
+
 def test_explicit_mode_and_novel_camera(client):
     r = client.post("/api/query", json={"queries": ["teapot"], "mode": "explicit",
                                         "camera": {"orbit": {"azimuth": 30, "elevation": 25, "radius": 3.0}}})

@@ -19,9 +19,10 @@ pytest.importorskip("viser")
 pytest.importorskip("fastapi")
 
 from n2f2.viewer.browser import CHROMIUM_PATH, launch_chromium  # noqa: E402
-from n2f2.viewer.server import ByteLRU, Viewer, ViewerLimits, compact_tensors, create_app, tensor_bytes  # noqa: E402
-from n2f2.viewer.splats import (camera_from_pose, heat_colors, pose_of, selection_mask, splat_colors,  # noqa: E402
-                                splat_covariances, split_queries)
+from n2f2.viewer.cache import ByteLRU, compact_tensors, tensor_bytes  # noqa: E402
+from n2f2.viewer.server import Viewer, ViewerLimits, create_app  # noqa: E402
+from n2f2.viewer.splat_colors import heat_colors, selection_mask, splat_colors, splat_covariances  # noqa: E402
+from n2f2.viewer.splats import camera_from_pose, pose_of, split_queries  # noqa: E402
 
 
 # ----------------------------------------------------------------------------- splat conversion

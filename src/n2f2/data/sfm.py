@@ -1,5 +1,8 @@
 """Structure from motion for plain photo folders, with pycolmap (COLMAP's Python bindings).
 
+Kept as one module (about 600 lines): one job, one SfM run, whose stages share its working
+folder, cache key and report.
+
 ``n2f2 sfm PHOTOS --out DATA`` poses a folder of photos and writes the COLMAP scene layout that
 :func:`n2f2.data.load_scene` reads::
 

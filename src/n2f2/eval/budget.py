@@ -244,16 +244,10 @@ def loss_budget(
 
 
 # ------------------------------------------------------------------------------ report
-def _pct(v: Any) -> str:
-    from .reports import _fmt
-
-    return _fmt(v, percent=True)
-
-
 def budget_table(budget: Mapping, kinds: bool = False) -> str:
     """The budget as a Markdown table: per row mIoU / loc. / mAP under both boxes, or with
     ``kinds`` the part / object / group split (exact box: mIoU, scaled box: mIoU, mAP)."""
-    from .reports import markdown_table
+    from .reports import markdown_table, pct
 
     rows = budget["rows"]
     boxes = [b for b in BOXES if all(b in r["scores"] for r in rows)]
@@ -266,9 +260,9 @@ def budget_table(budget: Mapping, kinds: bool = False) -> str:
             s = r["scores"]
             body.append(
                 [r["name"]]
-                + [_pct(s[b]["miou"]) for b in boxes]
-                + [_pct(s[b]["loc_accuracy"]) for b in boxes]
-                + [_pct(s[b]["map"]) for b in boxes]
+                + [pct(s[b]["miou"]) for b in boxes]
+                + [pct(s[b]["loc_accuracy"]) for b in boxes]
+                + [pct(s[b]["map"]) for b in boxes]
                 + [f"{100 * (s['exact']['miou'] - ref):+.1f}" if np.isfinite(ref) else "n/a", s["exact"]["num_pairs"]]
             )
         return markdown_table(
@@ -284,7 +278,7 @@ def budget_table(budget: Mapping, kinds: bool = False) -> str:
     for r in rows:
         ex, sc = r["scores"]["exact"]["kinds"], r["scores"].get("scaled", r["scores"]["exact"])["kinds"]
         body.append(
-            [r["name"]] + [f"{_pct(ex[k]['miou'])} / {_pct(sc[k]['miou'])} / {_pct(ex[k]['map'])}" for k in shown]
+            [r["name"]] + [f"{pct(ex[k]['miou'])} / {pct(sc[k]['miou'])} / {pct(ex[k]['map'])}" for k in shown]
         )
     pairs = {k: rows[0]["scores"]["exact"]["kinds"][k]["pairs"] for k in shown}
     return markdown_table(

@@ -1,12 +1,17 @@
 """``n2f2 eval``: score a trained run on LangSplat-format labels (LERF-OVS protocol, both box
 sizes, mAP, simple vs compound and part / object / group splits, R@K retrieval, per-query deltas
-against another run, and with ``--budget`` the loss budget from the teacher to the answers)."""
+against another run, and with ``--budget`` the loss budget from the teacher to the answers);
+with ``--protocol 3d|both`` the 3D protocol (:mod:`n2f2.eval.protocol3d`); on labels in the
+3D-OVS layout the 3D-OVS protocol (:mod:`n2f2.eval.ovs3d`). ``n2f2 export-ovs3d`` writes a
+generated scene in that layout."""
 
 from __future__ import annotations
 
 import argparse
 
-from ..validate import positive_float
+from ..validate import nonneg_int, positive_float
+
+PROTOCOLS = ("2d", "3d", "both", "3d-ovs")  # --protocol
 
 
 def register(subparsers) -> None:
@@ -28,7 +33,24 @@ def register(subparsers) -> None:
         "--labels",
         required=True,
         metavar="DIR",
-        help="label folder of frame_XXXXX.json files (LangSplat / expanded LERF-OVS format)",
+        help="label folder of frame_XXXXX.json files (LangSplat / expanded LERF-OVS format), or a scene in the "
+        "3D-OVS layout (SCENE or SCENE/segmentations with classes.txt: scored by the 3D-OVS protocol)",
+    )
+    p.add_argument(
+        "--protocol",
+        choices=PROTOCOLS,
+        default=None,
+        help="2d: LangSplat's LERF-OVS protocol on rendered relevancy maps (default for LERF-OVS labels); "
+        "3d: Gaussians selected in 3D and rendered into each labelled view (OpenGaussian's protocol: "
+        "mIoU, mAcc@0.25, localization); both: the two side by side in one eval.json / eval.md; "
+        "3d-ovs: the 3D-OVS protocol (default when --labels is in the 3D-OVS layout)",
+    )
+    p.add_argument(
+        "--ovs-prediction",
+        choices=("argmax", "threshold"),
+        default="argmax",
+        help="3D-OVS: argmax = each pixel takes its most relevant class (3D-OVS, default); threshold = "
+        "LangSplat's per-class segmentation rule",
     )
     p.add_argument(
         "--mode",
@@ -91,18 +113,76 @@ def register(subparsers) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
+    x = subparsers.add_parser(
+        "export-ovs3d",
+        help="write a generated scene in the 3D-OVS layout (segmentations/classes.txt + per-view class masks)",
+        description="Copy a generated scene's images and cameras into OUT (its ground-truth files left out) and "
+        "write OUT/segmentations/classes.txt and OUT/segmentations/<NN>/<class>.png: the regions of one "
+        "level of regions.json as classes, their exact region-map masks (255 = class) in each listed view. "
+        "`n2f2 eval RUN --labels OUT` then scores a run with the 3D-OVS protocol.",
+    )
+    x.add_argument("scene", metavar="SCENE", help="generated scene folder (regions/ + regions.json)")
+    x.add_argument("out", metavar="OUT", help="output folder")
+    x.add_argument(
+        "--level",
+        default="object",
+        help="the regions.json level whose regions become the classes (part, object, group; default object)",
+    )
+    x.add_argument(
+        "--views",
+        nargs="+",
+        type=nonneg_int,
+        default=None,
+        metavar="I",
+        help="view indices to write masks for (default: the scene's labelled views, else all)",
+    )
+    x.add_argument("--force", action="store_true", help="replace what OUT already holds")
+    x.set_defaults(func=run_export)
+
+
+def run_export(args: argparse.Namespace) -> int:
+    from .ovs3d import export_ovs3d
+
+    info = export_ovs3d(args.scene, args.out, level=args.level, views=args.views, force=args.force)
+    print(
+        f"export-ovs3d: {len(info['classes'])} classes ({info['level']} level), {len(info['views'])} views "
+        f"-> {args.out}/segmentations"
+    )
+    return 0
+
 
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from ..errors import InputError
     from ..io import claim_out_dir, remove_results
-    from ..query.engine import QueryConfig
-    from .reports import eval_results, mode_summary_lines
-    from .runner import EvalConfig, evaluate_run, load_eval, write_eval_outputs
+    from ..query.engine import QueryConfig, QueryEngine
+    from .ovs3d import ovs3d_labels_path
+    from .protocol3d import Protocol3dConfig, evaluate_protocol3d, modes_3d
+    from .reports import eval_results, mode_summary_lines, protocol3d_summary_lines, write_eval_outputs
+    from .runner import EvalConfig, evaluate_run, load_eval
 
     if not args.temperature > 0:
         raise InputError(None, f"--temperature must be > 0, got {args.temperature}")
+    ovs_labels = ovs3d_labels_path(args.labels)
+    protocol = args.protocol or ("3d-ovs" if ovs_labels is not None else "2d")
+    if ovs_labels is not None and protocol != "3d-ovs":
+        raise InputError(args.labels, f"labels in the 3D-OVS layout are scored by --protocol 3d-ovs, not {protocol}")
+    unused = {
+        "3d": ("--compare", "--budget", "--query-types", "--bank"),
+        "3d-ovs": ("--compare", "--budget", "--query-types", "--bank", "--skip-missing-frames", "--rescale-labels"),
+    }.get(protocol, ())
+    given = {
+        "--compare": args.compare is not None,
+        "--budget": args.budget,
+        "--query-types": args.query_types is not None,
+        "--bank": args.bank is not None,
+        "--skip-missing-frames": args.skip_missing_frames,
+        "--rescale-labels": args.rescale_labels,
+    }
+    refused = [flag for flag in unused if given[flag]]
+    if refused:
+        raise InputError(None, f"{', '.join(refused)} do(es) not apply to --protocol {protocol}")
     out = Path(args.out) if args.out else Path(args.run_dir) / "eval"
     present = claim_out_dir(out, eval_results(out), force=args.force, resume_flag=None)
     if args.compare is not None:
@@ -117,12 +197,38 @@ def run(args: argparse.Namespace) -> int:
         rescale_labels=args.rescale_labels,
         progress=not args.quiet,
     )
+    config3d = Protocol3dConfig(
+        missing_frames=config.missing_frames, rescale_labels=config.rescale_labels, progress=config.progress
+    )
     query_config = QueryConfig(temperature=args.temperature)
     engine = None
-    if args.budget:  # one engine (and text encoder) for the evaluation and the budget
-        from ..query.engine import QueryEngine
-
+    if args.budget or protocol != "2d":  # one engine (and text encoder) for every protocol and the budget
         engine = QueryEngine.from_run(args.run_dir, device=args.device, scene=args.scene, config=query_config)
+    if protocol == "3d-ovs":
+        return _run_ovs3d(args, engine, out, lambda: remove_results(out, present))
+    if protocol in ("3d", "both"):
+        modes_3d(engine, args.mode)  # before any work: the 3D protocol has no oracle mode
+    if protocol == "3d":
+        from ..data.labels import read_label_dir
+        from .protocol3d import write_protocol3d_outputs
+
+        res = evaluate_protocol3d(
+            engine,
+            read_label_dir(args.labels),
+            modes=args.mode,
+            config=config3d,
+            label_dir=args.labels,
+            on_ready=lambda: remove_results(out, present),
+        )
+        write_protocol3d_outputs(res, out)
+        for line in protocol3d_summary_lines(res.to_dict()):
+            print(line)
+        for note in res.notes:
+            print(f"note: {note}")
+        print(f"eval: {res.scores[res.modes[0]].num_pairs} pairs (3D protocol) in {res.seconds:.1f} s -> {out}")
+        return 0
+    if args.budget:
+        assert engine is not None  # opened above for the budget
         bank = args.bank or engine.meta.get("bank")
         if not bank or not Path(bank).is_dir():  # before any work: the teacher is the segment bank
             raise InputError(
@@ -142,6 +248,12 @@ def run(args: argparse.Namespace) -> int:
         on_ready=lambda: remove_results(out, present),  # --force: the inputs are checked
         engine=engine,
     )
+    if protocol == "both":
+        from ..data.labels import read_label_dir
+
+        result.protocol3d = evaluate_protocol3d(
+            engine, read_label_dir(args.labels), modes=result.modes, config=config3d, label_dir=args.labels
+        ).to_dict()
     if args.budget:
         from .budget import loss_budget
 
@@ -160,6 +272,9 @@ def run(args: argparse.Namespace) -> int:
     write_eval_outputs(result, out, compare=args.compare)
     for line in mode_summary_lines(result):
         print(line)
+    if result.protocol3d:
+        for line in protocol3d_summary_lines(result.protocol3d):
+            print(line)
     if result.budget:
         from .budget import budget_table
 
@@ -167,4 +282,23 @@ def run(args: argparse.Namespace) -> int:
     for note in result.notes:
         print(f"note: {note}")
     print(f"eval: {result.scores[result.modes[0]]['exact'].num_pairs} pairs in {result.seconds:.1f} s -> {out}")
+    return 0
+
+
+def _run_ovs3d(args: argparse.Namespace, engine, out, on_ready) -> int:
+    """``n2f2 eval`` on labels in the 3D-OVS layout."""
+    from .ovs3d import evaluate_run_ovs3d, write_ovs3d_outputs
+    from .reports import ovs3d_summary_lines
+
+    data = evaluate_run_ovs3d(
+        engine, args.labels, modes=args.mode, prediction=args.ovs_prediction, progress=not args.quiet, on_ready=on_ready
+    )
+    write_ovs3d_outputs(data, out)
+    for line in ovs3d_summary_lines(data):
+        print(line)
+    for note in data["notes"]:
+        print(f"note: {note}")
+    print(
+        f"eval: 3D-OVS, {len(data['views'])} views x {len(data['classes'])} classes in {data['seconds']:.1f} s -> {out}"
+    )
     return 0

@@ -28,6 +28,15 @@ class (:func:`n2f2.eval.protocol.segmentation_mask`: box smoothing, threshold 0.
 filter), our reading of "per-class masks" for an open-vocabulary field. With several levels, each
 class uses the level whose smoothed map ``R'`` has the highest maximum (LangSplat's rule) in both
 modes.
+
+A trained run is scored by :func:`evaluate_run_ovs3d` (``n2f2 eval RUN --labels SCENE`` picks it
+when ``SCENE`` or ``SCENE/segmentations`` holds a ``classes.txt``): each listed view is rendered
+once; composite gives one map per class; explicit / levels hand every scale to the rule above
+(the scale whose ``R'`` peaks highest, per class and box size; only the chosen map is kept), under
+LangSplat's exact 30 px box and the box scaled to the image width, as the 2D runner reports both.
+Oracle mode is left out: the argmax prediction couples the classes, so a best scale per class is
+not a bound. :func:`export_ovs3d` (``n2f2 export-ovs3d``) writes a generated scene in this layout:
+the class masks are the scene's exact region maps at one level.
 """
 
 from __future__ import annotations
@@ -249,3 +258,264 @@ def evaluate_ovs3d(
         majority_radii=sorted(radii),
         config={**asdict(config), "empty_union": empty_union},
     )
+
+
+# ------------------------------------------------------------------------------ layout
+OVS3D_FORMAT = "n2f2-eval-ovs3d-v1"  # eval.json of a 3D-OVS evaluation
+GROUND_TRUTH_NAMES = ("regions", "regions.json", "depth", "label", "queries.json", "segmentations")
+
+
+def ovs3d_labels_path(path: Union[str, Path]) -> Optional[Path]:
+    """The ``segmentations`` folder when ``path`` (a scene or its ``segmentations``) is in the
+    3D-OVS layout, else None."""
+    p = Path(path)
+    if (p / "classes.txt").is_file():
+        return p
+    if (p / "segmentations" / "classes.txt").is_file():
+        return p / "segmentations"
+    return None
+
+
+def _class_file_name(name: str, where: Path) -> str:
+    """``name`` as a mask file stem (3D-OVS names masks ``<class>.png``); refuses names that are
+    not a plain file name."""
+    if not name or name != name.strip() or name in (".", "..") or any(c in name for c in "/\\\0\n"):
+        raise InputError(where, f"region name {name!r} cannot be a 3D-OVS class (mask file) name")
+    return name
+
+
+def export_ovs3d(
+    scene_dir: Union[str, Path],  # a generated scene (regions/*.npy + regions.json)
+    out: Union[str, Path],
+    *,
+    level: str = "object",  # the regions.json level whose regions become the classes
+    views: Optional[list[int]] = None,  # views with masks; default: scene.json's labelled views, else all
+    force: bool = False,
+) -> dict:
+    """Write a generated scene in the 3D-OVS layout: ``OUT`` holds a copy of the scene's images and
+    cameras (every file but the ground truth: region maps, depth, labels, queries) and
+    ``OUT/segmentations/`` with ``classes.txt`` (the names of the regions at ``level``, sorted) and
+    ``<NN>/<class>.png`` (255 where the region map at that level holds the class's region id, 0
+    elsewhere; every class in every listed view). Returns ``{"classes", "views", "level"}``."""
+    from ..data import load_scene
+    from ..data.scene import read_scene_meta
+    from ..io import claim_out_dir, remove_results, write_bytes, write_png, write_text
+
+    scene_dir, out = Path(scene_dir), Path(out)
+    if not (scene_dir / "regions.json").is_file():
+        raise InputError(scene_dir, "not a generated scene with region maps (no regions.json)")
+    if out.resolve() == scene_dir.resolve() or scene_dir.resolve() in out.resolve().parents:
+        raise InputError(out, "the 3D-OVS copy must be written outside the scene folder")
+    scene = load_scene(scene_dir)
+    gt = scene.ground_truth
+    if gt is None:
+        raise InputError(scene_dir, "not a generated scene with region maps (no regions.json)")
+    regions = gt.regions
+    level_names = list(regions.get("levels", ["part", "object", "group"]))
+    if level not in level_names:
+        raise InputError(scene_dir / "regions.json", f"level {level!r} is not one of {', '.join(level_names)}")
+    li = level_names.index(level)
+    chosen = [r for r in regions["regions"] if int(r["level"]) == li]
+    names = [_class_file_name(str(r["name"]), scene_dir / "regions.json") for r in chosen]
+    if not chosen:
+        raise InputError(scene_dir / "regions.json", f"no region at level {level!r}")
+    if len(set(names)) != len(names):
+        raise InputError(scene_dir / "regions.json", f"two regions at level {level!r} share a name")
+    n = len(scene.cameras)
+    if views is None:
+        views = [int(v) for v in read_scene_meta(scene_dir).get("labelled_views") or range(n)]
+    bad = [v for v in views if not 0 <= int(v) < n]
+    if bad:
+        raise InputError(scene_dir, f"views {bad} are not in the scene ({n} views)")
+    views = sorted(dict.fromkeys(int(v) for v in views))
+    copies = sorted(p for p in scene_dir.iterdir() if p.name not in GROUND_TRUTH_NAMES and not p.name.startswith("."))
+    present = claim_out_dir(out, [p.name for p in copies] + ["segmentations"], force=force, resume_flag=None)
+    remove_results(out, present)
+    for src in copies:
+        for f in [src] if src.is_file() else sorted(q for q in src.rglob("*") if q.is_file()):
+            write_bytes(out / f.relative_to(scene_dir), f.read_bytes())
+    seg = out / "segmentations"
+    order = sorted(range(len(chosen)), key=lambda k: names[k])
+    for v in views:
+        ids = np.asarray(gt.region_ids(v))[li]  # [H, W]
+        for k in order:
+            mask = np.where(ids == int(chosen[k]["id"]), 255, 0).astype(np.uint8)
+            write_png(seg / f"{v:02d}" / f"{names[k]}.png", mask)
+    write_text(seg / "classes.txt", "".join(names[k] + "\n" for k in order))
+    return {"classes": [names[k] for k in order], "views": views, "level": level}
+
+
+# ------------------------------------------------------------------------------ a trained run
+def evaluate_run_ovs3d(
+    engine: Any,  # n2f2.query.engine.QueryEngine of the run
+    labels_path: Union[str, Path],  # SCENE or SCENE/segmentations in the 3D-OVS layout
+    *,
+    modes: Optional[list[str]] = None,  # default: every mode the field supports but oracle
+    prediction: Literal["argmax", "threshold"] = "argmax",
+    empty_union: Literal["zero", "skip"] = "zero",
+    progress: bool = True,
+    on_ready: Optional[Callable[[], None]] = None,  # called once the inputs are checked
+) -> dict:
+    """Score a trained run under the 3D-OVS protocol (see the module docstring). Returns the
+    ``eval.json`` dict (format ``n2f2-eval-ovs3d-v1``)."""
+    import time
+
+    from tqdm import tqdm
+
+    from .protocol import resolve_box_size, smoothed_relevancy
+
+    t_start = time.perf_counter()
+    if engine.scene is None:
+        raise InputError(engine.run_dir, "the run does not record its scene folder: pass --scene DIR")
+    supported = list(engine.modes())
+    wanted = list(dict.fromkeys(modes or supported))
+    for m in wanted:
+        if m not in supported:
+            raise InputError(None, f"mode {m!r} does not apply to this {engine.variant!r} field")
+    wanted = [m for m in wanted if m != "oracle"]
+    if not wanted:
+        raise InputError(None, "the 3D-OVS evaluation has no oracle mode: choose composite, explicit or levels")
+    num_views = len(engine.scene.cameras)
+    cam0 = engine.camera(0)[0]
+    labels = read_ovs3d_segmentations(labels_path, size=(cam0.width, cam0.height))
+    for view in labels.views:
+        if not 0 <= view.view_index < num_views:
+            raise InputError(labels.root / view.name, f"view {view.view_index} is not in the scene ({num_views} views)")
+    boxes = {"exact": ProtocolConfig(), "scaled": ProtocolConfig.scaled()}
+    if on_ready is not None:
+        on_ready()
+    classes = list(labels.classes)
+    C = len(classes)
+    scale_modes = [m for m in wanted if m != "composite"]
+    render_modes = (["composite"] if "composite" in wanted else []) + (["oracle"] if scale_modes else [])
+    maps: dict[int, dict[str, dict[str, np.ndarray]]] = {}  # view -> mode -> box -> [C, H, W]
+    chosen: dict[int, dict[str, dict[str, list[int]]]] = {}  # view -> mode -> box -> scale per class
+    for view in tqdm(labels.views, desc="eval 3D-OVS views", unit="view", disable=not progress):
+        vc = engine.render_view(view.view_index, modes=render_modes, rgb=False)
+        H, W = vc.height, vc.width
+        per_mode: dict[str, dict[str, np.ndarray]] = {}
+        picks: dict[str, dict[str, list[int]]] = {}
+        if "composite" in wanted:
+            rel = engine.query(vc, classes, mode="composite").relevancy.float().cpu().numpy()
+            per_mode["composite"] = {b: rel for b in boxes}
+        if scale_modes:
+            kept = {b: np.zeros((C, H, W), np.float32) for b in boxes}
+            levels = {b: [0] * C for b in boxes}
+
+            def scorer(rel: Any, qi: int) -> np.ndarray:  # [S, H, W] -> [S] (the engine's choice is unused)
+                r = rel.detach().float().cpu().numpy()
+                for b, cfg in boxes.items():
+                    size = resolve_box_size(cfg.box_size, W, cfg.box_ref_width)
+                    best = int(np.argmax(smoothed_relevancy(r, size).reshape(len(r), -1).max(axis=1)))
+                    kept[b][qi] = r[best]
+                    levels[b][qi] = best
+                return np.zeros(len(r))
+
+            engine.query(vc, classes, mode="oracle", scorer=scorer)
+            for m in scale_modes:
+                per_mode[m] = kept
+                picks[m] = levels
+        maps[view.view_index] = per_mode
+        chosen[view.view_index] = picks
+
+    scores: dict[str, dict[str, dict]] = {}
+    for m in wanted:
+        scores[m] = {}
+        for b, cfg in boxes.items():
+
+            def score_fn(i: int, names: list, m: str = m, b: str = b) -> np.ndarray:
+                return maps[i][m][b][[classes.index(c) for c in names]]
+
+            s = evaluate_ovs3d(score_fn, labels, num_views, prediction, cfg, empty_union, progress=False).to_dict()
+            if m != "composite":
+                for rec in s["per_view"]:
+                    rec["levels"] = list(chosen[rec["view_index"]][m][b])
+            scores[m][b] = s
+    scale_labels = list(engine.scale_labels)
+    first = scores[wanted[0]]
+    notes = []
+    if first["exact"]["empty_unions"]:
+        notes.append(
+            f"{first['exact']['empty_unions']} (view, class) pair(s) have an empty ground truth and prediction "
+            + ("and score 0 (3D-OVS)" if empty_union == "zero" else "and are left out")
+        )
+    return {
+        "format": OVS3D_FORMAT,
+        "protocol": "3D-OVS",
+        "scene": Path(getattr(engine.scene, "root", "")).name,
+        "run_dir": str(engine.run_dir) if engine.run_dir is not None else "",
+        "scene_dir": str(getattr(engine.scene, "root", "")),
+        "label_dir": str(labels.root),
+        "field": {
+            "variant": engine.variant,
+            "dim": engine.dim,
+            "step": engine.step,
+            "num_scales": len(scale_labels),
+            "scale_labels": scale_labels,
+        },
+        "encoder": dict(engine.meta.get("encoder_spec") or {}),
+        "classes": classes,
+        "views": [v.name for v in labels.views],
+        "prediction": prediction,
+        "modes": wanted,
+        "boxes": {b: {"box_sizes": first[b]["box_sizes"], "majority_radii": first[b]["majority_radii"]} for b in boxes},
+        "scores": scores,
+        "notes": notes,
+        "seconds": time.perf_counter() - t_start,
+    }
+
+
+def ovs3d_markdown(d: dict) -> str:
+    """``eval.md`` of a 3D-OVS evaluation (:func:`evaluate_run_ovs3d`)."""
+    from .reports import _fmt, markdown_table
+
+    boxes = list(d["boxes"])
+    title = {b: f"{b} {','.join(map(str, d['boxes'][b]['box_sizes']))} px" for b in boxes}
+    f = d["field"]
+    rule = (
+        "each pixel takes its most relevant class (3D-OVS's closed-set argmax); pixel accuracy as sklearn's "
+        "accuracy_score on one-hot rows"
+        if d["prediction"] == "argmax"
+        else "per class LangSplat's segmentation rule (box smoothing, threshold 0.4, majority filter)"
+    )
+    out = [
+        f"# n2f2 eval (3D-OVS protocol): {d['scene']}\n\n",
+        f"- run: `{d['run_dir']}`\n- labels: `{d['label_dir']}` ({len(d['views'])} views, {len(d['classes'])} "
+        f"classes)\n- field: {f['variant']}, D = {f['dim']}, k = {f['step']} ({f['num_scales']} scales)\n",
+        f"- prediction: {d['prediction']}: {rule}. IoU per (view, class), an empty union scoring 0 (sklearn's "
+        "jaccard_score); mIoU = mean over (view, class) pairs. Explicit / levels: per class the scale whose "
+        "R' = 0.5 (box(R) + R) peaks highest, under each box size.\n",
+    ]
+    out += [f"- note: {n}\n" for n in d.get("notes", [])]
+    rows = []
+    for m in d["modes"]:
+        s = d["scores"][m]
+        rows.append(
+            [m]
+            + [_fmt(s[b]["miou"], percent=True) for b in boxes]
+            + [_fmt(s[b]["accuracy"], percent=True) for b in boxes]
+        )
+    out.append("\n## mIoU and pixel accuracy\n\n")
+    out.append(
+        markdown_table(
+            ["mode"] + [f"mIoU % ({title[b]})" for b in boxes] + [f"pixel acc. % ({title[b]})" for b in boxes], rows
+        )
+    )
+    out.append("\n## Per class (IoU %, mean over views)\n\n")
+    rows = [
+        [c] + [_fmt(d["scores"][m][b]["per_class_iou"][c], percent=True) for m in d["modes"] for b in boxes]
+        for c in d["classes"]
+    ]
+    out.append(markdown_table(["class"] + [f"{m} {title[b]}" for m in d["modes"] for b in boxes], rows))
+    return "".join(out)
+
+
+def write_ovs3d_outputs(d: dict, out_dir: Union[str, Path]) -> dict[str, Path]:
+    """``eval.json`` and ``eval.md`` of a 3D-OVS evaluation."""
+    from ..io import write_json, write_text
+
+    out = Path(out_dir)
+    paths = {"json": out / "eval.json", "md": out / "eval.md"}
+    write_text(paths["md"], ovs3d_markdown(d))
+    write_json(paths["json"], d)  # last: its presence marks a finished evaluation
+    return paths

@@ -63,6 +63,9 @@ the image (dropped and counted by the protocol); a segment bank of another scene
 Memory: the runner renders each labelled view once and keeps, per view, the chosen maps of every
 mode (``[Q, H, W]`` float32 each, about 9 per view); the all-scale maps are scored per query and
 dropped. On the 160x120 demo that is ~14 MB per view.
+
+(Longer than 600 lines: one pass over the labelled views produces every number above, and this
+docstring is their definition; the tables and plots are in :mod:`.reports`.)
 """
 
 from __future__ import annotations
@@ -83,12 +86,9 @@ from .protocol import (
     PairRecord,
     ProtocolConfig,
     SceneScores,
-    box_filter,
     evaluate_frame_category,
     evaluate_scene,
     frame_targets,
-    max_locations,
-    points_in_boxes,
     resolve_box_size,
     resolve_majority_radius,
 )
@@ -163,12 +163,15 @@ class EvalResult:
     query_kinds: dict[str, str] = dc_field(default_factory=dict)  # query -> part | object | group | ...
     query_kinds_source: str = ""
     budget: Optional[dict] = None  # the loss budget (n2f2.eval.budget), when asked for
+    protocol3d: Optional[dict] = None  # the 3D protocol (n2f2.eval.protocol3d), when asked for
     notes: list[str] = dc_field(default_factory=list)
     seconds: float = 0.0
 
     def to_dict(self) -> dict:
         d = asdict(self)
         d["format"] = "n2f2-eval-v1"
+        if d["protocol3d"] is None:  # only with --protocol both: eval.json is otherwise unchanged
+            del d["protocol3d"]
         d["scores"] = {m: {b: s.to_dict() for b, s in by.items()} for m, by in self.scores.items()}
         return d
 
@@ -352,7 +355,7 @@ def _scale_maps(
             size = resolve_box_size(cfg.box_size, W, cfg.box_ref_width)
             radius = resolve_majority_radius(cfg.majority_radius, W, cfg.box_ref_width)
             res = evaluate_frame_category(r, target.mask, target.boxes, size, cfg.threshold, radius)
-            hits = [points_in_boxes(max_locations(f), target.boxes) for f in box_filter(r, size)]
+            hits = res.hit_per_level
             picks = {
                 "explicit": (res.seg_level, res.loc_level),
                 "levels": (res.seg_level, res.loc_level),
@@ -825,11 +828,8 @@ def kind_scores(pairs: Sequence[PairRecord], ap_pairs: Sequence[Mapping], kinds:
 
 
 def _scale_labels(engine: Any) -> list[str]:
-    if engine.variant == "levels":
-        from ..query.engine import LEVEL_NAMES
-
-        return list(LEVEL_NAMES)
-    return [f"d={d}" for d in engine.scale_dims]
+    """The names of the field's scales (its variant's: prefix lengths, or the 3 levels)."""
+    return list(engine.scale_labels)
 
 
 # ------------------------------------------------------------------------------ comparison
@@ -862,323 +862,3 @@ def compare_evals(reference: Mapping, current: Mapping, n: int = 3) -> dict[str,
                 {q: v["iou"] for q, v in ref.items()}, {q: v["iou"] for q, v in queries.items()}, n=n
             )
     return out
-
-
-# ------------------------------------------------------------------------------ reports
-def _pct(v: Any) -> str:
-    from .reports import _fmt
-
-    return _fmt(v, percent=True)
-
-
-def _box_title(result: Mapping, box: str) -> str:
-    """ "exact 30 px" / "scaled 5 px" (sizes actually used, from the protocol's record)."""
-    return f"{box} {','.join(str(s) for s in result['boxes'][box]['box_sizes'])} px"
-
-
-def _radii(result: Mapping, box: str) -> str:
-    return ",".join(str(s) for s in result["boxes"][box]["majority_radii"])
-
-
-def _at(d: Mapping, k: int) -> Any:  # K-keyed dicts have int keys in memory, str keys after JSON
-    return d[k] if k in d else d[str(k)]
-
-
-def markdown_report(result: Mapping, deltas: Optional[Mapping] = None, reference: str = "") -> str:
-    """``eval.md`` from an ``eval.json`` dict (and optional :func:`compare_evals` output)."""
-    from .reports import markdown_table
-
-    boxes = list(result["boxes"])
-    title = {b: _box_title(result, b) for b in boxes}
-    radii = {b: _radii(result, b) for b in boxes}
-    modes = result["modes"]
-    out = [
-        f"# n2f2 eval: {result['scene']}\n",
-        f"- run: `{result['run_dir']}`\n- labels: `{result['label_dir']}`\n"
-        f"- field: {result['field']['variant']}, D = {result['field']['dim']}, k = {result['field']['step']} "
-        f"({result['field']['num_scales']} scales)\n"
-        f"- text encoder / teacher: {result['encoder']['description']}\n"
-        f"- protocol: LangSplat's LERF-OVS rules. Box sizes, always both: **{title['exact']}** "
-        f"(LangSplat's, sized for ~986 px-wide images; majority radius {radii['exact']}) and "
-        f"**{title['scaled']}** (round(30 W / 986); majority radius {radii['scaled']}).\n",
-    ]
-    n_scales = result["field"]["num_scales"]
-    about = {
-        "composite": "one composite-embedding map per query (paper Sec. 3.3)",
-        "explicit": f"LangSplat's level choice over the {n_scales} scales (max R' for segmentation, "
-        "max box(R) for localization)",
-        "levels": "LangSplat's level choice over the 3 levels of the baseline field",
-        "oracle": f"per pair the best of the {n_scales} scales for each task (best IoU; any scale that "
-        "localizes): an upper bound of the explicit choice, not of composite; with many "
-        "scales the localization bound is loose",
-    }
-    for m in modes:
-        out.append(f"- mode {m}: {about[m]}\n")
-    for note in result.get("notes", []):
-        out.append(f"- note: {note}\n")
-
-    out.append("\n## Localization and segmentation, and mAP\n\n")
-    first = result["scores"][modes[0]]
-    ap = result.get("ap") or {}
-    rows = []
-    for m in modes:
-        s = result["scores"][m]
-        rows.append(
-            [m]
-            + [_pct(s[b]["loc_accuracy"]) for b in boxes]
-            + [_pct(s[b]["miou"]) for b in boxes]
-            + [_pct(ap[m][b]["map"]) if m in ap else "-" for b in boxes]
-            + [s["exact"]["num_pairs"]]
-        )
-    out.append(
-        markdown_table(
-            ["mode"]
-            + [f"loc. % ({title[b]})" for b in boxes]
-            + [f"mIoU % ({title[b]})" for b in boxes]
-            + [f"mAP % ({title[b]} choice)" for b in boxes]
-            + ["pairs"],
-            rows,
-        )
-    )
-    if ap:
-        a = next(iter(next(iter(ap.values())).values()))
-        out.append(
-            f"\nmAP: average precision of ranking each labelled view's pixels by the mode's segmentation "
-            f"map (ties as one threshold), mean over pairs; against the exact mask in {a['exact_masks']} "
-            f"of {a['num_pairs']} pairs, the label polygons otherwise. The box only changes which scale "
-            "explicit / levels / oracle take.\n"
-        )
-    out.append(
-        f"\nScene {result['scene']}: {first['exact']['num_frames']} labelled frames, "
-        f"{first['exact']['num_pairs']} (frame, query) pairs; skipped frames: "
-        f"{len(first['exact']['skipped_frames'])}, objects outside the image: "
-        f"{first['exact']['skipped_objects']}, empty pairs: {first['exact']['skipped_categories']}.\n"
-    )
-
-    out.append("\n## Simple vs compound queries (paper Table 7)\n\n")
-    out.append(f"Query types from {result['query_types_source']}.\n\n")
-    rows = []
-    for m in modes:
-        for b in boxes:
-            sp = result["split"][m][b]
-            rows.append(
-                [m, title[b]]
-                + [_pct(sp[k]["miou"]) for k in ("simple", "compound")]
-                + [_pct(sp[k]["loc_accuracy"]) for k in ("simple", "compound")]
-                + [sp[k]["pairs"] for k in QUERY_TYPES]
-            )
-    out.append(
-        markdown_table(
-            [
-                "mode",
-                "box",
-                "simple mIoU %",
-                "compound mIoU %",
-                "simple loc. %",
-                "compound loc. %",
-                "simple pairs",
-                "compound pairs",
-                "unknown pairs",
-            ],
-            rows,
-            ["l", "l"] + ["r"] * 7,
-        )
-    )
-
-    if result.get("kinds"):
-        out.append("\n## By query kind\n\n")
-        out.append(f"Query kinds from {result.get('query_kinds_source')}.\n\n")
-        shown = [k for k in QUERY_KINDS if any(result["kinds"][m][b][k]["pairs"] for m in modes for b in boxes)]
-        rows = []
-        for m in modes:
-            for b in boxes:
-                kd = result["kinds"][m][b]
-                rows.append(
-                    [m, title[b]]
-                    + [f"{_pct(kd[k]['miou'])} / {_pct(kd[k]['loc_accuracy'])} / {_pct(kd[k]['map'])}" for k in shown]
-                )
-        counts = ", ".join(f"{k} {result['kinds'][modes[0]]['exact'][k]['pairs']}" for k in shown)
-        out.append(
-            markdown_table(
-                ["mode", "box"] + [f"{k}: mIoU / loc. / mAP %" for k in shown], rows, ["l", "l"] + ["r"] * len(shown)
-            )
-        )
-        out.append(f"\nPairs per kind: {counts}.\n")
-
-    if result.get("budget"):
-        from .budget import budget_markdown
-
-        out.append(budget_markdown(result["budget"]))
-
-    out.append("\n## Retrieval R@K over the segment pool\n\n")
-    if result["retrieval"]:
-        any_r = next(iter(next(iter(result["retrieval"].values())).values()))
-        ks = any_r["ks"]
-        out.append(
-            f"Pool: the segment bank's segments of each labelled view ({result['bank_dir']}); a segment "
-            f"matches when its IoU with the label mask is >= {any_r['iou_threshold']}; a pair is "
-            "retrieved at K when a matching segment ranks in the top K by mean relevancy (ties count "
-            "against it). Pairs with no matching segment are skipped and counted.\n\n"
-        )
-        rows = []
-        for m in modes:
-            for b in boxes:
-                r = result["retrieval"][m][b]
-                rows.append(
-                    [m, title[b] if m != "composite" else "any"]
-                    + [_pct(_at(r["recall"], k)) for k in ks]
-                    + [_fmt_num(r["mean_first_rank"]), r["num_pairs"], len(r["skipped"])]
-                )
-                if m == "composite":
-                    break  # the composite map does not depend on the box
-        out.append(
-            markdown_table(
-                ["mode", "box"]
-                + [f"R@{k} %" for k in ks]
-                + ["mean first rank", "pairs", "skipped (no matching segment)"],
-                rows,
-                ["l", "l"] + ["r"] * (len(ks) + 3),
-            )
-        )
-    else:
-        out.append("Not computed (no segment bank).\n")
-
-    out.append(
-        "\n## Per query (IoU %, and AP % of the exact box's choice; mean over the frames a query is labelled in)\n\n"
-    )
-    queries = sorted(result["query_types"], key=lambda q: (result["query_types"][q], q))
-    rows = []
-    for q in queries:
-        row = [q, result["query_types"][q]]
-        frames = None
-        for m in modes:
-            for b in boxes:
-                v = result["per_query"][m][b].get(q)
-                row.append(_pct(v["iou"]) if v else "-")
-                frames = frames or (v["frames"] if v else None)
-        for m in modes:  # AP of the exact box's choice
-            v = result["per_query"][m]["exact"].get(q)
-            row.append(_pct(v.get("ap", math.nan)) if v else "-")
-        kind = (result.get("query_kinds") or {}).get(q, "unknown")
-        rows.append(row[:2] + [kind, frames if frames is not None else 0] + row[2:])
-    out.append(
-        markdown_table(
-            ["query", "type", "kind", "frames"]
-            + [f"{m} {title[b]}" for m in modes for b in boxes]
-            + [f"{m} AP" for m in modes],
-            rows,
-            ["l", "l", "l"] + ["r"] * (1 + len(modes) * (len(boxes) + 1)),
-        )
-    )
-
-    if deltas:
-        from .reports import deltas_table
-
-        out.append(
-            "\n## Per-query IoU delta: this run - reference (paper Table 8: top and bottom 3)\n\n"
-            f"Reference: {reference}.\n"
-        )
-        for m, by in deltas.items():
-            for b, d in by.items():
-                out.append(
-                    f"\n### {m}, {title[b]}: mean delta {_signed(d.mean_delta)} points over "
-                    f"{len(d.deltas)} shared queries\n\n"
-                )
-                out.append(deltas_table(d, name_a="reference IoU %", name_b="this run IoU %"))
-                if d.only_a or d.only_b:
-                    out.append(
-                        f"\nQueries only in the reference: {len(d.only_a)}; only in this run: {len(d.only_b)}.\n"
-                    )
-    return "".join(out)
-
-
-def _fmt_num(v: Any) -> str:
-    from .reports import _fmt
-
-    return _fmt(v, digits=2)
-
-
-def _signed(v: float) -> str:
-    return "n/a" if not np.isfinite(v) else f"{100 * v:+.1f}"
-
-
-def plot_recall_curves(path: Union[str, Path], curves: Mapping[str, Mapping[int, float]], title: str = "R@K") -> Path:
-    """R@K against K, one line per (mode, box), written as PNG."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    from ..io import atomic_path
-
-    fig = Figure(figsize=(4.5, 3.2))
-    FigureCanvasAgg(fig)
-    ax = fig.add_subplot(1, 1, 1)
-    for name, rec in curves.items():
-        ks = sorted(int(k) for k in rec)
-        ax.plot(ks, [100 * rec[k] for k in ks], marker="o", label=name)
-    ax.set_xlabel("K")
-    ax.set_ylabel("R@K %")
-    ax.set_ylim(0, 100)
-    ax.set_title(title)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize="small")
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=120, bbox_inches="tight")
-    return Path(path)
-
-
-def write_eval_outputs(
-    result: EvalResult, out_dir: Union[str, Path], compare: Optional[Union[str, Path]] = None
-) -> dict[str, Path]:
-    """Write ``eval.json``, ``eval.md`` and the PNG plots into ``out_dir``; returns the paths."""
-    from ..io import write_json, write_text
-    from .reports import plot_grouped_bars, plot_level_histogram, plot_query_deltas
-
-    out = Path(out_dir)
-    data = result.to_dict()
-    deltas, reference = None, ""
-    if compare is not None:
-        other = load_eval(compare)
-        reference = f"`{compare}` (run `{other.get('run_dir')}`)"
-        deltas = compare_evals(other, data)
-        data["compare"] = {
-            "reference": str(compare),
-            "reference_run": other.get("run_dir"),
-            "iou_deltas": {m: {b: d.to_dict() for b, d in by.items()} for m, by in deltas.items()},
-        }
-    paths = {"json": out / "eval.json", "md": out / "eval.md"}
-    title = {b: _box_title(data, b) for b in data["boxes"]}
-    modes = result.modes
-    bars = {}
-    for b in data["boxes"]:
-        bars[f"loc. ({title[b]})"] = {m: result.scores[m][b].loc_accuracy for m in modes}
-        bars[f"mIoU ({title[b]})"] = {m: result.scores[m][b].miou for m in modes}
-    paths["scores_png"] = plot_grouped_bars(out / "scores.png", bars, title=f"{result.scene}: per mode")
-    split = {
-        k: {f"{m} {title[b]}": result.split[m][b][k]["miou"] for m in modes for b in data["boxes"]}
-        for k in ("simple", "compound")
-        if any(result.split[m][b][k]["pairs"] for m in modes for b in data["boxes"])
-    }
-    if split:
-        paths["split_png"] = plot_grouped_bars(out / "simple_compound.png", split, title="mIoU by query type")
-    if result.retrieval:
-        curves = {}
-        for m in modes:
-            for b in data["boxes"]:
-                curves[m if m == "composite" else f"{m} ({title[b]})"] = result.retrieval[m][b].recall
-        paths["recall_png"] = plot_recall_curves(out / "recall_at_k.png", curves)
-    for m in modes:
-        if m in SCALE_MODES:
-            for b in data["boxes"]:
-                paths[f"levels_{m}_{b}"] = plot_level_histogram(
-                    out / f"scales_{m}_{b}.png", result.scores[m][b], title=f"{m}: chosen scale ({title[b]})"
-                )
-    if deltas:
-        for m, by in deltas.items():
-            for b, d in by.items():
-                if d.deltas:
-                    paths[f"delta_{m}_{b}"] = plot_query_deltas(
-                        out / f"delta_{m}_{b}.png", d, title=f"IoU delta vs reference: {m}, {title[b]}"
-                    )
-    write_text(paths["md"], markdown_report(data, deltas, reference))
-    write_json(paths["json"], data)  # last: its presence marks a finished evaluation
-    return paths

@@ -78,7 +78,8 @@ def _evaluate(
     temperature: float,
     encoder: Any,
 ) -> None:
-    from ..eval.runner import EvalConfig, evaluate_run, markdown_report
+    from ..eval.reports import markdown_report
+    from ..eval.runner import EvalConfig, evaluate_run
     from ..io import write_json, write_text
     from ..query.engine import QueryConfig
 

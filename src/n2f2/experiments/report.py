@@ -9,9 +9,8 @@ from typing import Any, Mapping, Optional, Sequence
 
 import numpy as np
 
+from ..eval.reports import box_title, pct
 from ..eval.runner import BOXES
-from ..eval.runner import _box_title as box_title
-from ..eval.runner import _pct as pct
 from .claims import convergence, score, signed_pts, tag
 from .variants import PAPER_STEPS, VARIANTS
 

@@ -16,23 +16,26 @@ finite state.
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import ClassVar, Optional, Union
+from typing import Optional, Union
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ..config import ConfigDict, option
 from ..data.scene import Scene
 from ..errors import InputError
 from ..io import load_torch, save_torch, write_json
-from ..validate import MAX_BAD_STEPS, NonFiniteError, nonneg_float, nonneg_int, positive_int
+from ..validate import MAX_BAD_STEPS, NonFiniteError
+from .fit_config import (
+    FitConfig,
+    init_kind,
+    split_views,
+)
 from .init import (
     background_shell,
     init_from_points,
@@ -41,7 +44,16 @@ from .init import (
     random_points_seen,
     uncovered_cells,
 )
-from .model import Gaussians, inverse_sigmoid, quat_to_rotmat, rgb_to_sh
+from .model import Gaussians, rgb_to_sh
+from .optim import (
+    DensifyStats,
+    GaussianAdam,
+    densify_and_prune,
+    learning_rates,
+    photometric_loss,
+    psnr,
+    reset_opacity,
+)
 from .ply import write_ply
 
 CHECKPOINT_NAME = "checkpoint.pt"
@@ -49,258 +61,6 @@ PLY_NAME = "gaussians.ply"
 REPORT_NAME = "fit_report.json"
 TEST_RENDERS_DIR = "test_views"  # held-out renders beside their photos (PNG + float32 .npy)
 _CHECKPOINT_FORMAT = "n2f2-gaussians-checkpoint-v1"
-
-
-# ------------------------------------------------------------------------------------ config
-@dataclass
-class FitConfig(ConfigDict):
-    """Hyper-parameters of :func:`fit_gaussians`. Defaults are the 3DGS paper's
-    (``arguments/__init__.py`` of the reference code); see :meth:`cpu` and :meth:`paper`.
-
-    Step counters are 1-based as in 3DGS: an event "every n steps" happens after step n, 2n..."""
-
-    PRESETS: ClassVar[tuple[str, ...]] = ("cpu", "paper")  # see the static methods of those names
-
-    # Fields declared with option() are flags of `n2f2 fit-gaussians`; their help lists each
-    # preset's value.
-    steps: int = option(
-        30_000,
-        help="optimisation steps of the Gaussian fit; the cpu preset sizes its count to the scene (shown: the "
-        "demo scene's) and keeps its schedule's fractions of a count given here",
-        type=positive_int,
-    )
-    sh_degree: int = 3  # maximum SH degree of the model
-    sh_degree_interval: int = 1000  # raise the active SH degree by one every this many steps
-    lambda_dssim: float = 0.2
-    # Weight of the depth-spread regulariser: the pixel mean of sqrt(sum_i w_i (z_i - zbar)^2),
-    # z in units of the extent, i.e. the spread of the depths blended into a pixel (times
-    # sqrt(alpha)). It pulls the Gaussians along a ray onto one depth, like Mip-NeRF 360's
-    # distortion loss (see FitConfig.cpu for what it does on the demo scene). The square root
-    # keeps pixels on depth edges (table rim against the far floor) from dominating; the
-    # squared form cost 2-3x more PSNR for the same depth gain. 0: off, as in 3DGS.
-    depth_spread_weight: float = option(
-        0.0,
-        help="weight of the depth-spread regulariser, which pulls the Gaussians a ray meets onto one depth; "
-        "0 = off, as 3DGS",
-        type=nonneg_float,
-        flag="depth-spread",
-        metavar="W",
-    )
-    background: tuple[float, float, float] = (0.0, 0.0, 0.0)  # colour behind the Gaussians
-    # Replace ``background`` at the start of a fit by the median colour of the training views'
-    # border pixels (recorded in the checkpoint and report). A plain backdrop then needs no
-    # Gaussians: painting it with them on a black background filled the held-out views of a
-    # real object capture with backdrop-coloured floaters (17.5 vs 21.6 dB after 1000 steps).
-    background_from_images: bool = False
-    # Learn the background as a colour over ray directions (spherical harmonics of this degree,
-    # started at ``background``), an environment behind every Gaussian: a real backdrop shades
-    # smoothly (light falloff, shadows) where a constant leaves most of a capture's error.
-    # Saved as background.json beside the PLY. -1: the constant ``background``, as 3DGS.
-    background_sh_degree: int = -1
-    background_lr: float = 0.005
-
-    # Adam learning rates. Positions are scaled by the scene extent and decay exponentially
-    # from means_lr_init to means_lr_final over means_lr_max_steps.
-    means_lr_init: float = 1.6e-4
-    means_lr_final: float = 1.6e-6
-    means_lr_max_steps: int = 30_000
-    sh_dc_lr: float = 2.5e-3
-    sh_rest_lr: float = 2.5e-3 / 20.0
-    opacity_lr: float = 0.05
-    scaling_lr: float = 5e-3
-    rotation_lr: float = 1e-3
-    adam_eps: float = 1e-15
-
-    # Adaptive density control.
-    densify_from: int = 500
-    densify_until: int = 15_000
-    densify_every: int = 100
-    densify_grad_threshold: float = 2e-4  # on the NDC-space positional gradient, as 3DGS
-    percent_dense: float = 0.01  # clone below / split above this fraction of the extent
-    opacity_reset_every: int = 3000  # 0: never (and then large Gaussians are never pruned)
-    prune_opacity: float = 0.005
-    prune_world_size: float = 0.1  # prune Gaussians larger than this x extent (after 1st reset)
-    max_gaussians: Optional[int] = option(
-        None,
-        help="cap on the Gaussian count, densification keeping the largest gradients; the cpu preset sizes "
-        "it to the views' pixels (shown: the demo scene's)",
-        type=positive_int,
-        metavar="N",
-    )
-    # Also split Gaussians whose screen radius exceeded this fraction of the image size since the
-    # last densification (gsplat's grow_scale2d); None: off, as in 3DGS.
-    split_screen_size: Optional[float] = None
-
-    # Initialisation when the scene has no sparse points (random inside the frusta).
-    random_init_count: int = 100_000
-    random_init_depth: tuple[float, float] = (0.2, 1.6)  # z-depth range, x extent
-    # Largest initial scale, x extent. k-NN distances of sparse or random points can be huge
-    # (far walls with few points), and one such Gaussian near a camera covers the whole screen
-    # and makes a step many times slower. None: no clamp, as 3DGS.
-    init_max_scale: Optional[float] = None
-    # With sparse points, also start random Gaussians where they miss: plain walls and backdrops
-    # get no SfM points, and densification only grows Gaussians near existing ones. This many
-    # per point, times the fraction of the training views' grid cells (16 along the longer side)
-    # that no point projects into, drawn through random pixels of those cells (coloured by
-    # them) onto a sphere behind every camera (init.background_shell). Generated scenes, whose
-    # points cover every surface, get almost none. 0: points only, as 3DGS.
-    init_extra_random: float = 0.0
-    # With sparse points, also start this many random Gaussians inside the views'
-    # overlap (drawn as for a random initialisation: ``random_init_depth``,
-    # ``random_init_min_seen``, pixel colours): SfM triangulates no point on textureless
-    # surfaces near the object (a mat, a tabletop), and nothing else would grow there. 0: points only.
-    init_extra_seen: int = 0
-    # Without sparse points: the fraction of the random Gaussians put on that sphere, and the
-    # fraction of the training views each of the others must be seen in (0: anywhere in a frustum).
-    random_init_shell: float = 0.0
-    random_init_min_seen: float = 0.0
-
-    # Coarse to fine: up to step ``coarse_until[i] * steps`` the views are rendered and compared
-    # at a further ``coarse_downscale[i]`` (images area-averaged). A step's cost scales with its
-    # pixels, and the early model is blurry anyway. Empty: full resolution throughout, as 3DGS.
-    coarse_until: tuple[float, ...] = ()
-    coarse_downscale: tuple[float, ...] = ()
-    # Prune Gaussians whose screen radius exceeded this fraction of the image size since the
-    # last densification (gsplat's prune_scale2d), bounding the screen area any one can cover.
-    # None: off, as in 3DGS before its first opacity reset.
-    prune_screen_size: Optional[float] = None
-
-    # Evaluation and bookkeeping.
-    test_every: int = 8  # hold out every n-th view when scene.json lists no test views; 0: none
-    checkpoint_every: int = option(
-        1000, help="write a checkpoint every N steps; 0: only at the end", type=nonneg_int, metavar="N"
-    )
-    seed: int = 0
-    device: str = "cpu"
-    log_every: int = 10  # loss-curve sampling and progress-bar refresh
-
-    @staticmethod
-    def paper() -> "FitConfig":
-        """The 30k-step schedule of the 3DGS paper (for GPU users)."""
-        return FitConfig()
-
-    def sized_for(
-        self, scene: Scene, steps: Optional[int] = None, init: Union[None, str, Gaussians] = None
-    ) -> "FitConfig":
-        """This schedule with its scene-dependent constants derived from ``scene`` (the cpu
-        preset's rule; the constants above give the demo scene's 1500 steps and 12k cap):
-
-        * Gaussian cap: ``GAUSSIANS_PER_PIXEL`` per pixel of a (median) view, the detail an
-          image can show;
-        * steps: ``EPOCHS`` passes over the training views, within [MIN_STEPS, MAX_STEPS];
-          the densification window, SH schedule and position-rate decay keep their fractions
-          of the run (also when ``steps`` is given);
-        * views larger than ``COARSE_PIXELS`` are fitted at about that many pixels for the
-          first ``COARSE_FRACTION`` of the steps (a step's cost scales with its pixels);
-        * the background is learned only for a backdrop without sparse points
-          (``BACKDROP_UNCOVERED``); otherwise it is black, as 3DGS;
-        * a random initialisation (``init`` as :func:`fit_gaussians` takes it: ``"random"``, or
-          ``None`` on a scene without sparse points) resets opacities every
-          ``RANDOM_INIT_RESET_FRACTION`` of the steps, as 3DGS does on every scene: random
-          Gaussians that only some training views constrain become floaters in front of the
-          others, and only a reset clears them;
-        * sparse points that leave a backdrop uncovered get ``BACKDROP_EXTRA_SEEN`` x
-          ``random_init_count`` random Gaussians where the views overlap, and the same resets
-          (points alone, on generated scenes, do better without resets; see :meth:`cpu`)."""
-        train, _ = split_views(scene, self.test_every)
-        cams = [scene.cameras[i] for i in train]
-        if _has_points(scene):
-            points = scene.points
-            assert points is not None  # _has_points checked it
-            uncovered = float(np.mean([uncovered_cells(points, c).mean() for c in cams]))
-        else:
-            uncovered = 1.0
-        backdrop = uncovered > BACKDROP_UNCOVERED
-        pixels = float(np.median([c.width * c.height for c in scene.cameras]))
-        if steps is None:
-            steps = int(np.clip(round(EPOCHS * len(train), -2), MIN_STEPS, MAX_STEPS))
-        ref = FitConfig.cpu()  # the fractions of the 1500-step schedule
-        frac = steps / ref.steps
-        kind = init_kind(scene, init)
-        # Random Gaussians (all of them, or beside points that miss a backdrop) need resets.
-        extra_seen = round(BACKDROP_EXTRA_SEEN * self.random_init_count) if backdrop and kind == "points" else 0
-        random_part = kind == "random" or extra_seen > 0
-        reset = int(round(RANDOM_INIT_RESET_FRACTION * steps, -2)) if random_part else self.opacity_reset_every
-        coarse = math.sqrt(pixels / COARSE_PIXELS)
-        return replace(
-            self,
-            steps=steps,
-            max_gaussians=max(2000, int(round(GAUSSIANS_PER_PIXEL * pixels))),
-            means_lr_max_steps=steps,
-            sh_degree_interval=max(1, round(ref.sh_degree_interval * frac)),
-            densify_from=round(ref.densify_from * frac),
-            densify_until=round(ref.densify_until * frac),
-            coarse_until=(COARSE_FRACTION,) if coarse > 1.25 else (),
-            coarse_downscale=(coarse,) if coarse > 1.25 else (),
-            background_from_images=self.background_from_images and backdrop,
-            background_sh_degree=self.background_sh_degree if backdrop else -1,
-            opacity_reset_every=reset,
-            init_extra_seen=extra_seen or self.init_extra_seen,
-        )
-
-    @staticmethod
-    def cpu() -> "FitConfig":
-        """A short schedule for small scenes on a CPU (the built-in demo scene in under 1.5
-        minutes on 2 cores): fewer steps, earlier and capped densification, faster SH schedule;
-        the decay of the position learning rate is compressed to the shorter run.
-
-        Two 3DGS rules are off because a 1500-step run has no time to recover from them: no
-        opacity reset (3DGS resets every 3000 steps and trains 27k more), and so, as in 3DGS
-        before its first reset, no pruning of Gaussians larger than 0.1 x extent (the far floor
-        and wall need large ones).
-
-        One rule is added: the depth-spread regulariser (``depth_spread_weight=1.0``), because
-        segment lifting needs the rendered depth; 1.0 keeps the demo's held-out depth error under
-        2 % of the extent and its PSNR over 27 dB. It fixes the surfaces seen with parallax; the
-        far floor and walls, seen by the ring of cameras at low parallax, stay off with or
-        without it.
-
-        For scenes it was not tuned on (real photos, captures without sparse points): initial
-        scales at most 0.1 x extent (the size 3DGS prunes above), and the background learned
-        over ray directions from the views' border colour (``background_sh_degree=2``) where the
-        sparse points leave a backdrop uncovered. ``sized_for`` then fits steps, cap, schedule
-        and initialisation to the scene. The measurements behind each rule are in
-        docs/measurements.md ("The cpu fit preset")."""
-        return FitConfig(
-            steps=1500,
-            depth_spread_weight=1.0,
-            background_from_images=True,
-            background_sh_degree=2,
-            random_init_min_seen=0.5,
-            init_max_scale=0.1,
-            sh_degree_interval=400,
-            means_lr_max_steps=1500,
-            densify_from=200,
-            densify_until=1100,
-            densify_every=100,
-            opacity_reset_every=0,
-            max_gaussians=12_000,
-            random_init_count=5000,
-            checkpoint_every=500,
-        )
-
-
-# How the cpu preset sizes itself to a scene (FitConfig.sized_for).
-GAUSSIANS_PER_PIXEL = 0.625  # Gaussian cap per pixel of one view (160x120 -> 12k)
-EPOCHS = 43.0  # passes over the training views (35 views -> 1500 steps; rounded to 100s)
-MIN_STEPS, MAX_STEPS = 1000, 2000  # the upper bound keeps a 70-view, 370x250 capture near 10 min on 2 cores
-COARSE_PIXELS = 25_000  # views larger than this start coarse, at about this many pixels
-COARSE_FRACTION = 0.5  # ... for this fraction of the steps
-# Learn the background (border colour, then SH over directions) only when the sparse points
-# leave more than this fraction of the training views' grid cells empty, or there are none:
-# a backdrop SfM could not triangulate. The generated layouts' points leave 1-3 % empty (their
-# walls are surfaces; a learned background cost the tabletop 1 dB), real object captures ~70 %.
-BACKDROP_UNCOVERED = 0.1
-# Opacity reset period of a random initialisation, as a fraction of the steps: twice inside the
-# densification window (which ends at 73 % of the run), the second leaving 30 % of the run to
-# recover (3DGS's last reset, at 12k of 30k steps, leaves 60 %).
-RANDOM_INIT_RESET_FRACTION = 0.35
-# Sparse points that leave a backdrop uncovered (a real object capture: SfM triangulates nothing
-# on the plain mat or table around the object) are joined by this many times
-# ``random_init_count`` random Gaussians inside the views' overlap (``init_extra_seen``), and the
-# fit then resets opacities as a random initialisation does (docs/measurements.md, "Sparse
-# points and random Gaussians").
-BACKDROP_EXTRA_SEEN = 2.0
 
 
 @dataclass
@@ -330,282 +90,7 @@ class FitReport:
         return asdict(self)
 
 
-# ------------------------------------------------------------------------------------ losses
-def _gaussian_1d(size: int, sigma: float, device, dtype) -> Tensor:  # [size], sums to 1
-    x = torch.arange(size, dtype=dtype, device=device) - (size - 1) / 2
-    g = torch.exp(-(x**2) / (2 * sigma**2))
-    return g / g.sum()
-
-
-def ssim(
-    img1: Tensor,  # [H, W, C]
-    img2: Tensor,  # [H, W, C]
-    window_size: int = 11,
-    sigma: float = 1.5,
-) -> Tensor:  # [] mean SSIM
-    """Mean SSIM with an 11x11 Gaussian window (sigma 1.5), zero padding, as 3DGS's ``ssim``.
-
-    The window is separable, so it is applied as a 1x11 then an 11x1 pass (with zero padding
-    this is the same sum as the 2D window), to the five maps at once: on a CPU the 2D grouped
-    convolution cost ~10x more and was a quarter of a fitting step at 370x250 pixels."""
-    c = img1.shape[-1]
-    a = img1.permute(2, 0, 1)
-    b = img2.permute(2, 0, 1)
-    maps = torch.cat([a, b, a * a, b * b, a * b])[None]  # [1, 5C, H, W]
-    g = _gaussian_1d(window_size, sigma, a.device, a.dtype)
-    pad = window_size // 2
-    k = 5 * c
-    maps = F.conv2d(maps, g.view(1, 1, 1, -1).expand(k, 1, 1, window_size), padding=(0, pad), groups=k)
-    maps = F.conv2d(maps, g.view(1, 1, -1, 1).expand(k, 1, window_size, 1), padding=(pad, 0), groups=k)
-    mu1, mu2, e11, e22, e12 = maps[0].split(c)
-    mu1_sq, mu2_sq, mu12 = mu1 * mu1, mu2 * mu2, mu1 * mu2
-    s1, s2, s12 = e11 - mu1_sq, e22 - mu2_sq, e12 - mu12
-    c1, c2 = 0.01**2, 0.03**2
-    m = ((2 * mu12 + c1) * (2 * s12 + c2)) / ((mu1_sq + mu2_sq + c1) * (s1 + s2 + c2))
-    return m.mean()
-
-
-def psnr(img1: Tensor, img2: Tensor) -> float:  # [H, W, C] each, values in [0, 1]
-    mse = float(((img1 - img2) ** 2).mean())
-    return float("inf") if mse == 0 else -10.0 * math.log10(mse)
-
-
-def photometric_loss(render: Tensor, target: Tensor, lambda_dssim: float) -> Tensor:  # [H, W, 3] each
-    """3DGS's ``(1 - lambda) L1 + lambda (1 - SSIM)``."""
-    l1 = (render - target).abs().mean()
-    return (1.0 - lambda_dssim) * l1 + lambda_dssim * (1.0 - ssim(render, target))
-
-
-# ------------------------------------------------------------------------------------ optimiser
-class GaussianAdam:
-    """Adam over the named per-Gaussian parameters, with state kept as plain row-aligned tensors
-    so densification can index, extend and reset it (as 3DGS edits ``optimizer.state``).
-
-    Learning rates may be tensors broadcastable to the parameter (the SH tensor uses one rate
-    for the DC coefficient and one for the rest). Matches ``torch.optim.Adam`` (no weight decay).
-    A step is taken only when it keeps every value finite."""
-
-    def __init__(self, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-15) -> None:
-        self.betas = betas
-        self.eps = eps
-        self.exp_avg: dict[str, Tensor] = {}
-        self.exp_avg_sq: dict[str, Tensor] = {}
-        self.step_count: dict[str, int] = {}
-
-    @torch.no_grad()
-    def step(self, params: dict[str, Tensor], lrs: dict[str, Union[float, Tensor]]) -> bool:
-        """One Adam step for every parameter that has a gradient. Returns False, changing
-        nothing, when a gradient is not finite or so large that its square overflows (the only
-        ways a step from a finite state can produce a non-finite one)."""
-        b1, b2 = self.betas
-        live = {name: p for name, p in params.items() if p.grad is not None}
-        limit = math.sqrt(torch.finfo(torch.float32).max) / 16.0
-        for p in live.values():
-            grad = p.grad
-            assert grad is not None  # live holds only parameters with a gradient
-            if not bool(torch.isfinite(grad).all()) or bool((grad.abs() > limit).any()):
-                return False
-        for name, p in live.items():
-            g = p.grad
-            assert g is not None  # as above
-            if name not in self.exp_avg:
-                self.exp_avg[name], self.exp_avg_sq[name] = torch.zeros_like(p), torch.zeros_like(p)
-            m, v = self.exp_avg[name], self.exp_avg_sq[name]
-            t = self.step_count.get(name, 0) + 1
-            self.step_count[name] = t
-            m.mul_(b1).add_(g, alpha=1 - b1)
-            v.mul_(b2).addcmul_(g, g, value=1 - b2)
-            bc1, bc2 = 1 - b1**t, 1 - b2**t
-            # torch.optim.Adam: p -= lr / bc1 * m / (sqrt(v) / sqrt(bc2) + eps)
-            update = m / v.sqrt().div_(math.sqrt(bc2)).add_(self.eps)
-            lr = lrs[name]
-            if isinstance(lr, Tensor):
-                p.sub_(update.mul_(lr / bc1))
-            else:
-                p.sub_(update, alpha=lr / bc1)
-        return True
-
-    def _moments(self) -> list[dict[str, Tensor]]:
-        return [self.exp_avg, self.exp_avg_sq]
-
-    def index_rows(self, rows: Tensor) -> None:  # [M] long or [N] bool
-        """Keep (or gather) rows of every state tensor, as the parameters were."""
-        for d in self._moments():
-            for name in d:
-                d[name] = d[name][rows]
-
-    def append_zero_rows(self, n: int) -> None:
-        """New Gaussians start with zero moments (3DGS ``cat_tensors_to_optimizer``)."""
-        for d in self._moments():
-            for name, t in d.items():
-                d[name] = torch.cat([t, t.new_zeros((n,) + tuple(t.shape[1:]))])
-
-    def reset(self, name: str) -> None:
-        for d in self._moments():
-            if name in d:
-                d[name] = torch.zeros_like(d[name])
-
-    def state_dict(self) -> dict:
-        return {
-            "exp_avg": dict(self.exp_avg),
-            "exp_avg_sq": dict(self.exp_avg_sq),
-            "step_count": dict(self.step_count),
-            "betas": self.betas,
-            "eps": self.eps,
-        }
-
-    def load_state_dict(self, s: dict, device) -> None:
-        self.exp_avg = {k: v.to(device) for k, v in s["exp_avg"].items()}
-        self.exp_avg_sq = {k: v.to(device) for k, v in s["exp_avg_sq"].items()}
-        self.step_count = dict(s["step_count"])
-        self.betas, self.eps = tuple(s["betas"]), float(s["eps"])
-
-
-def means_lr(config: FitConfig, step: int, extent: float) -> float:
-    """3DGS ``get_expon_lr_func`` (no delay): log-linear from init to final, times the extent."""
-    t = min(max(step / max(config.means_lr_max_steps, 1), 0.0), 1.0)
-    return extent * math.exp((1 - t) * math.log(config.means_lr_init) + t * math.log(config.means_lr_final))
-
-
-def learning_rates(config: FitConfig, step: int, extent: float, k: int, device) -> dict[str, Union[float, Tensor]]:
-    sh_lr = torch.full((1, k, 1), config.sh_rest_lr, device=device)
-    sh_lr[:, 0] = config.sh_dc_lr
-    return {
-        "means": means_lr(config, step, extent),
-        "quats": config.rotation_lr,
-        "log_scales": config.scaling_lr,
-        "opacity_logits": config.opacity_lr,
-        "sh": sh_lr,
-    }
-
-
-# ------------------------------------------------------------------------------------ densification
-@dataclass
-class DensifyStats:
-    """Per-Gaussian statistics accumulated between densifications (3DGS
-    ``xyz_gradient_accum``, ``denom``, ``max_radii2D``)."""
-
-    grad_accum: Tensor  # [N] sum of ||d loss / d NDC mean||
-    count: Tensor  # [N] views in which the Gaussian was visible
-    max_radii: Tensor  # [N] largest screen radius seen, as a fraction of max(width, height)
-
-    @staticmethod
-    def zeros(n: int, device) -> "DensifyStats":
-        return DensifyStats(torch.zeros(n, device=device), torch.zeros(n, device=device), torch.zeros(n, device=device))
-
-    @torch.no_grad()
-    def add(self, means2d_grad: Tensor, radii: Tensor, width: int, height: int) -> None:  # [N, 2], [N]
-        visible = radii > 0
-        # Pixel-space gradient -> NDC-space (pixel = ((ndc + 1) W - 1) / 2), the space in
-        # which 3DGS's threshold of 2e-4 is defined.
-        g = means2d_grad[visible] * torch.tensor([width / 2.0, height / 2.0], device=means2d_grad.device)
-        self.grad_accum[visible] += g.norm(dim=-1)
-        self.count[visible] += 1
-        self.max_radii[visible] = torch.maximum(self.max_radii[visible], radii[visible].float() / max(width, height))
-
-    def state_dict(self) -> dict:
-        return asdict(self)
-
-
-@torch.no_grad()
-def densify_and_prune(
-    g: Gaussians,
-    adam: GaussianAdam,
-    stats: DensifyStats,
-    config: FitConfig,
-    extent: float,
-    prune_big: bool,  # also prune Gaussians larger than prune_world_size x extent
-    generator: torch.Generator,  # CPU generator for the split samples
-) -> dict[str, int]:
-    """Clone small and split large Gaussians whose mean NDC gradient exceeds the threshold, then
-    prune transparent (and, after the first opacity reset, huge) ones; rebuild the optimiser
-    state to match (zeros for new rows). Returns counts of what happened."""
-    n = g.num
-    grads = stats.grad_accum / stats.count.clamp_min(1)
-    grads[stats.count == 0] = 0.0
-    candidates = grads >= config.densify_grad_threshold
-    # gsplat's ``grow_scale2d``: also split whatever covers too much of the screen, whatever its
-    # gradient (ranked after every gradient candidate when the cap bites).
-    screen_big = (
-        (stats.max_radii > config.split_screen_size) if config.split_screen_size else torch.zeros_like(candidates)
-    )
-    priority = torch.where(candidates, grads, torch.where(screen_big, torch.zeros_like(grads), -torch.ones_like(grads)))
-    candidates = candidates | screen_big
-    if config.max_gaussians is not None:
-        budget = max(0, config.max_gaussians - n)
-        if int(candidates.sum()) > budget:
-            # Keep the highest priority: each clone or split adds exactly one Gaussian.
-            order = torch.argsort(priority, descending=True, stable=True)
-            keep = torch.zeros_like(candidates)
-            keep[order[:budget]] = True
-            candidates &= keep
-    big = (g.scales.max(dim=1).values > config.percent_dense * extent) | screen_big
-    clone = candidates & ~big
-    split = candidates & big
-
-    p = g.params()
-    new = {name: [t, t[clone]] for name, t in p.items()}
-    n_split = int(split.sum())
-    if n_split:
-        scales = g.scales[split].repeat(2, 1)  # [2S, 3]
-        samples = torch.normal(torch.zeros_like(scales, device="cpu"), scales.cpu(), generator=generator)
-        rots = quat_to_rotmat(p["quats"][split]).repeat(2, 1, 1)
-        new["means"].append(
-            torch.bmm(rots, samples.to(scales.device)[..., None])[..., 0] + p["means"][split].repeat(2, 1)
-        )
-        new["log_scales"].append(torch.log(scales / (0.8 * 2)))
-        for name in ("quats", "opacity_logits", "sh"):
-            t = p[name][split]
-            new[name].append(t.repeat((2,) + (1,) * (t.ndim - 1)))
-    merged = {name: torch.cat(parts) for name, parts in new.items()}
-    n_added = merged["means"].shape[0] - n
-    adam.append_zero_rows(n_added)
-
-    prune = torch.cat([split, torch.zeros(n_added, dtype=torch.bool, device=split.device)])
-    prune |= torch.sigmoid(merged["opacity_logits"]) < config.prune_opacity
-    if config.prune_screen_size:
-        screen = torch.cat([stats.max_radii, stats.max_radii[clone], stats.max_radii[split].repeat(2) / 1.6])
-        prune |= screen > config.prune_screen_size
-    if prune_big:
-        prune |= torch.exp(merged["log_scales"]).max(dim=1).values > config.prune_world_size * extent
-    keep = ~prune
-    g.set_params(**{name: t[keep] for name, t in merged.items()})
-    adam.index_rows(keep)
-    return {"cloned": int(clone.sum()), "split": n_split, "pruned": int(prune.sum()) - n_split}
-
-
-@torch.no_grad()
-def reset_opacity(g: Gaussians, adam: GaussianAdam, value: float = 0.01) -> None:
-    """Clamp every opacity to at most ``value`` and forget its Adam moments (3DGS)."""
-    g.set_params(opacity_logits=inverse_sigmoid(torch.clamp(g.opacities, max=value)))
-    adam.reset("opacity_logits")
-
-
 # ------------------------------------------------------------------------------------ data
-def split_views(scene: Scene, test_every: int) -> tuple[list[int], list[int]]:
-    """(train, test) view indices: scene.json's ``test_views`` when present, else every
-    ``test_every``-th view (3DGS ``llffhold``: indices 0, 8, 16, ...); no test views if 0."""
-    n = len(scene)
-    test: list[int] = []
-    meta = Path(scene.root) / "scene.json"
-    listed = None
-    if meta.is_file():
-        try:
-            listed = json.loads(meta.read_text()).get("test_views")
-        except (json.JSONDecodeError, AttributeError):
-            raise InputError(meta, "not a valid JSON object") from None
-    if listed is not None:
-        if not all(isinstance(i, int) and 0 <= i < n for i in listed):
-            raise InputError(meta, f"test_views must be view indices in [0, {n})")
-        test = sorted(set(listed))
-    elif test_every > 0 and n > 1:
-        test = list(range(0, n, test_every))
-    train = [i for i in range(n) if i not in set(test)]
-    if not train:
-        raise InputError(scene.root, "no training views left after holding out the test views")
-    return train, test
-
-
 def initial_gaussians(scene: Scene, config: FitConfig, init: Union[None, str, Gaussians]) -> Gaussians:
     if isinstance(init, Gaussians):
         return init.clone().to(config.device)
@@ -615,18 +100,6 @@ def initial_gaussians(scene: Scene, config: FitConfig, init: Union[None, str, Ga
             limit = math.log(config.init_max_scale * scene.extent())
             g.set_params(log_scales=g.log_scales.clamp(max=limit))
     return g
-
-
-def _has_points(scene: Scene) -> bool:
-    return scene.points is not None and len(scene.points) > 0
-
-
-def init_kind(scene: Scene, init: Union[None, str, Gaussians]) -> str:
-    """What :func:`fit_gaussians` starts from for ``init``: ``"points"``, ``"random"`` or
-    ``"ply"`` (Gaussians given); ``None`` means the sparse points when the scene has them."""
-    if isinstance(init, Gaussians):
-        return "ply"
-    return init or ("points" if _has_points(scene) else "random")
 
 
 def _initial_gaussians(scene: Scene, config: FitConfig, init: Union[None, str]) -> Gaussians:

@@ -223,8 +223,8 @@ def evaluate(
 ) -> "EvalResult":
     """Score a run on LangSplat-format labels into ``out`` (``eval.json``, ``eval.md``, plots,
     relevancy maps unless ``relevancy`` is False), as ``n2f2 eval``."""
-    from ..eval.reports import eval_results, mode_summary_lines
-    from ..eval.runner import EvalConfig, evaluate_run, write_eval_outputs
+    from ..eval.reports import eval_results, mode_summary_lines, write_eval_outputs
+    from ..eval.runner import EvalConfig, evaluate_run
     from ..io import remove_results
     from ..query.engine import QueryConfig
 

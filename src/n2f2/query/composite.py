@@ -15,9 +15,9 @@ Composite embedding (paper Eq. 6-7). Per Gaussian,
     Theta~_i = revcumsum(gamma_i) (.) Theta_i,  revcumsum_j = sum_{d >= j} gamma_d  (Eq. 7)
 
 so that ``W @ Theta~_i = sum_d gamma_{i,d} phi_{i,d}``. The canonical-phrase scores use the
-*unnormalised* ``phi_d`` exactly as Eq. 6 is written. ``T = 1`` is the paper; the team measured
-that at ``T = 1`` the scores (|score| <~ 1) make gamma nearly uniform (max gamma ~ 1.15 / D),
-so composite then applies an almost fixed ramp ``(D - j + 1) / D`` over dimensions; ``T`` is
+*unnormalised* ``phi_d`` exactly as Eq. 6 is written. ``T = 1`` is the paper. With
+unit-scale embeddings the scores are small (|score| <~ 1), so at ``T = 1`` gamma is nearly
+uniform and composite applies an almost fixed ramp ``(D - j + 1) / D`` over dimensions; ``T`` is
 exposed as a documented option and is *not* tuned here. The softmax runs over the field's
 scales (all ``d`` when ``k = 1``; the supervised prefix lengths when ``k > 1``, because only
 those are scale-aware features; dimensions past ``k * floor(D / k)`` then get weight 0).

@@ -28,6 +28,7 @@ from ..io import write_json, write_npy, write_png
 from .maps import box_filter, max_locations, segmentation_mask
 
 MASK_COLOR = np.array([0.0, 0.9, 1.0], dtype=np.float32)  # cyan tint of masks (no demo object is cyan)
+HEATMAP_ALPHA = 0.8  # opacity of the heatmap over the RGB at normalised relevancy 1 (the viewer uses it too)
 
 
 def slugify(text: str, max_len: int = 60) -> str:
@@ -68,18 +69,25 @@ def normalize01(x: np.ndarray) -> np.ndarray:
     return (x - lo) / (hi - lo) if hi > lo else np.zeros_like(x)
 
 
+def relevancy_colors(
+    relevancy: np.ndarray,  # [H, W]
+) -> np.ndarray:  # [H, W, 3] float32 in [0, 1]
+    """Turbo colours of the min-max normalised relevancy (the heatmap without the RGB)."""
+    from matplotlib import colormaps
+
+    return colormaps["turbo"](normalize01(relevancy))[..., :3].astype(np.float32)
+
+
 def heatmap_overlay(
     rgb: np.ndarray,  # [H, W, 3] float in [0, 1]
     relevancy: np.ndarray,  # [H, W]
+    colors: Optional[np.ndarray] = None,  # [H, W, 3] relevancy_colors(relevancy), when already made
 ) -> np.ndarray:  # [H, W, 3] float
     """Turbo colours of the min-max normalised relevancy over the RGB; weak values let the
-    image through (opacity 0.8 x normalised value)."""
-    from matplotlib import colormaps
-
+    image through (opacity ``HEATMAP_ALPHA`` x normalised value)."""
     v = normalize01(relevancy)
-    color = colormaps["turbo"](v)[..., :3].astype(np.float32)
-    a = 0.8 * v[..., None]
-    return rgb * (1.0 - a) + color * a
+    a = HEATMAP_ALPHA * v[..., None]
+    return rgb * (1.0 - a) + (relevancy_colors(relevancy) if colors is None else colors) * a
 
 
 def mask_overlay(

@@ -1,7 +1,7 @@
 """The segment bank stage: multi-granularity segments, their language embeddings, their 3D
 scales and the quantile scale bins (paper Sec. 3.2 "Extracting Training Data").
 
-* :mod:`.segmenters`: ``sam`` / ``classical`` / ``ground-truth`` -> :class:`SegmentSet`
+* :mod:`.segmenters`: ``sam`` (:mod:`.sam`) / ``classical`` / ``ground-truth`` -> :class:`SegmentSet`
 * :mod:`.encoders`: ``clip`` / ``captions`` (offline stand-in for CLIP) -> embeddings
 * :mod:`.langsplat`: LangSplat ``language_features`` import
 * :mod:`.lifting`: depth -> 3D points -> scale (largest covariance eigenvalue, or robust extent)
@@ -32,9 +32,9 @@ if TYPE_CHECKING:  # the lazily exported names, for static analysis
     from .langsplat import read_langsplat as read_langsplat
     from .lifting import LiftSettings as LiftSettings
     from .lifting import segment_scales as segment_scales
+    from .sam import SamSegmenter as SamSegmenter
     from .segmenters import ClassicalSegmenter as ClassicalSegmenter
     from .segmenters import GroundTruthSegmenter as GroundTruthSegmenter
-    from .segmenters import SamSegmenter as SamSegmenter
     from .segmenters import SegmentSet as SegmentSet
     from .segmenters import get_segmenter as get_segmenter
     from .segmenters import mask_nms as mask_nms
@@ -52,7 +52,7 @@ _EXPORTS = {
     "CaptionEncoder": "encoders",
     "get_segmenter": "segmenters",
     "SegmentSet": "segmenters",
-    "SamSegmenter": "segmenters",
+    "SamSegmenter": "sam",
     "ClassicalSegmenter": "segmenters",
     "GroundTruthSegmenter": "segmenters",
     "mask_nms": "segmenters",

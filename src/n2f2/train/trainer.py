@@ -148,28 +148,12 @@ class TrainConfig(ConfigDict):
 
     @staticmethod
     def cpu() -> "TrainConfig":
-        """The built-in demo scene (40 views of 160x120) in about 4 minutes on 2 cores
-        (~75 ms per step of 4096 pixels at D = 128), with ``scale_jitter = 0.03`` (not in the
-        paper).
-
-        Measured on the demo scene (an earlier fit of its Gaussians), D = 128, 3000 steps,
-        held-out cosine per level, mean over pixels (over regions), part / object / group:
-
-        * bank with the paper's eigenvalue scales: nested 0.867 / 0.834 / 0.791 (0.879 / 0.874
-          / 0.824); flat 0.830 / 0.847 / 0.846 (0.681 / 0.738 / 0.822). Nested loses object and
-          group: "the room" (90 % of the group pixels) gets 1-15 leading dims, overlapping its
-          own wall's 1-16, so the two targets collide; in one held-out view its group cosine
-          falls to 0.40. Jitter 0.03 alone: 0.865 / 0.816 / 0.857;
-        * bank with ``--scale-measure extent`` (the room gets 1-7 dims, the wall 8-16): flat
-          0.829 / 0.841 / 0.852 (0.672 / 0.715 / 0.831); nested 0.874 / 0.848 / 0.866
-          (0.890 / 0.868 / 0.856); with this preset's jitter 0.874 / 0.870 / 0.875 (0.885 /
-          0.896 / 0.825), seed 1: 0.875 / 0.887 / 0.898 (0.891 / 0.905 / 0.845).
-
-        ``make demo``'s own fit and extent bank, seeds 0 / 1: nested (this preset) 0.874 /
-        0.873 / 0.861 and 0.873 / 0.904 / 0.879; flat 0.830 / 0.845 / 0.842 and 0.840 / 0.849
-        / 0.844. The paper's form there (eigenvalue bank, no jitter): 0.872 / 0.831 / 0.871.
-
-        Use ``--iterations`` (and ``--dim``) when minutes matter less."""
+        """The built-in demo scene (40 views of 160x120) on 2 cores: 3000 steps of 4096 pixels at
+        D = 128 with the blend cache, and ``scale_jitter = 0.03`` (not in the paper): a segment's
+        lifted scale varies from view to view, and the jitter keeps phi(u, s) smooth in s, which
+        mattered most for object and group features (held-out cosines per level with and without
+        it: ``docs/measurements.md``, "The cpu training preset"). Use ``--iterations`` (and
+        ``--dim``) when minutes matter less."""
         return TrainConfig(
             iterations=3000, pixels_per_step=4096, checkpoint_every=500, blend_cache=True, scale_jitter=0.03, lift=True
         )

@@ -11,7 +11,8 @@ API (all JSON; errors are ``{"error": "..."}`` with a 4xx/5xx status, never a tr
   "max_relevancy", "localization": [x, y], "mask_area", "mask_png", "overlay_png",
   "relevancy_png", "chosen_scale"}]}``. ``localization`` is in pixel coordinates (pixel centres
   at +0.5, as everywhere in n2f2); ``mask_png`` is the protocol's segmentation mask as a
-  white-on-transparent PNG.
+  white-on-transparent PNG; ``overlay_png`` / ``relevancy_png`` are ``n2f2 query``'s heatmap
+  (:mod:`n2f2.query.outputs`) over the RGB / alone.
 * ``POST /api/selection`` ``{"query": str, "mode": ..., "threshold": float|null}`` -> the selected
   Gaussians as an INRIA 3DGS PLY (``application/octet-stream``), count in ``X-Selected-Gaussians``.
 
@@ -23,7 +24,7 @@ as are the number and length of queries; nothing in a request is ever used as a 
 malformed request gets a JSON error with a 4xx status, also those the HTTP parser refuses before
 the app sees them (a non-numeric Content-Length, a garbled request line: see
 :func:`json_error_protocol`). Renders are cached per camera in an LRU bounded in bytes
-(``ViewerLimits.render_cache_bytes``, ``n2f2 view --cache-mb``).
+(``ViewerLimits.render_cache_bytes``, ``n2f2 view --cache-mb``; :mod:`n2f2.viewer.cache`).
 """
 
 from __future__ import annotations
@@ -35,7 +36,6 @@ import math
 import tempfile
 import threading
 import time
-from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Optional
@@ -45,6 +45,7 @@ from fastapi import Request  # module level: FastAPI resolves the handlers' stri
 
 from ..cameras import Camera, look_at
 from ..errors import InputError, N2F2Error
+from .cache import ByteLRU, compact_tensors, tensor_bytes
 
 STATIC_DIR = Path(__file__).parent / "static"
 VIEWER_MODES = ("composite", "explicit")
@@ -145,105 +146,6 @@ def png_base64(image: np.ndarray) -> str:
     buf = io.BytesIO()
     Image.fromarray(image).save(buf, format="PNG")
     return base64.b64encode(buf.getvalue()).decode("ascii")
-
-
-# ----------------------------------------------------------------------------- the render cache
-def tensor_bytes(obj: Any, seen: Optional[set[int]] = None, exclude: frozenset[int] = frozenset()) -> int:
-    """Bytes of the tensor storages reachable from ``obj`` (tensors, dataclasses, dicts, lists),
-    each storage counted once: a view keeps its whole storage alive, so that is what it costs.
-    ``exclude`` holds storage pointers owned elsewhere (the field's ``W``)."""
-    import dataclasses
-
-    import torch
-
-    seen = set() if seen is None else seen
-    if isinstance(obj, torch.Tensor):
-        storage = obj.untyped_storage()
-        ptr = storage.data_ptr()
-        if ptr in seen or ptr in exclude:
-            return 0
-        seen.add(ptr)
-        return int(storage.nbytes())
-    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return sum(tensor_bytes(getattr(obj, f.name), seen, exclude) for f in dataclasses.fields(obj))
-    if isinstance(obj, dict):
-        return sum(tensor_bytes(v, seen, exclude) for v in obj.values())
-    if isinstance(obj, (list, tuple)):
-        return sum(tensor_bytes(v, seen, exclude) for v in obj)
-    return 0
-
-
-def compact_tensors(obj: Any, exclude: frozenset[int] = frozenset()) -> None:
-    """Copy every tensor field of ``obj`` (a dataclass, and the dataclasses in its dict fields)
-    that is a view into a larger storage, so that caching ``obj`` keeps only its own data (a
-    rendered alpha map can be a slice of the rasterizer's whole output buffer)."""
-    import dataclasses
-
-    import torch
-
-    for f in dataclasses.fields(obj):
-        value = getattr(obj, f.name)
-        if isinstance(value, torch.Tensor):
-            storage = value.untyped_storage()
-            if storage.data_ptr() not in exclude and storage.nbytes() > value.numel() * value.element_size():
-                setattr(obj, f.name, value.clone(memory_format=torch.contiguous_format))
-        elif isinstance(value, dict):
-            for v in value.values():
-                if dataclasses.is_dataclass(v) and not isinstance(v, type):
-                    compact_tensors(v, exclude)
-
-
-class ByteLRU:
-    """A least-recently-used map bounded by the total size of its values (``sizeof(value)``
-    bytes each). A value larger than the whole bound is not stored. Not thread-safe: the
-    Viewer's lock guards it."""
-
-    def __init__(self, max_bytes: int, sizeof: Any):
-        self.max_bytes = int(max_bytes)
-        self.sizeof = sizeof
-        self._items: OrderedDict[str, tuple[Any, int]] = OrderedDict()
-        self.nbytes = 0
-
-    def __len__(self) -> int:
-        return len(self._items)
-
-    def __contains__(self, key: str) -> bool:
-        return key in self._items
-
-    def keys(self) -> list[str]:
-        """Keys, least recently used first."""
-        return list(self._items)
-
-    def get(self, key: str) -> Any:
-        """The value (now the most recently used) or None."""
-        item = self._items.get(key)
-        if item is None:
-            return None
-        self._items.move_to_end(key)
-        return item[0]
-
-    def reserve(self, nbytes: int) -> None:
-        """Evict least-recently-used entries until ``nbytes`` more fit under the bound (or the
-        cache is empty): room for a value being made, before it takes memory."""
-        while self._items and self.nbytes + nbytes > self.max_bytes:
-            _, (_, evicted) = self._items.popitem(last=False)
-            self.nbytes -= evicted
-
-    def put(self, key: str, value: Any) -> bool:
-        """Store ``value``, evicting least-recently-used entries until it fits; False when it is
-        larger than the bound (then nothing is evicted and it is not stored)."""
-        size = int(self.sizeof(value))
-        if size > self.max_bytes:
-            return False
-        old = self._items.pop(key, None)
-        if old is not None:
-            self.nbytes -= old[1]
-        while self._items and self.nbytes + size > self.max_bytes:
-            _, (_, evicted) = self._items.popitem(last=False)
-            self.nbytes -= evicted
-        self._items[key] = (value, size)
-        self.nbytes += size
-        return True
 
 
 # ----------------------------------------------------------------------------- the viewer state
@@ -365,35 +267,31 @@ class Viewer:
         return cache, self._results(cache, texts, result)
 
     def _results(self, view_cache: Any, texts: list[str], result: Any) -> list[dict]:
-        from matplotlib import colormaps
-
-        from ..query.maps import box_filter, max_locations, resolve_box_size, segmentation_mask
+        """Per query: the protocol's mask and localization and the heatmap overlay, the same
+        functions ``n2f2 query`` writes its files with (:mod:`n2f2.query.outputs`), as PNGs."""
+        from ..query.maps import LANGSPLAT_THRESHOLD, resolve_box_size
+        from ..query.outputs import heatmap_overlay, localize, relevancy_colors, segment
 
         rel = result.relevancy.float().cpu().numpy()  # [Q, H, W]
-        rgb = view_cache.rgb.float().cpu().numpy()
-        cmap = colormaps["turbo"]
+        rgb = view_cache.rgb.float().cpu().numpy()  # [H, W, 3]
         labels = result.chosen_labels
         out = []
         for qi, text in enumerate(texts):
-            r = rel[qi]
+            r = np.ascontiguousarray(rel[qi], dtype=np.float32)
             box = resolve_box_size(self.box_size, r.shape[1])
-            mask = segmentation_mask(r, box_size=box).astype(bool)
-            col, row = max_locations(box_filter(r, box))[0]
-            lo, hi = float(r.min()), float(r.max())
-            norm = (r - lo) / (hi - lo) if hi > lo else np.zeros_like(r)
-            heat = cmap(norm, bytes=True)[..., :3]  # uint8: a float64 [H, W, 4] per query otherwise
-            weight = 0.65 * norm[..., None]
-            overlay = rgb * (1 - weight) + heat.astype(np.float32) * (weight / 255.0)
+            mask = segment(r, box, LANGSPLAT_THRESHOLD)
+            col, row = localize(r, box)
+            heat = relevancy_colors(r)
             mask_rgba = np.zeros(mask.shape + (4,), np.uint8)
             mask_rgba[mask] = (255, 255, 255, 255)
             out.append(
                 {
                     "query": text,
-                    "max_relevancy": hi,
+                    "max_relevancy": float(r.max()),
                     "localization": [col + 0.5, row + 0.5],
                     "mask_area": int(mask.sum()),
                     "mask_png": png_base64(mask_rgba),
-                    "overlay_png": png_base64(overlay),
+                    "overlay_png": png_base64(heatmap_overlay(rgb, r, heat)),
                     "relevancy_png": png_base64(heat),
                     "chosen_scale": labels[qi],
                 }
