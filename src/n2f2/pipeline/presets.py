@@ -84,8 +84,3 @@ def get_preset(name: str) -> Preset:
     if name not in PRESETS:
         raise InputError(None, f"unknown preset {name!r}; choose from {', '.join(PRESETS)}")
     return PRESETS[name]()
-
-
-def per_preset(get: Callable[[Preset], object]) -> str:
-    """``"cpu X, paper Y"``: one setting under every preset, for help texts."""
-    return ", ".join(f"{name} {get(make())}" for name, make in PRESETS.items())
