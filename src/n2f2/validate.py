@@ -148,6 +148,11 @@ unit_interval = _option_type(
 OPTION_TYPES = (positive_int, nonneg_int, port_number, positive_float, nonneg_float, finite_float, unit_interval)
 
 
+def add_device_option(parser: argparse.ArgumentParser, what: str = "") -> None:
+    """``--device``, the same for every command: a torch device, ``cpu`` unless given."""
+    parser.add_argument("--device", default="cpu", help=f"torch device{what} (default cpu; e.g. cuda, cuda:1)")
+
+
 class OneLineArgumentParser(argparse.ArgumentParser):
     """An ``ArgumentParser`` whose errors are one line on stderr and exit status 2, like every
     other n2f2 error: ``n2f2 train: error: --dim must be a positive integer, got '0' (see

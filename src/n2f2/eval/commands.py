@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import argparse
 
-from ..validate import nonneg_int, positive_float
+from ..validate import add_device_option, nonneg_int, positive_float
 
 PROTOCOLS = ("2d", "3d", "both", "3d-ovs")  # --protocol
 
@@ -109,7 +109,7 @@ def register(subparsers) -> None:
         action="store_true",
         help="replace the evaluation already in OUT (eval.json, eval.md, the plots, relevancy/)",
     )
-    p.add_argument("--device", default="cpu", help="torch device (default cpu)")
+    add_device_option(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 

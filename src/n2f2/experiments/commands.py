@@ -9,7 +9,7 @@ from typing import Any
 from ..config import add_config_options, config_overrides
 from ..errors import InputError
 from ..segments.lifting import LiftSettings
-from ..validate import positive_float, positive_int
+from ..validate import add_device_option, positive_float, positive_int
 from .variants import PAPER_DIM, VARIANTS
 
 
@@ -83,7 +83,7 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help=f"a few minutes: small generated scene, D = {quick.dim}, {quick.iterations} steps",
     )
-    p.add_argument("--device", default="cpu", help="torch device (default %(default)s)")
+    add_device_option(p)
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 
 

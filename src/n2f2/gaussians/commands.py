@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from ..config import add_config_options, config_overrides, option_flag
-from ..validate import finite_float, nonneg_int, positive_float, positive_int, unit_interval
+from ..validate import add_device_option, finite_float, nonneg_int, positive_float, positive_int, unit_interval
 
 
 def register(subparsers) -> None:
@@ -57,7 +57,7 @@ def register(subparsers) -> None:
         action="store_true",
         help="drop views whose image file is missing (default: a missing image is an error)",
     )
-    p.add_argument("--device", default="cpu", help="torch device (default cpu)")
+    add_device_option(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
     _register_render(subparsers)

@@ -14,7 +14,7 @@ from ..field.model import FieldConfig
 from ..gaussians.fit import FitConfig
 from ..segments.lifting import LiftSettings
 from ..train.trainer import TrainConfig
-from ..validate import nonneg_int, positive_float, positive_int
+from ..validate import add_device_option, nonneg_int, positive_float, positive_int
 from .presets import DEFAULT_PRESET, PRESETS
 from .run import DEFAULT_MODES, DemoScene, RunOptions
 
@@ -91,7 +91,7 @@ def _add_run_options(p: argparse.ArgumentParser, per_scene_inputs: bool = True) 
         action="store_true",
         help="drop views whose image file is missing (default: a missing image is an error)",
     )
-    p.add_argument("--device", default="cpu", help="torch device (default %(default)s)")
+    add_device_option(p)
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import argparse
 
-from ..validate import finite_float, nonneg_int, positive_float, unit_interval
+from ..validate import add_device_option, finite_float, nonneg_int, positive_float, unit_interval
 
 
 def _box_size(value: str):
@@ -104,7 +104,7 @@ def register(subparsers) -> None:
         action="store_true",
         help="replace the query results already in --out (query.json and the files it lists)",
     )
-    p.add_argument("--device", default="cpu", help="torch device (default cpu)")
+    add_device_option(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 

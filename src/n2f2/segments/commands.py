@@ -13,7 +13,7 @@ from pathlib import Path
 
 from ..config import add_config_options, config_overrides
 from ..distributed import add_executor_options
-from ..validate import positive_float
+from ..validate import add_device_option, positive_float
 from .lifting import LiftSettings
 from .setup import SegmentsSetup
 
@@ -48,7 +48,7 @@ def _common(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="drop views whose image file is missing (default: a missing image is an error)",
     )
-    p.add_argument("--device", default="cpu", help="torch device for models and rendering (default cpu)")
+    add_device_option(p, " for models and rendering")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 

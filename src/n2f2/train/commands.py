@@ -7,7 +7,7 @@ import argparse
 from pathlib import Path
 
 from ..config import add_config_options, config_overrides, option_flag
-from ..validate import nonneg_int, positive_float
+from ..validate import add_device_option, nonneg_int, positive_float
 
 
 def _preset_summary(name: str) -> str:
@@ -65,7 +65,7 @@ def register(subparsers) -> None:
         help="drop views whose image file is missing (default: a missing image is an error)",
     )
     p.add_argument("--seed", type=nonneg_int, default=0, help="random seed (default 0)")
-    p.add_argument("--device", default=None, help="torch device (default: cuda when available, else cpu)")
+    add_device_option(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run_train)
 
@@ -86,7 +86,7 @@ def register(subparsers) -> None:
         help="which views to score (default: held-out)",
     )
     e.add_argument("--out", metavar="JSON", default=None, help="write the result here (default RUN/eval_field.json)")
-    e.add_argument("--device", default="cpu", help="torch device (default cpu)")
+    add_device_option(e)
     e.set_defaults(func=run_eval_field)
 
 
@@ -104,8 +104,6 @@ def _gaussians_path(path: str) -> Path:
 def run_train(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
-    import torch
-
     from ..data import load_scene
     from ..errors import InputError
     from ..field.model import FieldConfig
@@ -114,7 +112,7 @@ def run_train(args: argparse.Namespace) -> int:
     from ..segments import SegmentBank
     from .trainer import RESULT_NAMES, TrainConfig, field_preset, saved_configs, train_field
 
-    device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
+    device = args.device
     preset = args.preset or ("paper" if str(device).startswith("cuda") else "cpu")
     field_over = config_overrides(args, FieldConfig)
     train_over = config_overrides(args, TrainConfig)
