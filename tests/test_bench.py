@@ -37,7 +37,7 @@ def tiny(tmp_path_factory):
                                     labelled_views=[1, 4], supersample=1, num_points=600, show_progress=False)
     scene = load_scene(scene_dir)
     write_ply(root / "gaussians.ply", init_from_points(scene.points, scene.point_colors, sh_degree=0))
-    config = BenchConfig(iterations=4, dim=12, pixels_per_step=256, variants=("nested", "levels"),
+    config = BenchConfig(iterations=4, dim=12, pixels_per_step=256, variants=("nested", "levels", "lift"),
                          temperatures=(1.0, 0.1), timing_repeats=1, progress=False)
     out = root / "out"
     result = run_bench(out, config, scene=scene_dir, gaussians=root / "gaussians.ply", log=lambda s: None)
@@ -45,7 +45,7 @@ def tiny(tmp_path_factory):
 
 
 def test_report_has_the_tables_and_finite_numbers(tiny):
-    out, result = tiny["out"], tiny["result"]
+    out = tiny["out"]
     md = (out / "bench.md").read_text()
     for heading in ("## Verdicts", "## Composite vs explicit vs oracle (paper Table 3)",
                     "## N2F2 vs the 3-level LangSplat-like field", "### Simple vs compound queries (paper Table 7)",
@@ -56,13 +56,15 @@ def test_report_has_the_tables_and_finite_numbers(tiny):
     data = json.loads((out / "bench.json").read_text())
     bank = json.loads((out / "data" / "bank" / "bank.json").read_text())
     assert bank["lifting"]["scale_measure"] == data["data"]["scale_measure"] == "extent"
-    for name in data["runs"]:
+    fields = [name for name, r in data["runs"].items() if not r["training_free"]]
+    for name in fields:
         report = json.loads((out / "runs" / name / "train_report.json").read_text())
         assert report["train_config"]["scale_jitter"] == 0.03
-    assert set(data["runs"]) == {"nested-k1", "levels"}
+    assert set(data["runs"]) == {"nested-k1", "levels", "lift"} and set(fields) == {"nested-k1", "levels"}
     for name in data["runs"]:
-        assert (out / "runs" / name / "field.pt").is_file()
         assert (out / "runs" / name / "eval" / "eval.json").is_file()
+    for name in fields:
+        assert (out / "runs" / name / "field.pt").is_file()
         assert math.isfinite(data["runs"][name]["final_loss"])
     # Claims computed from paired (frame, query) differences are finite numbers.
     paired = [c for c in data["claims"] if c["pairs"]]
@@ -79,6 +81,76 @@ def test_report_has_the_tables_and_finite_numbers(tiny):
         assert nested["scores"]["oracle"][box]["miou"] >= nested["scores"]["explicit"][box]["miou"] - 1e-9
     for png in ("methods.png", "loss_curves.png"):
         assert (out / png).stat().st_size > 0
+
+
+def test_the_lift_row_is_what_the_loss_budget_scores(tiny):
+    """The bench's lift (the nested run's RUN/lift.pt) scored as `n2f2 eval --budget` scores the
+    lift of the same run, and its build time is what that run's training recorded."""
+    from n2f2.eval.budget import loss_budget
+
+    out = tiny["out"]
+    data = json.loads((out / "bench.json").read_text())
+    md = (out / "bench.md").read_text()
+    assert "## Every method, with the time to build it" in md
+    methods = {r["method"]: r for r in data["methods"]}
+    assert list(methods) == ["N2F2 composite", "N2F2 explicit", "N2F2 oracle", "3-level", "3-level oracle",
+                             "lift (training-free)", "lift oracle"]
+    for r in methods.values():
+        assert r["build_time_s"] > 0
+        assert f"| {r['method']} | {r['run']} |" in md
+        for box in ("exact", "scaled"):
+            for key in ("miou_pct", "loc_pct", "map_pct"):
+                assert 0 <= r["scores"][box][key] <= 100
+    lift = data["runs"]["lift"]
+    assert lift["training_free"] and lift["lift"]["from"] == "training"
+    assert lift["lift"]["lift_path"] == str(out / "runs" / "nested-k1" / "lift.pt")
+    train = json.loads((out / "runs" / "nested-k1" / "train_report.json").read_text())
+    assert lift["build_time_s"] == pytest.approx(train["blend_cache"]["build_s"] + train["lift"]["seconds"])
+    assert data["runs"]["nested-k1"]["build_time_s"] == pytest.approx(train["train_time_s"])
+
+    budget = loss_budget(out / "runs" / "nested-k1", tiny["scene"] / "label", scene=tiny["scene"],
+                         bank=out / "data" / "bank")
+    rows = {r["name"]: r for r in budget["rows"]}
+    assert budget["lift"]["from"].startswith("RUN/lift.pt")
+    ev = data["evals"]["lift"]["T1"]
+    for method, row in (("lift (training-free)", "lift, 3 levels"), ("lift oracle", "lift, oracle level")):
+        mode = methods[method]["mode"]
+        for box in ("exact", "scaled"):
+            want = rows[row]["scores"][box]
+            got = methods[method]["scores"][box]
+            assert got["miou_pct"] == pytest.approx(100 * want["miou"], abs=1e-9)
+            assert got["loc_pct"] == pytest.approx(100 * want["loc_accuracy"], abs=1e-9)
+            assert got["map_pct"] == pytest.approx(100 * want["map"], abs=1e-9)
+            mine = {q: v["iou"] for q, v in ev["per_query"][mode][box].items()}
+            assert mine and mine == pytest.approx({q: v["iou"] for q, v in rows[row]["per_query"][box].items()},
+                                                  abs=1e-9)
+
+
+def test_the_lift_alone_builds_its_blending_weights(tiny, tmp_path, capsys):
+    """`--variants lift` trains nothing: the bench builds the blending weights over the training
+    views itself, and the lift is the one the nested run's training wrote from its cache."""
+    from n2f2.field.lift import load_lift
+
+    out = tmp_path / "alone"
+    rc = main(["--out", str(out), "--variants", "lift", "--scene", str(tiny["scene"]),
+               "--gaussians", str(tiny["root"] / "gaussians.ply"), "--bank", str(tiny["out"] / "data" / "bank"),
+               "--quiet"])
+    assert rc == 0, capsys.readouterr().err
+    data = json.loads((out / "bench.json").read_text())
+    assert set(data["runs"]) == {"lift"} and not (out / "runs" / "lift" / "field.pt").exists()
+    lift = data["runs"]["lift"]
+    assert lift["lift"]["from"] == "bench" and lift["build_time_s"] > 0
+    assert lift["build_time_s"] == pytest.approx(lift["lift"]["blend_weights_s"] + lift["lift"]["lift_s"])
+    assert "| lift (training-free) | lift |" in (out / "bench.md").read_text()
+    mine = load_lift(out / "runs" / "lift" / "lift.pt")
+    trained = load_lift(tiny["out"] / "runs" / "nested-k1" / "lift.pt")
+    assert mine.views == trained.views
+    torch.testing.assert_close(mine.features, trained.features)  # the same weights, computed twice
+    full = {r["method"]: r["scores"] for r in json.loads((tiny["out"] / "bench.json").read_text())["methods"]}
+    assert [r["method"] for r in data["methods"]] == ["lift (training-free)", "lift oracle"]
+    for r in data["methods"]:
+        for box in ("exact", "scaled"):
+            assert r["scores"][box] == pytest.approx(full[r["method"]][box], abs=1e-6)
 
 
 def test_gamma_sharpens_as_the_temperature_drops(tiny):
@@ -98,7 +170,7 @@ def test_rerun_reuses_runs_and_evaluations(tiny):
     out = tiny["out"]
     fields = {p: p.stat().st_mtime_ns for p in (out / "runs").glob("*/field.pt")}
     evals = {p: p.stat().st_mtime_ns for p in (out / "runs").glob("*/eval*/eval.json")}
-    assert len(fields) == 2 and len(evals) == 3  # nested (T = 1 and 0.1) and levels
+    assert len(fields) == 2 and len(evals) == 4  # nested (T = 1 and 0.1), levels and the lift
     again = run_bench(out, tiny["config"], scene=tiny["scene"], gaussians=tiny["root"] / "gaussians.ply",
                       log=lambda s: None)
     assert {p: p.stat().st_mtime_ns for p in (out / "runs").glob("*/field.pt")} == fields

@@ -277,9 +277,7 @@ def budget_table(budget: Mapping, kinds: bool = False) -> str:
     body = []
     for r in rows:
         ex, sc = r["scores"]["exact"]["kinds"], r["scores"].get("scaled", r["scores"]["exact"])["kinds"]
-        body.append(
-            [r["name"]] + [f"{pct(ex[k]['miou'])} / {pct(sc[k]['miou'])} / {pct(ex[k]['map'])}" for k in shown]
-        )
+        body.append([r["name"]] + [f"{pct(ex[k]['miou'])} / {pct(sc[k]['miou'])} / {pct(ex[k]['map'])}" for k in shown])
     pairs = {k: rows[0]["scores"]["exact"]["kinds"][k]["pairs"] for k in shown}
     return markdown_table(
         ["source"] + [f"{k} ({pairs[k]} pairs): mIoU exact / mIoU scaled / mAP %" for k in shown],

@@ -6,6 +6,10 @@ What is reproduced (paper section in brackets), all on one scene, one seed:
 * N2F2 vs a LangSplat-like 3-level field trained on the same data (variant ``"levels"``),
   overall, split into simple / compound queries (Table 7) and per query (Table 8);
 * nested vs non-nested (variant ``"flat"``; appendix "Analysis of backbone components");
+* the training-free ``lift`` baseline (the bank's features averaged onto the Gaussians with the
+  training views' blending weights, :mod:`n2f2.field.lift`) scored by the same query and
+  evaluation code, beside every field, with the time to build each: a field's training seconds,
+  the lift's blending weights plus averaging;
 * the step size k of the dimension-scale mapping (Table 6; see :mod:`.variants`);
 * TriPlane+MLP vs MLP backbone: convergence and memory (appendix, same section);
 * the query-time breakdown (Table 4);
@@ -14,7 +18,8 @@ What is reproduced (paper section in brackets), all on one scene, one seed:
 
 Flow. The scene, fitted Gaussians and segment bank are built once under ``OUT/data/`` (or
 given) by the pipeline's stages under its stage cache; every variant is trained into
-``OUT/runs/<run>/`` (:mod:`.training`), evaluated by :func:`n2f2.eval.runner.evaluate_run`
+``OUT/runs/<run>/`` (:mod:`.training`; the lift's report and evaluation go to ``OUT/runs/lift/``),
+evaluated by :func:`n2f2.eval.runner.evaluate_run`
 (LangSplat's protocol, both box sizes) and by :func:`n2f2.train.evaluate.evaluate_cosine_by_level`
 (:mod:`.evaluate`), and the numbers are collected into ``OUT/bench.json``, ``OUT/bench.md`` and
 a few PNG plots (:mod:`.report`). A rerun resumes: a run trained with the same configs on the
@@ -246,11 +251,11 @@ def run_bench(
     ``OUT/bench.md`` and ``OUT/*.png`` and returns the bench.json content."""
     from ..io import write_json, write_text
     from .claims import evaluate_claims
-    from .evaluate import MemoEncoder, cosine_variant, evaluate_variant, gamma_statistics
+    from .evaluate import MemoEncoder, cosine_variant, evaluate_lift, evaluate_variant, gamma_statistics
     from .memory import field_parameter_count
-    from .report import markdown_bench, write_plots
+    from .report import markdown_bench, method_rows, write_plots
     from .timing import timing_breakdown
-    from .training import train_variant
+    from .training import lift_variant, train_variant
 
     config = config or BenchConfig()
     out = Path(out)
@@ -281,20 +286,41 @@ def run_bench(
                 "cosine": None,
                 "modes": [],
                 "cosine_wanted": False,
-                "variant": spec.variant,
-                "backbone": spec.backbone,
+                "variant": spec.name if spec.training_free else spec.variant,
+                "backbone": None if spec.training_free else spec.backbone,
+                "training_free": spec.training_free,
             },
         )
         entry["modes"] = list(dict.fromkeys(entry["modes"] + list(spec.modes)))
         entry["cosine_wanted"] |= spec.cosine
-        if "train" not in entry:
+        if "train" not in entry and not spec.training_free:
             t0 = time.perf_counter()
             entry["train"] = train_variant(spec, data, run_dir, config, log)
             stage_s[f"train {name}"] = time.perf_counter() - t0
+    # The lift after the fields: a trained run's training writes it from its blend cache.
+    for name, entry in runs.items():
+        if entry["training_free"]:
+            source = _lift_source(runs, variant_runs)
+            t0 = time.perf_counter()
+            entry["train"] = lift_variant(
+                data,
+                out / "runs" / name,
+                config,
+                out / "runs" / source if source else None,
+                runs[source]["train"] if source else None,
+                log,
+            )
+            stage_s[f"build {name}"] = time.perf_counter() - t0
     for name, entry in runs.items():
         run_dir = out / "runs" / name
         t0 = time.perf_counter()
         modes = _mode_order(entry["modes"])
+        if entry["training_free"]:
+            entry["evals"]["T1"] = evaluate_lift(
+                run_dir, entry["train"], data, modes, run_dir / "eval", config, log, encoder
+            )
+            stage_s[f"eval {name}"] = time.perf_counter() - t0
+            continue
         entry["evals"]["T1"] = evaluate_variant(run_dir, data, modes, run_dir / "eval", config, 1.0, log, encoder)
         if entry["cosine_wanted"]:
             entry["cosine"] = cosine_variant(run_dir, data, config, log)
@@ -363,6 +389,7 @@ def run_bench(
         "load_average": {"start": list(load_start), "end": list(os.getloadavg())},
     }
     result["claims"] = evaluate_claims(result, runs, variant_runs)
+    result["methods"] = method_rows(result, runs, variant_runs)
     result["seconds"] = time.perf_counter() - t_start
     plots = write_plots(out, result, runs, variant_runs)
     result["plots"] = {k: str(v) for k, v in plots.items()}
@@ -377,6 +404,16 @@ def encoder_dim(data: BenchData) -> int:
     from ..segments.bank import SegmentBank
 
     return int(SegmentBank.open(data.bank_dir).embed_dim)
+
+
+def _lift_source(runs: Mapping[str, dict], variant_runs: Mapping[str, str]) -> Optional[str]:
+    """The trained run whose ``lift.pt`` the lift variant uses: the N2F2 run, else the first run
+    trained (every run of the bench has the same Gaussians, bank and training views); None when
+    the bench trains nothing."""
+    nested = variant_runs.get("nested")
+    if nested is not None:
+        return nested
+    return next((name for name, entry in runs.items() if not entry["training_free"]), None)
 
 
 def _mode_order(modes: Sequence[str]) -> list[str]:
@@ -400,8 +437,10 @@ def _environment() -> dict:
 
 
 def _run_summary(entry: Mapping) -> dict:
+    """A run's line of ``bench.json``; ``build_time_s``: a field's training seconds, the lift's
+    blending weights plus averaging (``lift``: where it came from)."""
     t = entry["train"]
-    return {
+    summary = {
         "variant": entry["variant"],
         "backbone": entry["backbone"],
         "field_config": t.get("field_config"),
@@ -416,4 +455,11 @@ def _run_summary(entry: Mapping) -> dict:
         "curve": t.get("curve"),
         "cosine": entry.get("cosine"),
         "evals": sorted(entry["evals"]),
+        "training_free": entry["training_free"],
+        "build_time_s": t.get("build_time_s", t.get("train_time_s")),
+        "blend_cache_s": (t.get("blend_cache") or {}).get("build_s"),  # a field's precomputed blending weights
     }
+    if entry["training_free"]:
+        keys = ("from", "about", "lift_path", "source_run", "gaussians", "views", "rule", "coverage")
+        summary["lift"] = {k: t.get(k) for k in keys + ("blend_weights_s", "lift_s")}
+    return summary

@@ -92,9 +92,10 @@ def register(subparsers) -> None:
         "bench",
         help="reproduce the paper's ablations on the demo scene (bench.md)",
         description="Train N2F2 and its ablations (non-nested, 3-level LangSplat-like, step sizes k, MLP "
-        "backbone) on the built-in demo scene, evaluate them with LangSplat's protocol (exact and "
-        "scaled box), time the query modes, and write OUT/bench.md, OUT/bench.json and plots. "
-        "Reruns reuse finished runs and evaluations.",
+        "backbone) on the built-in demo scene, evaluate them and the training-free lift baseline (variant "
+        "lift: the nested run's RUN/lift.pt; alone, the bench builds the blending weights itself) with "
+        "LangSplat's protocol (exact and scaled box), with the time to build each, time the query modes, "
+        "and write OUT/bench.md, OUT/bench.json and plots. Reruns reuse finished runs and evaluations.",
     )
     _add_arguments(p)
     p.set_defaults(func=_cmd_bench)

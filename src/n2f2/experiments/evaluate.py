@@ -1,13 +1,15 @@
 """Evaluation of the bench's runs: LangSplat's protocol through :func:`n2f2.eval.runner.evaluate_run`
 (both box sizes), the per-level cosine to the teacher, and statistics of the composite weights
 gamma. Each result is cached in its run folder's ``stages.json``, keyed on the content of the
-field and the labels (:class:`n2f2.pipeline.cache.StageCache`)."""
+field and the labels (:class:`n2f2.pipeline.cache.StageCache`). The training-free lift is scored
+by the same runner through a :class:`n2f2.query.lifted.LiftEngine` (:func:`evaluate_lift`), as
+``n2f2 eval --budget`` scores it (:func:`n2f2.eval.budget.loss_budget`)."""
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Mapping, Sequence
 
 if TYPE_CHECKING:
     from .bench import BenchConfig, BenchData
@@ -98,6 +100,91 @@ def _evaluate(
     # reused evaluation has.
     d = result.to_dict()
     d["bench_temperature"] = temperature
+    write_text(out_dir / "eval.md", markdown_report(d))
+    write_json(out_dir / "eval.json", d)
+
+
+def evaluate_lift(
+    run_dir: Path,
+    lift: Mapping[str, Any],
+    data: "BenchData",
+    modes: Sequence[str],
+    out_dir: Path,
+    config: "BenchConfig",
+    log: Callable[[str], None] = print,
+    encoder: Any = None,
+) -> dict:
+    """``evaluate_run`` of the lift variant (``lift``: what
+    :func:`n2f2.experiments.training.lift_variant` returned), written to ``out_dir`` as
+    :func:`evaluate_variant` writes a field's; reused while the lift, its Gaussians, the labels
+    and the modes are unchanged."""
+    from ..eval.runner import load_eval
+    from ..pipeline.cache import StageCache, file_digest, stage_key, tree_digest
+
+    eval_json = out_dir / "eval.json"
+    key = stage_key(
+        lift=file_digest(Path(lift["lift_path"])),
+        gaussians=file_digest(Path(lift["gaussians"])),
+        source=lift.get("source_run"),
+        labels=tree_digest(data.label_dir),
+        bank=file_digest(data.bank_dir / "bank.json"),
+        modes=list(modes),
+    )
+    StageCache.open(run_dir).run(
+        out_dir.name,
+        key,
+        [eval_json],
+        lambda: _evaluate_lift(lift, data, modes, out_dir, config, encoder),
+        log=lambda s: log(f"[bench] {run_dir.name}: {s}"),
+    )
+    return load_eval(eval_json)
+
+
+def _evaluate_lift(
+    lift: Mapping[str, Any],
+    data: "BenchData",
+    modes: Sequence[str],
+    out_dir: Path,
+    config: "BenchConfig",
+    encoder: Any,
+) -> None:
+    """The lift's query engine built as the loss budget builds it (the source run's Gaussians and
+    field metadata when a trained run holds the lift), scored by ``evaluate_run``."""
+    from ..data import load_scene
+    from ..eval.reports import markdown_report
+    from ..eval.runner import EvalConfig, evaluate_run
+    from ..field.lift import load_lift
+    from ..gaussians import read_ply
+    from ..io import write_json, write_text
+    from ..query.engine import QueryConfig, QueryEngine
+    from ..query.lifted import lift_engine
+
+    query_config = QueryConfig()
+    if lift.get("source_run"):
+        run_dir = Path(lift["source_run"])
+        base = QueryEngine.from_run(
+            run_dir, device=config.device, scene=data.scene_dir, config=query_config, encoder=encoder
+        )
+        gaussians, meta, scene = base.gaussians, dict(base.meta), base.scene
+    else:  # built by the bench from its own Gaussians: no run holds them
+        run_dir = Path(lift["lift_path"]).parent
+        gaussians = read_ply(lift["gaussians"], device=config.device)
+        meta, scene = dict(lift["meta"]), load_scene(data.scene_dir)
+    features = load_lift(lift["lift_path"], num_gaussians=int(gaussians.means.shape[0]))
+    engine = lift_engine(features, gaussians, encoder, meta, query_config, config.device, scene, run_dir)
+    result = evaluate_run(
+        run_dir,
+        data.label_dir,
+        scene=data.scene_dir,
+        bank=data.bank_dir,
+        config=EvalConfig(modes=tuple(modes), progress=config.progress),
+        query_config=query_config,
+        device=config.device,
+        encoder=encoder,
+        engine=engine,
+    )
+    result.notes.append(f"bench: the training-free lift {lift['lift_path']} ({lift['about']})")
+    d = result.to_dict()
     write_text(out_dir / "eval.md", markdown_report(d))
     write_json(out_dir / "eval.json", d)
 

@@ -50,21 +50,58 @@ def write_plots(out: Path, result: Mapping, runs: Mapping[str, dict], variant_ru
     return plots
 
 
-def _method_rows(runs: Mapping[str, dict], variant_runs: Mapping[str, str]) -> list[tuple[str, Mapping, str]]:
+# (variant, mode, label) of the per-method plot and table, in this order
+METHODS = (
+    ("nested", "composite", "N2F2 composite"),
+    ("nested", "explicit", "N2F2 explicit"),
+    ("nested", "oracle", "N2F2 oracle"),
+    ("flat", "composite", "flat composite"),
+    ("levels", "levels", "3-level"),
+    ("levels", "oracle", "3-level oracle"),
+    ("lift", "levels", "lift (training-free)"),
+    ("lift", "oracle", "lift oracle"),
+    ("mlp", "composite", "MLP-backbone composite"),
+)
+
+
+def _methods(runs: Mapping[str, dict], variant_runs: Mapping[str, str]) -> list[tuple[str, str, str, Mapping, str]]:
+    """(label, variant, run, evaluation, mode) of each of :data:`METHODS` the bench ran."""
     rows = []
-    wanted = [
-        ("nested", "composite", "N2F2 composite"),
-        ("nested", "explicit", "N2F2 explicit"),
-        ("nested", "oracle", "N2F2 oracle"),
-        ("flat", "composite", "flat composite"),
-        ("levels", "levels", "3-level"),
-        ("levels", "oracle", "3-level oracle"),
-        ("mlp", "composite", "MLP-backbone composite"),
-    ]
-    for variant, mode, label in wanted:
+    for variant, mode, label in METHODS:
         name = variant_runs.get(variant)
         if name and mode in runs[name]["evals"]["T1"]["scores"]:
-            rows.append((label, runs[name]["evals"]["T1"], mode))
+            rows.append((label, variant, name, runs[name]["evals"]["T1"], mode))
+    return rows
+
+
+def _method_rows(runs: Mapping[str, dict], variant_runs: Mapping[str, str]) -> list[tuple[str, Mapping, str]]:
+    return [(label, e, m) for label, _, _, e, m in _methods(runs, variant_runs)]
+
+
+def method_rows(result: Mapping, runs: Mapping[str, dict], variant_runs: Mapping[str, str]) -> list[dict]:
+    """The methods side by side (``bench.json``'s ``methods``): per box mIoU, localization and mAP
+    in percent, and the seconds it took to build the method's run (``build_time_s`` of
+    :func:`n2f2.experiments.bench._run_summary`)."""
+    rows = []
+    for label, variant, name, e, m in _methods(runs, variant_runs):
+        rows.append(
+            {
+                "method": label,
+                "variant": variant,
+                "run": name,
+                "mode": m,
+                "training_free": VARIANTS[variant].training_free,
+                "scores": {
+                    b: {
+                        "miou_pct": 100 * score(e, m, b),
+                        "loc_pct": 100 * score(e, m, b, "loc_accuracy"),
+                        "map_pct": 100 * float(e["ap"][m][b]["map"]),
+                    }
+                    for b in BOXES
+                },
+                "build_time_s": result["runs"][name].get("build_time_s"),
+            }
+        )
     return rows
 
 
@@ -87,7 +124,9 @@ def markdown_bench(result: Mapping, runs: Mapping[str, dict], variant_runs: Mapp
     cfg = result["config"]
     any_ev = next(iter(next(iter(runs.values()))["evals"].values()))
     bt = {b: box_title(any_ev, b) for b in BOXES}
-    first = next(iter(result["runs"].values()))
+    fields = [r for r in result["runs"].values() if r.get("field_config")]
+    first = fields[0] if fields else None
+    num_gaussians = next(iter(result["runs"].values()))["num_gaussians"]
     out: list[str] = ["# n2f2 bench: the paper's ablations on the demo scene\n\n"]
     steps = result["steps"]
     k_map = ", ".join(
@@ -97,13 +136,17 @@ def markdown_bench(result: Mapping, runs: Mapping[str, dict], variant_runs: Mapp
     )
     out.append(
         f"- scene: `{result['data']['scene']}` ({any_ev['scene']}), Gaussians `{result['data']['gaussians']}` "
-        f"({first['num_gaussians']} Gaussians), segment bank `{result['data']['bank']}`; "
+        f"({num_gaussians} Gaussians), segment bank `{result['data']['bank']}`; "
         f"built now: {', '.join(k for k, v in result['data']['built'].items() if v) or 'nothing (all reused)'}\n"
         f"- teacher / text encoder: {any_ev['encoder']['description']}\n"
-        f"- every field: D = {cfg['dim']}, TriPlane {first['field_config']['plane_resolution']}^2 x "
-        f"{first['field_config']['plane_channels']}, MLP hidden {first['field_config']['hidden']}, "
-        f"{cfg['iterations']} steps of {cfg['pixels_per_step']} pixels, seed {cfg['seed']}, one seed per variant\n"
-        f"- segment scales: {result['data'].get('scale_measure', 'eigenvalue')} measure, training scale jitter "
+        + (
+            f"- every field: D = {cfg['dim']}, TriPlane {first['field_config']['plane_resolution']}^2 x "
+            f"{first['field_config']['plane_channels']}, MLP hidden {first['field_config']['hidden']}, "
+            f"{cfg['iterations']} steps of {cfg['pixels_per_step']} pixels, seed {cfg['seed']}, one seed per variant\n"
+            if first is not None
+            else "- no field trained (the training-free lift only)\n"
+        )
+        + f"- segment scales: {result['data'].get('scale_measure', 'eigenvalue')} measure, training scale jitter "
         f"{cfg.get('scale_jitter', 0.0)} (paper: eigenvalue, 0)\n"
         f"- step sizes (paper D = 512 -> this D = {cfg['dim']}, keeping floor(512 / k) scales): {k_map or 'n/a'}\n"
         f"- protocol: LangSplat's, always both boxes: **{bt['exact']}** (LangSplat's, sized for ~986 px-wide "
@@ -127,6 +170,11 @@ def markdown_bench(result: Mapping, runs: Mapping[str, dict], variant_runs: Mapp
     out.append(
         markdown_table(["claim", "paper", "box", "metric", "here", "verdict"], rows, ["l", "l", "l", "l", "r", "l"])
     )
+
+    # Every method with the time to build it.
+    if result.get("methods"):
+        out.append("\n## Every method, with the time to build it (the training-free lift beside the fields)\n\n")
+        out.append(_methods_table(result, bt))
 
     # Table 3.
     nested = runs[variant_runs["nested"]]["evals"]["T1"] if "nested" in variant_runs else None
@@ -368,11 +416,12 @@ def markdown_bench(result: Mapping, runs: Mapping[str, dict], variant_runs: Mapp
         [
             name,
             r["variant"],
-            r["backbone"],
-            r["field_config"]["step_size"],
-            r["steps"],
-            f"{r['final_loss']:.5f}",
-            f"{r['train_time_s']:.0f}",
+            r["backbone"] or "-",
+            r["field_config"]["step_size"] if r.get("field_config") else "-",
+            r["steps"] if r.get("steps") is not None else "-",
+            f"{r['final_loss']:.5f}" if r.get("final_loss") is not None else "-",
+            f"{r['train_time_s']:.0f}" if r.get("train_time_s") is not None else "-",
+            _seconds(r.get("build_time_s")),
             "yes" if r["reused"] else "no",
             ", ".join(r["evals"]),
         ]
@@ -388,11 +437,12 @@ def markdown_bench(result: Mapping, runs: Mapping[str, dict], variant_runs: Mapp
                 "steps",
                 "final loss",
                 "train s (this session)",
+                "build s",
                 "reused",
                 "evaluations",
             ],
             rows,
-            ["l", "l", "l", "r", "r", "r", "r", "l", "l"],
+            ["l", "l", "l", "r", "r", "r", "r", "r", "l", "l"],
         )
     )
     out.append(
@@ -401,6 +451,64 @@ def markdown_bench(result: Mapping, runs: Mapping[str, dict], variant_runs: Mapp
         + ".\n\nPlots: "
         + ", ".join(f"`{Path(p).name}`" for p in result.get("plots", {}).values())
         + ".\n"
+    )
+    return "".join(out)
+
+
+def _seconds(v: Any) -> str:
+    """Build seconds: 3 significant digits (a lift takes well under a second on the quick scene)."""
+    return "-" if v is None else f"{float(v):.3g}"
+
+
+def _methods_table(result: Mapping, bt: Mapping[str, str]) -> str:
+    """``result["methods"]`` as a table, with what "build s" means and where the lift came from."""
+    from ..eval.reports import markdown_table
+
+    rows = []
+    for r in result["methods"]:
+        sc = r["scores"]
+        rows.append(
+            [r["method"], r["run"]]
+            + [f"{sc[b]['loc_pct']:.1f}" for b in BOXES]
+            + [f"{sc[b]['miou_pct']:.1f}" for b in BOXES]
+            + [f"{sc[b]['map_pct']:.1f}" for b in BOXES]
+            + [_seconds(r["build_time_s"])]
+        )
+    out = [
+        markdown_table(
+            ["method", "run"]
+            + [f"loc. % ({bt[b]})" for b in BOXES]
+            + [f"mIoU % ({bt[b]})" for b in BOXES]
+            + [f"mAP % ({bt[b]})" for b in BOXES]
+            + ["build s"],
+            rows,
+            ["l", "l"] + ["r"] * (3 * len(BOXES) + 1),
+        ),
+        "\nbuild s: "
+        + (
+            "a field's training steps (`train_time_s` of its `train_report.json`); "
+            if any(not r["training_free"] for r in result["methods"])
+            else ""
+        ),
+    ]
+    lifts = [r for r in result["runs"].values() if r.get("training_free")]
+    for r in lifts:
+        info = r["lift"]
+        out.append(
+            f"the lift's blending weights ({_seconds(info['blend_weights_s'])} s) plus averaging the bank's "
+            f"features onto the Gaussians ({_seconds(info['lift_s'])} s) over {len(info['views'])} training "
+            f"views: {info['about']}. "
+        )
+    blend = [(name, r["blend_cache_s"]) for name, r in result["runs"].items() if r.get("blend_cache_s") is not None]
+    if blend:
+        out.append(
+            "A field's training precomputes the same blending weights before its first step (not in its "
+            "build time): " + ", ".join(f"{n} {_seconds(v)} s" for n, v in blend) + ". "
+        )
+    out.append(
+        "Wall times of this session's machine (load average in the header); a reused run keeps the times "
+        "it was built in. The lift is answered as the 3-level field: LangSplat's level choice, or the "
+        "oracle level.\n"
     )
     return "".join(out)
 

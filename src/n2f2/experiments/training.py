@@ -1,14 +1,19 @@
 """Training of the bench's variants: each variant's field (the cpu preset's, shaped by the
 variant) trained on the bench's data into its run folder, with its activation memory measured.
 A finished run with the same settings and inputs is reused, and a shorter one with otherwise
-identical settings is continued from its checkpoint."""
+identical settings is continued from its checkpoint.
+
+The training-free ``lift`` variant (:func:`lift_variant`) trains nothing: it is the
+``RUN/lift.pt`` that a trained run of the bench wrote from its training's blend cache, or, with no
+such run (``--variants lift`` alone), the lift built here from the bench's Gaussians over the
+training views the trainer would use."""
 
 from __future__ import annotations
 
 import json
 from dataclasses import replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable, Mapping
+from typing import TYPE_CHECKING, Any, Callable, Mapping, Optional
 
 import numpy as np
 
@@ -19,6 +24,7 @@ if TYPE_CHECKING:
     from .bench import BenchConfig, BenchData
 
 MEMORY_NAME = "bench_memory.json"
+LIFT_REPORT_NAME = "lift_report.json"
 
 
 def train_variant(
@@ -148,3 +154,136 @@ def _same_inputs(run_dir: Path, paths: Mapping[str, str]) -> bool:
     recorded = json.loads(report.read_text()).get("paths", {})
     # The trainer records the copy of the PLY inside the run; the scene and bank are compared.
     return recorded.get("scene") == paths["scene"] and recorded.get("bank") == paths["bank"]
+
+
+# ------------------------------------------------------------------------------ the lift
+def lift_variant(
+    data: "BenchData",
+    run_dir: Path,
+    config: "BenchConfig",
+    source: Optional[Path] = None,
+    source_report: Optional[Mapping] = None,
+    log: Callable[[str], None] = print,
+) -> dict:
+    """The training-free ``lift`` variant's "run": which lift is evaluated and what it took to
+    build (also written to ``run_dir/lift_report.json``).
+
+    ``source`` is a run trained by this bench (all of them share the Gaussians, the bank and the
+    training views), ``source_report`` what :func:`train_variant` returned for it (default: its
+    ``train_report.json``). When its training wrote ``source/lift.pt`` (the cpu preset's
+    ``TrainConfig.lift``), that file is the lift and its build time is what the run's
+    ``train_report.json`` records: the blending weights (``blend_cache.build_s``) plus the
+    averaging (``lift.seconds``). Otherwise the bench builds it into ``run_dir/lift.pt``
+    (:func:`n2f2.query.lifted.build_lift`: blending weights, then the lift, both timed) from
+    ``source``'s Gaussians and training views, or, with no ``source``, from the bench's Gaussians
+    over the training views of the cpu preset's split; a rerun reuses it while the Gaussians,
+    bank, scene and views are unchanged."""
+    from ..field.lift import load_lift
+    from ..io import write_json
+
+    report: dict[str, Any]
+    if source is not None and source_report is None:
+        source_report = _train_report(source)
+    lift_info = (source_report or {}).get("lift") or {}
+    if source is not None and source_report is not None and lift_info.get("written") and (source / "lift.pt").is_file():
+        path = source / "lift.pt"
+        lift = load_lift(path, num_gaussians=source_report.get("num_gaussians"))
+        blend_s = float((source_report.get("blend_cache") or {}).get("build_s") or 0.0)
+        lift_s = float(lift_info.get("seconds") or lift.seconds.get("lift", 0.0))
+        log(f"[bench] {run_dir.name}: the lift {source.name}'s training wrote from its blend cache")
+        report = {
+            "from": "training",
+            "about": f"{source.name}/lift.pt, written by its training from its cached blending weights",
+            "gaussians": str(source / "gaussians.ply"),
+            "reused": bool(source_report.get("reused")),
+        }
+    else:
+        path, built, gaussians, meta = _build_lift(data, run_dir, config, source, source_report, log)
+        lift = load_lift(path)
+        blend_s, lift_s = float(lift.seconds.get("blend", 0.0)), float(lift.seconds.get("lift", 0.0))
+        report = {
+            "from": "bench",
+            "about": "built by the bench: blending weights over the training views, then the lift"
+            + (f" ({source.name}'s Gaussians and views; its training wrote no lift.pt)" if source else ""),
+            "gaussians": gaussians,
+            "reused": not built,
+            "meta": meta,
+        }
+    report = {
+        "variant": "lift",
+        **report,
+        "lift_path": str(path),
+        "source_run": str(source) if source is not None else None,
+        "views": list(lift.views),
+        "num_gaussians": int(lift.features.shape[0]),
+        "rule": lift.rule,
+        "coverage": dict(zip(("part", "object", "group"), lift.coverage())),
+        "blend_weights_s": blend_s,
+        "lift_s": lift_s,
+        "build_time_s": blend_s + lift_s,
+    }
+    run_dir.mkdir(parents=True, exist_ok=True)
+    write_json(run_dir / LIFT_REPORT_NAME, report)
+    return report
+
+
+def _train_report(run_dir: Path) -> Optional[dict]:
+    from ..train.trainer import REPORT_NAME
+
+    path = run_dir / REPORT_NAME
+    return json.loads(path.read_text()) if path.is_file() else None
+
+
+def _build_lift(
+    data: "BenchData",
+    run_dir: Path,
+    config: "BenchConfig",
+    source: Optional[Path],
+    report: Optional[Mapping],
+    log: Callable[[str], None],
+) -> tuple[Path, bool, str, dict]:
+    """``run_dir/lift.pt`` built by :func:`n2f2.query.lifted.build_lift` under ``run_dir``'s stage
+    cache: (its path, built now?, the Gaussians' PLY, the field metadata a query engine over it
+    needs)."""
+    from ..data import load_scene
+    from ..field.lift import save_lift
+    from ..gaussians import read_ply
+    from ..pipeline.cache import StageCache, file_digest, scene_digest, stage_key
+    from ..pipeline.presets import get_preset
+    from ..query.lifted import build_lift
+    from ..segments.bank import SegmentBank
+    from ..train.trainer import split_views
+
+    scene = load_scene(data.scene_dir)
+    bank = SegmentBank.open(data.bank_dir)
+    if source is not None and report is not None:
+        ply = source / "gaussians.ply"
+        views, heldout = [int(v) for v in report["train_views"]], [int(v) for v in report["heldout_views"]]
+    else:  # the split of the bench's runs (the cpu preset's TrainConfig)
+        ply = data.gaussians
+        views, heldout = split_views(scene, get_preset("cpu").train.holdout)
+    path = run_dir / "lift.pt"
+    meta = {
+        "encoder_spec": bank.encoder_spec,
+        "scene": str(data.scene_dir.resolve()),
+        "bank": str(data.bank_dir.resolve()),
+        "gaussians": str(Path(ply).resolve()),
+        "bank_size": [int(bank.width), int(bank.height)],
+        "train_views": views,
+        "heldout_views": heldout,
+    }
+    key = stage_key(
+        gaussians=file_digest(Path(ply)),
+        bank=file_digest(data.bank_dir / "bank.json"),
+        scene=scene_digest(data.scene_dir),
+        views=views,
+    )
+
+    def build() -> None:
+        gaussians = read_ply(ply)
+        lift = build_lift(gaussians, scene, bank, views, progress=config.progress)
+        save_lift(path, lift, {"bank": meta["bank"], "gaussians": meta["gaussians"]})
+
+    run_dir.mkdir(parents=True, exist_ok=True)
+    built = StageCache.open(run_dir).run("lift", key, [path], build, log=lambda s: log(f"[bench] {run_dir.name}: {s}"))
+    return path, built, str(ply), meta

@@ -1,6 +1,11 @@
 """The variants of the ablation bench: which field each trains (variant, backbone, the paper's
 step size k) and what is evaluated on it, and how a paper step size maps to a smaller D.
 
+One variant trains nothing: ``lift`` (``training_free``), the segment bank's features averaged
+onto the bench's Gaussians with the training views' blending weights (:mod:`n2f2.field.lift`),
+answered as the 3-level field is (modes ``levels`` and ``oracle``); see
+:func:`n2f2.experiments.training.lift_variant` for where it comes from.
+
 The paper uses D = 512 and k in {1, 8, 32, 128, 170}. With a smaller D the bench keeps the
 *number of scales* ``floor(512 / k)`` of each paper setting: ``k_used = max(1, floor(D /
 floor(512 / k)))`` (:func:`scaled_step`); at D = 128 that is k in {1, 2, 8, 32, 42} (= round(k D /
@@ -26,11 +31,12 @@ class VariantSpec:
 
     name: str  # user-facing name (--variants)
     title: str  # row label in the report
-    variant: str  # FieldConfig.variant: nested | flat | levels
+    variant: str  # FieldConfig.variant: nested | flat | levels (training-free: the variant it answers as)
     backbone: str = "triplane"  # FieldConfig.backbone
     paper_step: int = 1  # k of paper Table 6 (scaled to D by scaled_step)
     modes: tuple[str, ...] = ("composite", "explicit", "oracle")
     cosine: bool = True  # per-level cosine to the teacher on held-out views
+    training_free: bool = False  # no field: the lift of the bench's Gaussians (experiments/training.py)
 
     @property
     def kind(self) -> FieldVariant:
@@ -42,6 +48,14 @@ VARIANTS: dict[str, VariantSpec] = {
     "nested": VariantSpec("nested", "N2F2 (nested, TriPlane+MLP, k=1)", "nested"),
     "flat": VariantSpec("flat", "non-nested (flat)", "flat"),
     "levels": VariantSpec("levels", "3-level (LangSplat-like)", "levels", modes=("levels", "oracle")),
+    "lift": VariantSpec(
+        "lift",
+        "lift (training-free, blending-weight average)",
+        "levels",
+        modes=("levels", "oracle"),
+        cosine=False,
+        training_free=True,
+    ),
     **{f"k{k}": VariantSpec(f"k{k}", f"N2F2, k={k}", "nested", paper_step=k, cosine=False) for k in PAPER_STEPS[1:]},
     "mlp": VariantSpec("mlp", "N2F2 with MLP backbone (PE+MLP)", "nested", backbone="mlp", modes=("composite",)),
 }
@@ -60,7 +74,9 @@ def scaled_step(paper_k: int, dim: int) -> int:
 
 def run_name(spec: VariantSpec, dim: int) -> str:
     """Run folder of a variant, named by what is trained (paper k values that map to the same
-    k at this D share one run)."""
+    k at this D share one run); a training-free variant's folder is its name."""
+    if spec.training_free:
+        return spec.name
     backbone = "" if spec.backbone == "triplane" else f"-{spec.backbone}"
     if not spec.kind.uses_step:
         return spec.variant + backbone
@@ -71,6 +87,9 @@ def variant_field_config(spec: VariantSpec, dim: int) -> "FieldConfig":
     """The cpu preset's field with the variant's shape, D = ``dim`` and its step size scaled
     to ``dim``."""
     from ..pipeline.presets import get_preset
+
+    if spec.training_free:
+        raise ValueError(f"variant {spec.name!r} trains no field")
 
     step = spec.kind.step_size(scaled_step(spec.paper_step, dim))
     return replace(get_preset("cpu").field, dim=dim, variant=spec.variant, backbone=spec.backbone, step_size=step)
