@@ -93,8 +93,8 @@ def test_the_lift_row_is_what_the_loss_budget_scores(tiny):
     md = (out / "bench.md").read_text()
     assert "## Every method, with the time to build it" in md
     methods = {r["method"]: r for r in data["methods"]}
-    assert list(methods) == ["N2F2 composite", "N2F2 explicit", "N2F2 oracle", "3-level", "3-level oracle",
-                             "lift (training-free)", "lift oracle"]
+    assert list(methods) == ["N2F2 composite", "N2F2 soft", "N2F2 explicit", "N2F2 oracle", "3-level",
+                             "3-level oracle", "lift (training-free)", "lift oracle"]
     for r in methods.values():
         assert r["build_time_s"] > 0
         assert f"| {r['method']} | {r['run']} |" in md

@@ -43,7 +43,7 @@ def _width(tiny) -> int:
 # ------------------------------------------------------------------------------ numbers
 def test_scores_finite_in_range_and_both_boxes_recorded(tiny, evaluated):
     result, out, _ = evaluated
-    assert result.modes == ["composite", "explicit", "oracle"]
+    assert result.modes == ["composite", "explicit", "soft", "oracle"]
     w = _width(tiny)
     scaled = resolve_box_size("scaled", w)
     assert result.boxes["exact"]["box_sizes"] == [30] and result.boxes["exact"]["majority_radii"] == [3]

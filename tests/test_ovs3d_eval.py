@@ -74,7 +74,7 @@ def test_eval_detects_the_layout_and_scores(trained_run, exported, tmp_path, cap
     printed = capsys.readouterr().out
     data = json.loads((out / "eval.json").read_text())
     assert data["format"] == "n2f2-eval-ovs3d-v1" and data["prediction"] == "argmax"
-    assert data["modes"] == ["composite", "explicit"]  # oracle has no 3D-OVS reading
+    assert data["modes"] == ["composite", "explicit", "soft"]  # oracle has no 3D-OVS reading
     n_views = len(read_ovs3d_segmentations(exported).views)
     for m in data["modes"]:
         for b in ("exact", "scaled"):

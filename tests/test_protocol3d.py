@@ -1,5 +1,5 @@
 """The 3D protocol (n2f2.eval.protocol3d) on a hand-built scene whose selections and masks are
-worked out by hand, for every engine kind with 3D relevancy (nested composite / explicit, flat,
+worked out by hand, for every engine kind with 3D relevancy (nested composite / explicit / soft, flat,
 a "levels" field, the lift), and ``n2f2 eval --protocol 3d|both`` on the tiny trained run."""
 
 from __future__ import annotations
@@ -168,8 +168,8 @@ def test_label_masks_are_the_hand_drawn_shapes():
 @pytest.mark.parametrize(
     "make, modes",
     [
-        (nested_engine, ["composite", "explicit"]),
-        (flat_engine, ["composite", "explicit"]),
+        (nested_engine, ["composite", "explicit", "soft"]),
+        (flat_engine, ["composite", "explicit", "soft"]),
         (levels_engine, ["levels"]),
         (lift_engine_by_hand, ["levels"]),
     ],

@@ -75,7 +75,7 @@ def test_step_rules():
 
 
 def test_modes_and_what_oracle_picks_among():
-    assert NESTED.modes == FLAT.modes == ("composite", "explicit", "oracle")
+    assert NESTED.modes == FLAT.modes == ("composite", "explicit", "soft", "oracle")
     assert LEVELS.modes == ("levels", "oracle")
     assert (NESTED.answers_with, FLAT.answers_with, LEVELS.answers_with) == ("prefix", "prefix", "levels")
     assert [NESTED.mode_for(m) for m in ("composite", "explicit", "oracle")] == ["composite", "explicit", "oracle"]

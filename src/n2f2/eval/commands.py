@@ -59,7 +59,7 @@ def register(subparsers) -> None:
         default=None,
         metavar="MODE",
         help=f"query modes to score ({', '.join(MODES)}); default: every mode the field supports "
-        "(composite explicit oracle for a nested field, levels oracle for a 3-level one)",
+        "(composite explicit soft oracle for a nested or flat field, levels oracle for a 3-level one)",
     )
     p.add_argument("--scene", default=None, metavar="DIR", help="scene folder (default: the run's)")
     p.add_argument(

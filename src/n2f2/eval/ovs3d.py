@@ -31,7 +31,8 @@ modes.
 
 A trained run is scored by :func:`evaluate_run_ovs3d` (``n2f2 eval RUN --labels SCENE`` picks it
 when ``SCENE`` or ``SCENE/segmentations`` holds a ``classes.txt``): each listed view is rendered
-once; composite gives one map per class; explicit / levels hand every scale to the rule above
+once; composite gives one map per class, and so does soft (:mod:`n2f2.query.soft`, made from the
+scales' maps); explicit / levels hand every scale to the rule above
 (the scale whose ``R'`` peaks highest, per class and box size; only the chosen map is kept), under
 LangSplat's exact 30 px box and the box scaled to the image width, as the 2D runner reports both.
 Oracle mode is left out: the argmax prediction couples the classes, so a best scale per class is
@@ -362,6 +363,7 @@ def evaluate_run_ovs3d(
 
     from tqdm import tqdm
 
+    from ..query.soft import soft_relevancy
     from .protocol import resolve_box_size, smoothed_relevancy
 
     t_start = time.perf_counter()
@@ -374,7 +376,7 @@ def evaluate_run_ovs3d(
             raise InputError(None, f"mode {m!r} does not apply to this {engine.variant!r} field")
     wanted = [m for m in wanted if m != "oracle"]
     if not wanted:
-        raise InputError(None, "the 3D-OVS evaluation has no oracle mode: choose composite, explicit or levels")
+        raise InputError(None, "the 3D-OVS evaluation has no oracle mode: choose composite, explicit, soft or levels")
     num_views = len(engine.scene.cameras)
     cam0 = engine.camera(0)[0]
     labels = read_ovs3d_segmentations(labels_path, size=(cam0.width, cam0.height))
@@ -386,8 +388,10 @@ def evaluate_run_ovs3d(
         on_ready()
     classes = list(labels.classes)
     C = len(classes)
-    scale_modes = [m for m in wanted if m != "composite"]
-    render_modes = (["composite"] if "composite" in wanted else []) + (["oracle"] if scale_modes else [])
+    scale_modes = [m for m in wanted if m not in ("composite", "soft")]
+    render_modes = (["composite"] if "composite" in wanted else []) + (
+        ["oracle"] if scale_modes or "soft" in wanted else []
+    )
     maps: dict[int, dict[str, dict[str, np.ndarray]]] = {}  # view -> mode -> box -> [C, H, W]
     chosen: dict[int, dict[str, dict[str, list[int]]]] = {}  # view -> mode -> box -> scale per class
     for view in tqdm(labels.views, desc="eval 3D-OVS views", unit="view", disable=not progress):
@@ -398,11 +402,13 @@ def evaluate_run_ovs3d(
         if "composite" in wanted:
             rel = engine.query(vc, classes, mode="composite").relevancy.float().cpu().numpy()
             per_mode["composite"] = {b: rel for b in boxes}
-        if scale_modes:
+        if scale_modes or "soft" in wanted:
             kept = {b: np.zeros((C, H, W), np.float32) for b in boxes}
             levels = {b: [0] * C for b in boxes}
+            soft = np.zeros((C, H, W), np.float32)
 
             def scorer(rel: Any, qi: int) -> np.ndarray:  # [S, H, W] -> [S] (the engine's choice is unused)
+                soft[qi] = soft_relevancy(rel.reshape(len(rel), 1, -1))[0].reshape(H, W).float().cpu().numpy()
                 r = rel.detach().float().cpu().numpy()
                 for b, cfg in boxes.items():
                     size = resolve_box_size(cfg.box_size, W, cfg.box_ref_width)
@@ -415,6 +421,8 @@ def evaluate_run_ovs3d(
             for m in scale_modes:
                 per_mode[m] = kept
                 picks[m] = levels
+            if "soft" in wanted:
+                per_mode["soft"] = {b: soft for b in boxes}
         maps[view.view_index] = per_mode
         chosen[view.view_index] = picks
 
@@ -427,7 +435,7 @@ def evaluate_run_ovs3d(
                 return maps[i][m][b][[classes.index(c) for c in names]]
 
             s = evaluate_ovs3d(score_fn, labels, num_views, prediction, cfg, empty_union, progress=False).to_dict()
-            if m != "composite":
+            if m in scale_modes:
                 for rec in s["per_view"]:
                     rec["levels"] = list(chosen[rec["view_index"]][m][b])
             scores[m][b] = s

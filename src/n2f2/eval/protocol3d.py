@@ -10,12 +10,13 @@ al. 2025) reports LERF-OVS under the same protocol. The 2D protocol (:mod:`n2f2.
 instead renders features and post-processes the 2D relevancy map (box filter, threshold,
 majority filter); here nothing is smoothed in 2D, so the numbers judge the 3D answer itself.
 
-The rules, per query mode (``composite``, ``explicit``, ``levels``; ``oracle`` is a 2D bound
-with no 3D query and is left out):
+The rules, per query mode (``composite``, ``explicit``, ``soft``, ``levels``; ``oracle`` is a 2D
+bound with no 3D query and is left out):
 
 * **relevancy of each Gaussian**: :meth:`QueryEngine.query_gaussians` (composite: the Gaussian's
   ``W Theta~_i``; explicit / levels: per query the scale whose highest relevancy over the
-  Gaussians is largest, the engine's 3D scale rule).
+  Gaussians is largest, the engine's 3D scale rule; soft: every scale weighted by
+  ``softmax(peak / tau)`` of those highest relevancies, :mod:`n2f2.query.soft`).
 * **selection**: :meth:`QueryEngine.select` with no threshold, the rule ``n2f2 query --3d`` and
   the viewer apply: min-max normalise the Gaussians' relevancy, map [0, 1] to [-1, 1], clip,
   keep ``> 0.4`` (LangSplat's threshold, no box filter). One selection per query, shared by
@@ -54,7 +55,7 @@ import numpy as np
 from ..errors import InputError
 from .protocol import frame_targets, mask_iou, max_locations, points_in_boxes
 
-MODES_3D = ("composite", "explicit", "levels")  # query modes with a 3D query on the Gaussians
+MODES_3D = ("composite", "explicit", "levels", "soft")  # query modes with a 3D query on the Gaussians
 SELECTION_COVER = 0.5  # a pixel is in the selection mask when render_selection > this (n2f2 query --3d)
 ACC_IOUS = (0.25, 0.5)  # mAcc@t = fraction of pairs with IoU > t (OpenGaussian)
 FORMAT_3D = "n2f2-eval3d-v1"  # eval.json of `n2f2 eval --protocol 3d`
@@ -151,7 +152,7 @@ def modes_3d(engine: Any, modes: Optional[Sequence[str]] = None) -> list[str]:
             raise InputError(None, f"mode {m!r} does not apply to this {engine.variant!r} field")
     out = [m for m in wanted if m in MODES_3D]
     if not out:
-        raise InputError(None, "the 3D protocol has no oracle mode: choose composite, explicit or levels")
+        raise InputError(None, "the 3D protocol has no oracle mode: choose composite, explicit, soft or levels")
     return out
 
 

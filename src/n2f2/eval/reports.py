@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any, Mapping, Optional, Sequence, Union
 import numpy as np
 
 from ..io import atomic_path
-from .runner import QUERY_KINDS, QUERY_TYPES, SCALE_MODES, compare_evals, load_eval
+from .runner import ONE_MAP_MODES, QUERY_KINDS, QUERY_TYPES, SCALE_MODES, compare_evals, load_eval
 
 if TYPE_CHECKING:
     from .metrics import QueryDeltas, RetrievalScores
@@ -347,6 +347,8 @@ def _at(d: Mapping, k: int) -> Any:  # K-keyed dicts have int keys in memory, st
 
 def markdown_report(result: Mapping, deltas: Optional[Mapping] = None, reference: str = "") -> str:
     """``eval.md`` from an ``eval.json`` dict (and optional :func:`compare_evals` output)."""
+    from ..query.soft import SOFT_TEMPERATURE
+
     boxes = list(result["boxes"])
     title = {b: box_title(result, b) for b in boxes}
     radii = {b: _radii(result, b) for b in boxes}
@@ -367,6 +369,8 @@ def markdown_report(result: Mapping, deltas: Optional[Mapping] = None, reference
         "explicit": f"LangSplat's level choice over the {n_scales} scales (max R' for segmentation, "
         "max box(R) for localization)",
         "levels": "LangSplat's level choice over the 3 levels of the baseline field",
+        "soft": f"one map per query: the {n_scales} scales' maps weighted by softmax(peak / {SOFT_TEMPERATURE:g}) "
+        "of each scale's highest relevancy in the view",
         "oracle": f"per pair the best of the {n_scales} scales for each task (best IoU; any scale that "
         "localizes): an upper bound of the explicit choice, not of composite; with many "
         "scales the localization bound is loose",
@@ -488,12 +492,12 @@ def markdown_report(result: Mapping, deltas: Optional[Mapping] = None, reference
             for b in boxes:
                 r = result["retrieval"][m][b]
                 rows.append(
-                    [m, title[b] if m != "composite" else "any"]
+                    [m, title[b] if m not in ONE_MAP_MODES else "any"]
                     + [pct(_at(r["recall"], k)) for k in ks]
                     + [_fmt_num(r["mean_first_rank"]), r["num_pairs"], len(r["skipped"])]
                 )
-                if m == "composite":
-                    break  # the composite map does not depend on the box
+                if m in ONE_MAP_MODES:
+                    break  # the composite and soft maps do not depend on the box
         out.append(
             markdown_table(
                 ["mode", "box"]
@@ -620,7 +624,7 @@ def write_eval_outputs(
         curves = {}
         for m in modes:
             for b in data["boxes"]:
-                curves[m if m == "composite" else f"{m} ({title[b]})"] = result.retrieval[m][b].recall
+                curves[m if m in ONE_MAP_MODES else f"{m} ({title[b]})"] = result.retrieval[m][b].recall
         paths["recall_png"] = plot_recall_curves(out / "recall_at_k.png", curves)
     for m in modes:
         if m in SCALE_MODES:

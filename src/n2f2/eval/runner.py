@@ -2,8 +2,8 @@
 LERF-OVS tables (Sec. 4.1, appendix Tables 7 and 8, the R@K retrieval figure), written as
 ``eval.json``, ``eval.md``, PNG plots and raw relevancy ``.npy`` files.
 
-What is measured, per query mode (``composite``, ``explicit``, ``levels`` for a 3-level field,
-``oracle``) and per box size:
+What is measured, per query mode (``composite``, ``explicit``, ``soft``, ``levels`` for a
+3-level field, ``oracle``) and per box size:
 
 * **Box sizes, always both.** ``exact`` is LangSplat's protocol as released (30 px mean filter,
   7x7 majority filter), sized for LERF-OVS images about 986 px wide; ``scaled`` is the same
@@ -15,6 +15,9 @@ What is measured, per query mode (``composite``, ``explicit``, ``levels`` for a 
   scales, or the 3 levels of a "levels" field):
 
   - ``composite``: one map per query (paper Sec. 3.3); no choice.
+  - ``soft``: one map per query, the scales' maps weighted by ``softmax(peak / tau)``
+    (:mod:`n2f2.query.soft`), computed from the all-scale maps the oracle pass hands over (no
+    second render); scored like composite, no choice.
   - ``explicit`` / ``levels``: every scale is handed to the protocol as one of its levels, so the
     choice is LangSplat's own: segmentation uses the scale whose ``R' = 0.5 (box(R) + R)`` has
     the highest maximum, localization the scale whose ``box(R)`` has the highest maximum
@@ -61,7 +64,7 @@ drawn at another size than the renders (error, or ``rescale_labels=True``); poly
 the image (dropped and counted by the protocol); a segment bank of another scene or size.
 
 Memory: the runner renders each labelled view once and keeps, per view, the chosen maps of every
-mode (``[Q, H, W]`` float32 each, about 9 per view); the all-scale maps are scored per query and
+mode (``[Q, H, W]`` float32 each, about 10 per view); the all-scale maps are scored per query and
 dropped. On the 160x120 demo that is ~14 MB per view.
 
 (Longer than 600 lines: one pass over the labelled views produces every number above, and this
@@ -98,7 +101,9 @@ DEFAULT_KS = (1, 2, 3, 4, 5)
 RETRIEVAL_IOU = 0.5  # a bank segment matches a label when IoU(segment, union mask) >= this
 QUERY_TYPES = ("simple", "compound", "unknown")
 QUERY_KINDS = ("part", "object", "group", "mixed", "unknown")  # the hierarchy level a query names
-SCALE_MODES = ("explicit", "levels", "oracle")  # modes scored from the all-scale maps
+SCALE_MODES = ("explicit", "levels", "oracle")  # modes that choose a scale per pair
+FROM_SCALES = SCALE_MODES + ("soft",)  # modes computed from the all-scale maps of each query
+ONE_MAP_MODES = ("composite", "soft")  # one map per query: the same under both boxes
 
 
 @dataclass(frozen=True)
@@ -333,7 +338,10 @@ def _scale_maps(
     keep_all: bool,
 ) -> tuple[dict, dict, Optional[np.ndarray]]:
     """Score every scale of every labelled category once (through the engine's oracle scorer
-    hook, which hands over the ``[S, H, W]`` maps of one query) and keep each mode's chosen maps."""
+    hook, which hands over the ``[S, H, W]`` maps of one query) and keep each mode's chosen maps,
+    and the soft map (:func:`n2f2.query.soft.soft_relevancy`) made from them."""
+    from ..query.soft import soft_relevancy
+
     H, W = view.height, view.width
     K = len(categories)
     wanted = [m for m in modes if m in SCALE_MODES]
@@ -343,13 +351,18 @@ def _scale_maps(
     }
     choices: dict = {m: {b: {} for b in protocols} for m in wanted}
     stacks: list = [None] * K
+    soft = np.zeros((K, H, W), np.float32) if "soft" in modes else None
+    if soft is not None:
+        maps["soft"] = {b: {"seg": soft, "loc": soft} for b in protocols}  # one map, as composite's
 
     def scorer(rel: Any, qi: int) -> np.ndarray:  # rel [S, H, W] -> [S] (the engine's choice is unused)
+        if soft is not None:
+            soft[qi] = soft_relevancy(rel.reshape(len(rel), 1, -1))[0].reshape(H, W).float().cpu().numpy()
         r = rel.detach().float().cpu().numpy()
         if keep_all:
             stacks[qi] = r.copy()
         target = targets.get(categories[qi])
-        if target is None:  # every object of this category is outside the image: not scored
+        if target is None or not wanted:  # not scored (objects all outside the image), or no choice
             return np.zeros(len(r))
         for b, cfg in protocols.items():
             size = resolve_box_size(cfg.box_size, W, cfg.box_ref_width)
@@ -589,7 +602,7 @@ def evaluate_run(
     slugs = dict(zip(all_categories, unique_slugs(all_categories)))
     npy_mode = "composite" if "composite" in modes else ("levels" if "levels" in modes else None)
     render_modes = (["composite"] if "composite" in modes else []) + (
-        ["oracle"] if any(m in SCALE_MODES for m in modes) else []
+        ["oracle"] if any(m in FROM_SCALES for m in modes) else []
     )
     heldout = set(int(v) for v in engine.meta.get("heldout_views", []) or [])
     train_views = engine.meta.get("train_views")
@@ -627,7 +640,7 @@ def evaluate_run(
             rel = engine.query(view, categories, mode="composite").relevancy.float().cpu().numpy()
             maps["composite"] = {b: {"seg": rel, "loc": rel} for b in protocols}
         all_scales = None
-        if any(m in SCALE_MODES for m in modes):
+        if any(m in FROM_SCALES for m in modes):
             smaps, choices, all_scales = _scale_maps(
                 engine,
                 view,

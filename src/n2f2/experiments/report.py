@@ -53,6 +53,7 @@ def write_plots(out: Path, result: Mapping, runs: Mapping[str, dict], variant_ru
 # (variant, mode, label) of the per-method plot and table, in this order
 METHODS = (
     ("nested", "composite", "N2F2 composite"),
+    ("nested", "soft", "N2F2 soft"),
     ("nested", "explicit", "N2F2 explicit"),
     ("nested", "oracle", "N2F2 oracle"),
     ("flat", "composite", "flat composite"),
@@ -181,16 +182,17 @@ def markdown_bench(result: Mapping, runs: Mapping[str, dict], variant_runs: Mapp
     if nested is not None:
         out.append("\n## Composite vs explicit vs oracle (paper Table 3)\n\n")
         out.append(f"N2F2 field ({variant_runs['nested']}), {nested['field']['num_scales']} scales.\n\n")
-        out.append(
-            _mode_table(
-                [
-                    ("composite", nested, "composite"),
-                    ("explicit", nested, "explicit"),
-                    ("oracle (upper bound of explicit)", nested, "oracle"),
-                ],
-                bt,
-            )
-        )
+        table3 = [
+            ("composite", nested, "composite"),
+            ("explicit", nested, "explicit"),
+            ("oracle (upper bound of explicit)", nested, "oracle"),
+        ]
+        if "soft" in nested["scores"]:
+            from ..query.soft import SOFT_TEMPERATURE
+
+            soft = f"soft (the scales weighted by softmax(peak / {SOFT_TEMPERATURE:g}); not in the paper)"
+            table3.insert(1, (soft, nested, "soft"))
+        out.append(_mode_table(table3, bt))
         out.append(
             "\nScales chosen per (frame, query) pair (prefix length d of the chosen scale, D = "
             f"{nested['field']['dim']}):\n\n"

@@ -45,7 +45,9 @@ class VariantSpec:
 
 
 VARIANTS: dict[str, VariantSpec] = {
-    "nested": VariantSpec("nested", "N2F2 (nested, TriPlane+MLP, k=1)", "nested"),
+    "nested": VariantSpec(
+        "nested", "N2F2 (nested, TriPlane+MLP, k=1)", "nested", modes=("composite", "explicit", "soft", "oracle")
+    ),
     "flat": VariantSpec("flat", "non-nested (flat)", "flat"),
     "levels": VariantSpec("levels", "3-level (LangSplat-like)", "levels", modes=("levels", "oracle")),
     "lift": VariantSpec(

@@ -19,9 +19,12 @@ For a field of ``D`` dims configured with step size ``k`` (``FieldConfig.step_si
   :meth:`~FieldVariant.mode_for`: which of its modes plays the part of a nested field's mode.
 
     variant  scales at D = 12, k = 3   labels             step        modes
-    nested   [0,3) [0,6) [0,9) [0,12)  d=3 d=6 d=9 d=12   k           composite explicit oracle
-    flat     [0,12)                    d=12               D           composite explicit oracle
+    nested   [0,3) [0,6) [0,9) [0,12)  d=3 d=6 d=9 d=12   k           composite explicit soft oracle
+    flat     [0,12)                    d=12               D           composite explicit soft oracle
     levels   [8,12) [4,8) [0,4)        part object group  k (unused)  levels oracle
+
+(``soft``, :mod:`n2f2.query.soft`, blends the prefix scales; on a flat field's one scale it is
+its explicit map.)
 """
 
 from __future__ import annotations
@@ -90,6 +93,8 @@ class FieldVariant(ABC):
 
 class PrefixVariant(FieldVariant):
     """A variant whose scales are prefixes ``theta[:d]`` answered by ``W[:, :d]``."""
+
+    modes = ("composite", "explicit", "soft", "oracle")
 
     def scale_dims(self, dim: int, step_size: int = 1) -> list[int]:
         """The prefix lengths ``d`` of its scales, coarse (short) to fine."""

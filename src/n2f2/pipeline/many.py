@@ -64,7 +64,7 @@ def summary_markdown(summary: dict) -> str:
     from ..eval.reports import markdown_table
 
     rows = summary["scenes"]
-    modes = [m for m in ("composite", "explicit", "oracle") if any(m in r["miou"] for r in rows)]
+    modes = [m for m in ("composite", "explicit", "soft", "oracle") if any(m in r["miou"] for r in rows)]
     modes += sorted({m for r in rows for m in r["miou"]} - set(modes))
     boxes = [b for b in ("exact", "scaled") if any(b in r["miou"].get(m, {}) for r in rows for m in modes)]
     body = []

@@ -14,7 +14,7 @@ from . import stages
 from .cache import StageCache, file_digest, scene_digest, stage_key, tree_digest
 from .presets import DEFAULT_PRESET, get_preset
 
-DEFAULT_MODES = ("composite", "explicit", "oracle")
+DEFAULT_MODES = ("composite", "explicit", "soft", "oracle")
 
 
 class _StageOptions(TypedDict):

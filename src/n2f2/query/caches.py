@@ -1,7 +1,8 @@
 """Score caches of the query engine: per-point data (the pixels of a rendered view, or the
 Gaussians) that turns a batch of text embeddings into relevancy at every scale of a mode with one
 pass over the cache (see :mod:`n2f2.query.engine` for the modes and the fast path), and the
-per-query scale choice of explicit / levels mode (:func:`select_scale`)."""
+per-query scale choice of explicit / levels mode (:func:`select_scale`) and soft mode over the
+Gaussians (:func:`soft_scales`)."""
 
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ from torch import Tensor
 from ..segments.bins import supervised_dims
 from .composite import prefix_dot, prefix_margin_at, prefix_margin_max, prefix_sq_norms, prefix_terms, to_blocks
 from .relevancy import inverse_norm, inverse_norm_from_sq, relevancy_from_scores
+from .soft import SOFT_TEMPERATURE, soft_combine, soft_weights, weighed_scales
 
 
 class ScoreCache(Protocol):
@@ -188,6 +190,42 @@ def select_scale(
     chosen = scores.argmax(dim=1)
     at = prefix_margin_at(terms, weights, cache.inv_norm, cache.neg_max, chosen)  # [Q, P]
     return chosen, scores, _relevancy_of_margins(at)
+
+
+def soft_scales(
+    cache: PrefixCache,
+    texts: Tensor,  # [Q, E] unit text embeddings
+    temperature: float = SOFT_TEMPERATURE,
+) -> tuple[Tensor, Tensor]:  # soft relevancy [Q, P], peaks [Q, S]
+    """Soft mode (:mod:`n2f2.query.soft`) over a prefix cache's points without its ``[S, Q, P]``
+    relevancy: the peaks are the streamed largest margins of :func:`select_scale` through the
+    sigmoid; the weighted sum is accumulated over windows of points (``[S, Q, p]`` near 4M
+    floats), with the sigmoid taken only at the scales some query weighs at least
+    ``NEGLIGIBLE_WEIGHT / S`` (:func:`n2f2.query.soft.weighed_scales`: what is left out adds at
+    most 2^-24 to a relevancy). The prefix sums of a window are those of ``cache.relevancy``
+    (:func:`prefix_dot`), up to the last scale kept."""
+    terms, weights = cache.terms(texts)
+    best = prefix_margin_max(terms, weights, cache.inv_norm, cache.neg_max)  # [S, Q]
+    peaks = _relevancy_of_margins(best.T.contiguous())  # [Q, S]
+    w = soft_weights(peaks, temperature)
+    keep = weighed_scales(w)  # [K]
+    if len(keep) == 0:  # NaN weights (from a NaN feature): every scale, so that the NaN shows
+        keep = torch.arange(w.shape[1], device=w.device)
+    last = int(keep[-1]) + 1
+    scales: Union[slice, Tensor] = slice(0, last) if len(keep) == last else keep  # a slice copies nothing
+    Q, P = texts.shape[0], cache.blocks.shape[2]
+    k = cache.blocks.shape[1]
+    directions = cache._directions(texts)[: last * k]  # [last k, Q]
+    weights_kept = w[:, scales]  # [Q, K]
+    out = texts.new_empty(Q, P)
+    window = _points_per_block(65536, last * Q)
+    for a in range(0, P, window):
+        b = min(P, a + window)
+        raw = prefix_dot(cache.blocks[:last, :, a:b], directions)[scales]  # [K, Q, p]
+        raw.mul_(cache.inv_norm[scales, :, a:b])
+        rel = relevancy_from_scores(raw, cache.neg_max[scales, :, a:b], inplace=True)
+        out[:, a:b] = soft_combine(rel, weights_kept)
+    return out, peaks
 
 
 _SIGMOID_BLOCK = 16384  # elements per call: one thread (torch's grain is 32768), a multiple of 64

@@ -22,6 +22,7 @@ def _box_size(value: str):
 
 def register(subparsers) -> None:
     from .engine import MODES
+    from .soft import SOFT_TEMPERATURE
 
     p = subparsers.add_parser(
         "query",
@@ -44,10 +45,11 @@ def register(subparsers) -> None:
     )
     p.add_argument(
         "--mode",
-        choices=MODES[:3],
+        choices=[m for m in MODES if m != "oracle"],
         default="composite",
         help="composite (default, paper), explicit (best of the D/k scales per query, "
-        "LERF/LangSplat), levels (3-level baseline field)",
+        "LERF/LangSplat), levels (3-level baseline field), soft (every scale weighted by "
+        f"softmax(peak / {SOFT_TEMPERATURE:g}) of its highest relevancy; nested and flat fields)",
     )
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument(

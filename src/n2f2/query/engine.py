@@ -1,4 +1,4 @@
-"""The query engine: per-view caches, the four modes, and 3D queries on the Gaussians.
+"""The query engine: per-view caches, the five modes, and 3D queries on the Gaussians.
 
 Modes (all scored by :mod:`n2f2.query.relevancy`, the one relevancy definition):
 
@@ -9,6 +9,9 @@ Modes (all scored by :mod:`n2f2.query.relevancy`, the one relevancy definition):
   prefix lengths) and, per query, the scale with the highest selection score (LERF / LangSplat).
 * ``levels``: the 3-level baseline field (variant ``"levels"``), explicit selection over its 3
   levels (part, object, group).
+* ``soft`` ("soft explicit", :mod:`n2f2.query.soft`): per query, the relevancy at every scale
+  averaged with weights ``softmax(peak / tau)`` of each scale's highest relevancy over the points
+  (the view's pixels, or the Gaussians). Nested and flat fields.
 * ``oracle``: the best scale per query given ground truth (a mask per query, or a scorer callback
   supplied by the evaluation stage): the upper bound of scale selection.
 
@@ -22,7 +25,9 @@ prefix dot products from block sums + a cumulative sum over scales (``P x D x Q`
 norms once per view from ``G = W^T W`` (see :func:`n2f2.query.composite.prefix_sq_norms`).
 3D queries on the Gaussians never form explicit mode's ``[S, Q, N]`` relevancy: per scale only the
 largest margin over the Gaussians is kept (streamed; compiled with numba on CPU), and the
-relevancy is computed once, at the chosen scale (:func:`select_scale`), with the same bits.
+relevancy is computed once, at the chosen scale (:func:`select_scale`), with the same bits. Soft
+mode takes its peaks from the same maxima and sums the weighted relevancy over windows of
+Gaussians (:func:`soft_scales`).
 
 Selection score of explicit / levels in 2D (``QueryConfig.selection``): ``"smoothed"`` (default)
 is the maximum of LangSplat's ``R' = 0.5 (box(R) + R)`` from :mod:`n2f2.query.maps`, the rule
@@ -53,6 +58,7 @@ from .caches import (
     build_linear_cache,
     build_prefix_cache,
     select_scale,
+    soft_scales,
 )
 from .composite import (
     DEFAULT_CANONICAL,
@@ -69,8 +75,9 @@ from .maps import (
     smoothed_relevancy,
 )
 from .relevancy import DEFAULT_NEGATIVES, check_texts
+from .soft import soft_relevancy
 
-MODES = ("composite", "explicit", "levels", "oracle")
+MODES = ("composite", "explicit", "levels", "soft", "oracle")
 SELECTIONS = ("smoothed", "max")
 
 # (view index, relevancy at every scale [S, H, W] for one query, query index) -> scores [S]
@@ -131,8 +138,9 @@ class QueryResult:
     mode: str
     relevancy: Tensor  # [Q, H, W] (2D) or [Q, N] (Gaussians), in (0, 1)
     scale_labels: list[str]  # the candidate scales of the mode (["composite"] for composite)
-    chosen: list[Optional[int]]  # per query: index into scale_labels (None for composite)
-    scale_scores: Optional[Tensor] = None  # [Q, S] selection score of every scale
+    chosen: list[Optional[int]]  # per query: index into scale_labels (None for composite / soft)
+    # [Q, S] selection score of every scale; soft: its peak (weights = softmax(peak / tau))
+    scale_scores: Optional[Tensor] = None
     seconds: float = 0.0  # wall time of the query pass
 
     @property
@@ -257,9 +265,9 @@ class QueryEngine:
             )
 
     def _cache_kind(self, mode: str) -> str:
-        """The score cache of ``mode``: composite, levels, or prefix (explicit); oracle picks among
-        what the field answers with (its prefixes or its level blocks)."""
-        if mode == "oracle":
+        """The score cache of ``mode``: composite, levels, or prefix (explicit); oracle and soft
+        read what the field answers with (its prefixes or its level blocks)."""
+        if mode in ("oracle", "soft"):
             return self.kind.answers_with
         return mode if mode in ("composite", "levels") else "prefix"
 
@@ -433,6 +441,13 @@ class QueryEngine:
         # Queries in groups so the [S, q, H, W] block stays near 4M floats (cache-friendlier
         # than one big block: measured faster per query on the demo view).
         group = max(1, (1 << 22) // max(1, S * H * W_))
+        if mode == "soft":
+            for a in range(0, len(texts), group):
+                soft, peaks = soft_relevancy(cache.relevancy(emb[a : a + group]))  # [q, H W], [q, S]
+                out[a : a + len(peaks)] = soft.view(-1, H, W_)
+                scores[a : a + len(peaks)] = peaks
+            chosen = [None] * len(texts)
+            return QueryResult(texts, mode, out, cache.labels, chosen, scores, time.perf_counter() - t0)
         for a in range(0, len(texts), group):
             rel = cache.relevancy(emb[a : a + group]).view(S, -1, H, W_)  # [S, q, H, W]
             for j in range(rel.shape[1]):
@@ -470,16 +485,21 @@ class QueryEngine:
     def query_gaussians(self, texts: Sequence[str], mode: str = "composite") -> QueryResult:
         """Relevancy ``[Q, N]`` of every Gaussian from its own feature (``W Theta~_i`` in composite
         mode), without rendering. Explicit / levels pick per query the scale with the highest
-        maximum over the Gaussians."""
+        maximum over the Gaussians; soft weighs every scale by those maxima."""
         texts = check_texts(texts)
         if mode == "oracle":
-            raise InputError(None, "oracle mode is a 2D evaluation bound; use composite, explicit or levels in 3D")
+            raise InputError(
+                None, "oracle mode is a 2D evaluation bound; use composite, explicit, soft or levels in 3D"
+            )
         t0 = time.perf_counter()
         cache = self.gaussian_cache(mode)
         emb = self.encode(texts)
         if mode == "composite":
             rel = cache.relevancy(emb)  # [1, Q, N]
             return QueryResult(texts, mode, rel[0], cache.labels, [None] * len(texts), seconds=time.perf_counter() - t0)
+        if mode == "soft":
+            out, peaks = soft_scales(cast(PrefixCache, cache), emb)
+            return QueryResult(texts, mode, out, cache.labels, [None] * len(texts), peaks, time.perf_counter() - t0)
         chosen, scores, out = select_scale(cast(Union[PrefixCache, LinearCache], cache), emb)
         return QueryResult(texts, mode, out, cache.labels, chosen.tolist(), scores, time.perf_counter() - t0)
 
