@@ -118,7 +118,7 @@ def test_loss_budget_and_cli(tiny, tmp_path, capsys):
     budget = data["budget"]
     names = [r["name"] for r in budget["rows"]]
     assert names == ["teacher, 3 levels", "teacher, oracle level", "lift, 3 levels", "lift, oracle level",
-                     "field, oracle scale", "composite", "explicit"]
+                     "field, oracle scale", "composite", "explicit", "soft"]
     pairs = data["scores"]["composite"]["exact"]["num_pairs"]
     for r in budget["rows"]:
         for b in ("exact", "scaled"):

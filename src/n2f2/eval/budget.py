@@ -10,8 +10,8 @@ evaluate_run`) scores, in order along the pipeline:
 2. **lift**: the teacher lifted onto the Gaussians (:func:`n2f2.field.lift.lift_features`, the
    training views' blending weights, no network) and rendered back with the rasterizer, the same
    two ways: what geometry and rendering cost;
-3. **field**: the trained field at the oracle scale, then ``composite`` and ``explicit``: what
-   distillation and the choice of scale cost.
+3. **field**: the trained field at the oracle scale, then ``composite``, ``explicit`` and ``soft``
+   (:mod:`n2f2.query.soft`): what distillation and the choice of scale cost.
 
 Each row has mIoU and localization under both box sizes, mAP (threshold-free), and the
 part / object / group split (:func:`n2f2.eval.runner.kind_scores`). ``n2f2 eval --budget``
@@ -49,6 +49,7 @@ ROWS = (
     ("field, oracle scale", "field", "oracle"),
     ("composite", "field", "composite"),
     ("explicit", "field", "explicit"),
+    ("soft", "field", "soft"),
 )
 ABOUT = {
     "teacher": "the segment bank's 2D features of each labelled view at its 3 levels, no 3D",
