@@ -37,7 +37,7 @@ def tiny(tmp_path_factory):
                                     labelled_views=[1, 4], supersample=1, num_points=600, show_progress=False)
     scene = load_scene(scene_dir)
     write_ply(root / "gaussians.ply", init_from_points(scene.points, scene.point_colors, sh_degree=0))
-    config = BenchConfig(iterations=4, dim=12, pixels_per_step=256, variants=("nested", "levels", "lift"),
+    config = BenchConfig(iterations=4, dim=12, pixels_per_step=256, variants=("nested", "flat", "levels", "lift"),
                          temperatures=(1.0, 0.1), timing_repeats=1, progress=False)
     out = root / "out"
     result = run_bench(out, config, scene=scene_dir, gaussians=root / "gaussians.ply", log=lambda s: None)
@@ -60,7 +60,8 @@ def test_report_has_the_tables_and_finite_numbers(tiny):
     for name in fields:
         report = json.loads((out / "runs" / name / "train_report.json").read_text())
         assert report["train_config"]["scale_jitter"] == 0.03
-    assert set(data["runs"]) == {"nested-k1", "levels", "lift"} and set(fields) == {"nested-k1", "levels"}
+    assert set(data["runs"]) == {"nested-k1", "flat", "levels", "lift"}
+    assert set(fields) == {"nested-k1", "flat", "levels"}
     for name in data["runs"]:
         assert (out / "runs" / name / "eval" / "eval.json").is_file()
     for name in fields:
@@ -93,8 +94,8 @@ def test_the_lift_row_is_what_the_loss_budget_scores(tiny):
     md = (out / "bench.md").read_text()
     assert "## Every method, with the time to build it" in md
     methods = {r["method"]: r for r in data["methods"]}
-    assert list(methods) == ["N2F2 composite", "N2F2 soft", "N2F2 explicit", "N2F2 oracle", "3-level",
-                             "3-level oracle", "lift (training-free)", "lift oracle"]
+    assert list(methods) == ["N2F2 composite", "N2F2 soft", "N2F2 explicit", "N2F2 oracle", "flat composite",
+                             "3-level", "3-level oracle", "lift (training-free)", "lift oracle"]
     for r in methods.values():
         assert r["build_time_s"] > 0
         assert f"| {r['method']} | {r['run']} |" in md
@@ -124,6 +125,54 @@ def test_the_lift_row_is_what_the_loss_budget_scores(tiny):
             mine = {q: v["iou"] for q, v in ev["per_query"][mode][box].items()}
             assert mine and mine == pytest.approx({q: v["iou"] for q, v in rows[row]["per_query"][box].items()},
                                                   abs=1e-9)
+
+
+def test_the_3d_protocol_scores_every_run_in_every_3d_mode(tiny):
+    """Every run (nested, flat, levels and the lift) is scored under the 3D protocol on the labels
+    the 2D tables use, in each mode it answers with a 3D query; bench.json and bench.md carry one
+    row per (run, mode), and the nested run's numbers are those of evaluate_protocol3d called on
+    that run directly."""
+    from n2f2.data.labels import read_label_dir
+    from n2f2.eval.protocol3d import Protocol3dConfig, evaluate_protocol3d
+    from n2f2.query.engine import QueryEngine
+
+    out = tiny["out"]
+    data = json.loads((out / "bench.json").read_text())
+    md = (out / "bench.md").read_text()
+    p3 = data["protocol3d"]
+    # Oracle is a 2D bound with no 3D query: every other mode of the prefix fields (flat has one
+    # scale, so soft and explicit weigh it alone), and the level choice of the 3-level field and the lift.
+    assert {n: list(m) for n, m in p3["runs"].items()} == {
+        "nested-k1": ["composite", "explicit", "soft"], "flat": ["composite", "explicit", "soft"],
+        "levels": ["levels"], "lift": ["levels"]}
+    section = md.split("## 3D protocol (select Gaussians, render the selection)\n", 1)[1].split("\n## ", 1)[0]
+    assert ("Selection rule (one per query, shared by every view): QueryEngine.select: min-max normalised "
+            "Gaussian relevancy mapped to [-1, 1], clipped, > 0.4.") in section
+    assert "| run | variant | mode | mIoU % | mAcc@0.25 % | mAcc@0.5 % | loc. % | pairs | empty selections |" in section
+    variants = {"nested-k1": "nested", "flat": "flat", "levels": "levels", "lift": "lift"}
+    for name, modes in p3["runs"].items():
+        pairs_2d = data["evals"][name]["T1"]["scores"][data["evals"][name]["T1"]["modes"][0]]["exact"]["num_pairs"]
+        for mode, r in modes.items():
+            for key in ("miou_pct", "macc_0.25_pct", "macc_0.5_pct", "loc_pct"):
+                assert 0 <= r[key] <= 100, (name, mode, key)
+            assert r["macc_0.5_pct"] <= r["macc_0.25_pct"]  # IoU > 0.5 implies IoU > 0.25
+            assert r["pairs"] == pairs_2d > 0  # the same (frame, query) pairs as the 2D protocol
+            assert 0 <= r["empty_selections"] == len(r["empty_queries"]) <= r["queries"]
+            assert (f"| {name} | {variants[name]} | {mode} | {r['miou_pct']:.1f} | {r['macc_0.25_pct']:.1f} | "
+                    f"{r['macc_0.5_pct']:.1f} | {r['loc_pct']:.1f} | {r['pairs']} | "
+                    f"{r['empty_selections']} of {r['queries']} |") in section
+        assert (out / "runs" / name / "eval3d" / "eval.json").is_file()
+
+    engine = QueryEngine.from_run(out / "runs" / "nested-k1", scene=tiny["scene"])
+    direct = evaluate_protocol3d(engine, read_label_dir(tiny["scene"] / "label"), config=Protocol3dConfig(progress=False))
+    assert direct.modes == list(p3["runs"]["nested-k1"])
+    for mode, s in direct.scores.items():
+        r = p3["runs"]["nested-k1"][mode]
+        assert r["miou_pct"] == pytest.approx(100 * s.miou, abs=1e-6)
+        assert r["macc_0.25_pct"] == pytest.approx(100 * s.acc["0.25"], abs=1e-6)
+        assert r["macc_0.5_pct"] == pytest.approx(100 * s.acc["0.5"], abs=1e-6)
+        assert r["loc_pct"] == pytest.approx(100 * s.loc_accuracy, abs=1e-6)
+        assert (r["pairs"], r["empty_queries"]) == (s.num_pairs, s.empty_selections)
 
 
 def test_the_lift_alone_builds_its_blending_weights(tiny, tmp_path, capsys):
@@ -170,12 +219,15 @@ def test_rerun_reuses_runs_and_evaluations(tiny):
     out = tiny["out"]
     fields = {p: p.stat().st_mtime_ns for p in (out / "runs").glob("*/field.pt")}
     evals = {p: p.stat().st_mtime_ns for p in (out / "runs").glob("*/eval*/eval.json")}
-    assert len(fields) == 2 and len(evals) == 4  # nested (T = 1 and 0.1), levels and the lift
+    # 2D: nested (T = 1 and 0.1), flat, levels and the lift; 3D: one per run
+    assert len(fields) == 3 and len(evals) == 5 + 4
+    assert len([p for p in evals if p.parent.name == "eval3d"]) == 4
     again = run_bench(out, tiny["config"], scene=tiny["scene"], gaussians=tiny["root"] / "gaussians.ply",
                       log=lambda s: None)
     assert {p: p.stat().st_mtime_ns for p in (out / "runs").glob("*/field.pt")} == fields
     assert {p: p.stat().st_mtime_ns for p in (out / "runs").glob("*/eval*/eval.json")} == evals
     assert all(r["reused"] for r in again["runs"].values())
+    assert again["protocol3d"] == tiny["result"]["protocol3d"]
     # Scores come from the reused evaluations, so their claims are the same; query timing is
     # measured anew on every run, so the speed claims are left out of the comparison.
     scored = lambda r: [c["delta"] for c in r["claims"] if c["metric"] != "time"]  # noqa: E731

@@ -19,8 +19,10 @@ What is reproduced (paper section in brackets), all on one scene, one seed:
 Flow. The scene, fitted Gaussians and segment bank are built once under ``OUT/data/`` (or
 given) by the pipeline's stages under its stage cache; every variant is trained into
 ``OUT/runs/<run>/`` (:mod:`.training`; the lift's report and evaluation go to ``OUT/runs/lift/``),
-evaluated by :func:`n2f2.eval.runner.evaluate_run`
-(LangSplat's protocol, both box sizes) and by :func:`n2f2.train.evaluate.evaluate_cosine_by_level`
+evaluated by :func:`n2f2.eval.runner.evaluate_run` (LangSplat's protocol, both box sizes), by
+:func:`n2f2.eval.protocol3d.evaluate_protocol3d` (the 3D protocol: Gaussians selected by text,
+the selection rendered into each labelled view; every 3D mode of each run, the lift included,
+into ``OUT/runs/<run>/eval3d/``) and by :func:`n2f2.train.evaluate.evaluate_cosine_by_level`
 (:mod:`.evaluate`), and the numbers are collected into ``OUT/bench.json``, ``OUT/bench.md`` and
 a few PNG plots (:mod:`.report`). A rerun resumes: a run trained with the same configs on the
 same data is not retrained, and an evaluation of an unchanged field is not redone.
@@ -251,9 +253,17 @@ def run_bench(
     ``OUT/bench.md`` and ``OUT/*.png`` and returns the bench.json content."""
     from ..io import write_json, write_text
     from .claims import evaluate_claims
-    from .evaluate import MemoEncoder, cosine_variant, evaluate_lift, evaluate_variant, gamma_statistics
+    from .evaluate import (
+        MemoEncoder,
+        cosine_variant,
+        evaluate_lift,
+        evaluate_lift_3d,
+        evaluate_variant,
+        evaluate_variant_3d,
+        gamma_statistics,
+    )
     from .memory import field_parameter_count
-    from .report import markdown_bench, method_rows, write_plots
+    from .report import markdown_bench, method_rows, protocol3d_rows, write_plots
     from .timing import timing_breakdown
     from .training import lift_variant, train_variant
 
@@ -320,11 +330,17 @@ def run_bench(
                 run_dir, entry["train"], data, modes, run_dir / "eval", config, log, encoder
             )
             stage_s[f"eval {name}"] = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            entry["eval3d"] = evaluate_lift_3d(run_dir, entry["train"], data, run_dir / "eval3d", config, log, encoder)
+            stage_s[f"eval 3D {name}"] = time.perf_counter() - t0
             continue
         entry["evals"]["T1"] = evaluate_variant(run_dir, data, modes, run_dir / "eval", config, 1.0, log, encoder)
         if entry["cosine_wanted"]:
             entry["cosine"] = cosine_variant(run_dir, data, config, log)
         stage_s[f"eval {name}"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        entry["eval3d"] = evaluate_variant_3d(run_dir, data, run_dir / "eval3d", config, log, encoder)
+        stage_s[f"eval 3D {name}"] = time.perf_counter() - t0
 
     # Composite temperature on the k = 1 nested TriPlane run.
     gamma: list[dict] = []
@@ -390,6 +406,7 @@ def run_bench(
     }
     result["claims"] = evaluate_claims(result, runs, variant_runs)
     result["methods"] = method_rows(result, runs, variant_runs)
+    result["protocol3d"] = protocol3d_rows(runs)
     result["seconds"] = time.perf_counter() - t_start
     plots = write_plots(out, result, runs, variant_runs)
     result["plots"] = {k: str(v) for k, v in plots.items()}

@@ -3,11 +3,15 @@
 gamma. Each result is cached in its run folder's ``stages.json``, keyed on the content of the
 field and the labels (:class:`n2f2.pipeline.cache.StageCache`). The training-free lift is scored
 by the same runner through a :class:`n2f2.query.lifted.LiftEngine` (:func:`evaluate_lift`), as
-``n2f2 eval --budget`` scores it (:func:`n2f2.eval.budget.loss_budget`)."""
+``n2f2 eval --budget`` scores it (:func:`n2f2.eval.budget.loss_budget`). Every run, the lift
+included, is also scored under the 3D protocol (:func:`n2f2.eval.protocol3d.evaluate_protocol3d`,
+every 3D mode it answers; :func:`evaluate_variant_3d`, :func:`evaluate_lift_3d`) into
+``RUN/eval3d/``, cached the same way."""
 
 from __future__ import annotations
 
 import json
+from dataclasses import asdict
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Mapping, Sequence
 
@@ -140,22 +144,12 @@ def evaluate_lift(
     return load_eval(eval_json)
 
 
-def _evaluate_lift(
-    lift: Mapping[str, Any],
-    data: "BenchData",
-    modes: Sequence[str],
-    out_dir: Path,
-    config: "BenchConfig",
-    encoder: Any,
-) -> None:
+def _lift_engine(lift: Mapping[str, Any], data: "BenchData", config: "BenchConfig", encoder: Any) -> tuple[Any, Path]:
     """The lift's query engine built as the loss budget builds it (the source run's Gaussians and
-    field metadata when a trained run holds the lift), scored by ``evaluate_run``."""
+    field metadata when a trained run holds the lift), and the run folder it reports."""
     from ..data import load_scene
-    from ..eval.reports import markdown_report
-    from ..eval.runner import EvalConfig, evaluate_run
     from ..field.lift import load_lift
     from ..gaussians import read_ply
-    from ..io import write_json, write_text
     from ..query.engine import QueryConfig, QueryEngine
     from ..query.lifted import lift_engine
 
@@ -171,14 +165,30 @@ def _evaluate_lift(
         gaussians = read_ply(lift["gaussians"], device=config.device)
         meta, scene = dict(lift["meta"]), load_scene(data.scene_dir)
     features = load_lift(lift["lift_path"], num_gaussians=int(gaussians.means.shape[0]))
-    engine = lift_engine(features, gaussians, encoder, meta, query_config, config.device, scene, run_dir)
+    return lift_engine(features, gaussians, encoder, meta, query_config, config.device, scene, run_dir), run_dir
+
+
+def _evaluate_lift(
+    lift: Mapping[str, Any],
+    data: "BenchData",
+    modes: Sequence[str],
+    out_dir: Path,
+    config: "BenchConfig",
+    encoder: Any,
+) -> None:
+    """The lift's query engine (:func:`_lift_engine`) scored by ``evaluate_run``."""
+    from ..eval.reports import markdown_report
+    from ..eval.runner import EvalConfig, evaluate_run
+    from ..io import write_json, write_text
+
+    engine, run_dir = _lift_engine(lift, data, config, encoder)
     result = evaluate_run(
         run_dir,
         data.label_dir,
         scene=data.scene_dir,
         bank=data.bank_dir,
         config=EvalConfig(modes=tuple(modes), progress=config.progress),
-        query_config=query_config,
+        query_config=engine.config,
         device=config.device,
         encoder=encoder,
         engine=engine,
@@ -187,6 +197,92 @@ def _evaluate_lift(
     d = result.to_dict()
     write_text(out_dir / "eval.md", markdown_report(d))
     write_json(out_dir / "eval.json", d)
+
+
+def evaluate_variant_3d(
+    run_dir: Path,
+    data: "BenchData",
+    out_dir: Path,
+    config: "BenchConfig",
+    log: Callable[[str], None] = print,
+    encoder: Any = None,
+) -> dict:
+    """The 3D protocol on one trained run (every 3D mode its field answers, composite at T = 1),
+    written to ``out_dir`` (eval.json and eval.md as ``n2f2 eval --protocol 3d`` writes them);
+    reused while the field, its Gaussians, the labels and the protocol's settings are unchanged."""
+    from ..pipeline.cache import file_digest
+
+    def engine() -> Any:
+        from ..query.engine import QueryConfig, QueryEngine
+
+        return QueryEngine.from_run(
+            run_dir, device=config.device, scene=data.scene_dir, config=QueryConfig(), encoder=encoder
+        )
+
+    inputs = {"field": file_digest(run_dir / "field.pt"), "gaussians": file_digest(run_dir / "gaussians.ply")}
+    return _cached_3d(run_dir, inputs, engine, data, out_dir, config, log)
+
+
+def evaluate_lift_3d(
+    run_dir: Path,
+    lift: Mapping[str, Any],
+    data: "BenchData",
+    out_dir: Path,
+    config: "BenchConfig",
+    log: Callable[[str], None] = print,
+    encoder: Any = None,
+) -> dict:
+    """The 3D protocol on the lift (its engine built as :func:`evaluate_lift` builds it), written
+    and reused as :func:`evaluate_variant_3d`'s."""
+    from ..pipeline.cache import file_digest
+
+    inputs = {
+        "lift": file_digest(Path(lift["lift_path"])),
+        "gaussians": file_digest(Path(lift["gaussians"])),
+        "source": lift.get("source_run"),
+    }
+    return _cached_3d(run_dir, inputs, lambda: _lift_engine(lift, data, config, encoder)[0], data, out_dir, config, log)
+
+
+def _cached_3d(
+    run_dir: Path,
+    inputs: Mapping[str, Any],
+    engine: Callable[[], Any],
+    data: "BenchData",
+    out_dir: Path,
+    config: "BenchConfig",
+    log: Callable[[str], None],
+) -> dict:
+    """``evaluate_protocol3d`` of the engine ``engine()`` builds, under the run's stage cache:
+    the key adds the labels, the bank (the text encoder), the protocol's settings and the
+    eval.json format to ``inputs``."""
+    from ..eval.protocol3d import FORMAT_3D, Protocol3dConfig
+    from ..pipeline.cache import StageCache, file_digest, stage_key, tree_digest
+
+    eval_json = out_dir / "eval.json"
+    settings = {k: v for k, v in asdict(Protocol3dConfig()).items() if k != "progress"}
+    key = stage_key(
+        **inputs,
+        labels=tree_digest(data.label_dir),
+        bank=file_digest(data.bank_dir / "bank.json"),
+        protocol=settings,
+        format=FORMAT_3D,
+    )
+
+    def run() -> None:
+        from ..data.labels import read_label_dir
+        from ..eval.protocol3d import evaluate_protocol3d, write_protocol3d_outputs
+
+        result = evaluate_protocol3d(
+            engine(),
+            read_label_dir(data.label_dir),
+            config=Protocol3dConfig(progress=config.progress),
+            label_dir=data.label_dir,
+        )
+        write_protocol3d_outputs(result, out_dir)
+
+    StageCache.open(run_dir).run(out_dir.name, key, [eval_json], run, log=lambda s: log(f"[bench] {run_dir.name}: {s}"))
+    return json.loads(eval_json.read_text())
 
 
 def cosine_variant(run_dir: Path, data: "BenchData", config: "BenchConfig", log: Callable[[str], None] = print) -> dict:

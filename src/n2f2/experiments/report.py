@@ -106,6 +106,69 @@ def method_rows(result: Mapping, runs: Mapping[str, dict], variant_runs: Mapping
     return rows
 
 
+def protocol3d_rows(runs: Mapping[str, dict]) -> dict:
+    """The 3D protocol's numbers (``bench.json``'s ``protocol3d``): the rules its evaluations
+    applied and, per run and 3D mode, mIoU, mAcc@t and localization in percent, the (frame, query)
+    pairs scored and the queries that selected no Gaussian (each run's pairs are in its
+    ``eval3d/eval.json``)."""
+    rules: dict = {}
+    acc: list[str] = []
+    rows: dict[str, dict] = {}
+    for name, entry in runs.items():
+        d = entry.get("eval3d")
+        if d is None:
+            continue
+        rules = rules or dict(d["rules"])
+        acc = list(dict.fromkeys(acc + [t for s in d["scores"].values() for t in s["acc"]]))
+        rows[name] = {}
+        for m in d["modes"]:
+            s = d["scores"][m]
+            rows[name][m] = {
+                "miou_pct": 100 * float(s["miou"]),
+                **{f"macc_{t}_pct": 100 * float(v) for t, v in s["acc"].items()},
+                "loc_pct": 100 * float(s["loc_accuracy"]),
+                "pairs": int(s["num_pairs"]),
+                "empty_selections": len(s["empty_selections"]),
+                "empty_queries": list(s["empty_selections"]),
+                "queries": len(s["selections"]),
+            }
+    return {"rules": rules, "acc_ious": acc, "runs": rows}
+
+
+def _protocol3d_section(result: Mapping) -> str:
+    """The 3D protocol's section of ``bench.md``: one row per (run, mode)."""
+    from ..eval.reports import markdown_table
+
+    p3 = result["protocol3d"]
+    rules = p3["rules"]
+    acc = p3["acc_ious"]
+    rows = []
+    for name, modes in p3["runs"].items():
+        for m, r in modes.items():
+            rows.append(
+                [name, result["runs"][name]["variant"], m, f"{r['miou_pct']:.1f}"]
+                + [f"{r[f'macc_{t}_pct']:.1f}" for t in acc]
+                + [f"{r['loc_pct']:.1f}", r["pairs"], f"{r['empty_selections']} of {r['queries']}"]
+            )
+    return "".join(
+        [
+            "\n## 3D protocol (select Gaussians, render the selection)\n\n",
+            f"Selection rule (one per query, shared by every view): {rules['selection']}.\n\n",
+            f"Mask: {rules['mask']}; IoU against the union of the category's label polygons, an empty "
+            f"selection scores 0; mAcc@t = fraction of (frame, query) pairs with IoU > t (OpenGaussian); "
+            f"loc.: {rules['localization']}. No 2D smoothing, the same labels as the tables above "
+            "(`n2f2 eval --protocol 3d`; every pair in `runs/<run>/eval3d/eval.json`); oracle has no 3D query.\n\n",
+            markdown_table(
+                ["run", "variant", "mode", "mIoU %"]
+                + [f"mAcc@{t} %" for t in acc]
+                + ["loc. %", "pairs", "empty selections"],
+                rows,
+                ["l", "l", "l"] + ["r"] * (len(acc) + 4),
+            ),
+        ]
+    )
+
+
 def _k_rows(
     runs: Mapping[str, dict], variant_runs: Mapping[str, str], result: Mapping
 ) -> list[tuple[int, str, Mapping]]:
@@ -176,6 +239,9 @@ def markdown_bench(result: Mapping, runs: Mapping[str, dict], variant_runs: Mapp
     if result.get("methods"):
         out.append("\n## Every method, with the time to build it (the training-free lift beside the fields)\n\n")
         out.append(_methods_table(result, bt))
+
+    if (result.get("protocol3d") or {}).get("runs"):
+        out.append(_protocol3d_section(result))
 
     # Table 3.
     nested = runs[variant_runs["nested"]]["evals"]["T1"] if "nested" in variant_runs else None
