@@ -207,11 +207,13 @@ def run(args: argparse.Namespace) -> int:
     if protocol == "3d-ovs":
         return _run_ovs3d(args, engine, out, lambda: remove_results(out, present))
     if protocol in ("3d", "both"):
+        assert engine is not None  # built above for every protocol but 2d
         modes_3d(engine, args.mode)  # before any work: the 3D protocol has no oracle mode
     if protocol == "3d":
         from ..data.labels import read_label_dir
         from .protocol3d import write_protocol3d_outputs
 
+        assert engine is not None
         res = evaluate_protocol3d(
             engine,
             read_label_dir(args.labels),
@@ -251,6 +253,7 @@ def run(args: argparse.Namespace) -> int:
     if protocol == "both":
         from ..data.labels import read_label_dir
 
+        assert engine is not None
         result.protocol3d = evaluate_protocol3d(
             engine, read_label_dir(args.labels), modes=result.modes, config=config3d, label_dir=args.labels
         ).to_dict()

@@ -44,7 +44,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Literal, Optional, Union
+from typing import TYPE_CHECKING, Any, Callable, Literal, Optional, Union
 
 import numpy as np
 
@@ -58,6 +58,9 @@ from .protocol import (
     resolve_box_size,
     resolve_majority_radius,
 )
+
+if TYPE_CHECKING:
+    from ..query.engine import QueryEngine
 
 
 @dataclass
@@ -348,7 +351,7 @@ def export_ovs3d(
 
 # ------------------------------------------------------------------------------ a trained run
 def evaluate_run_ovs3d(
-    engine: Any,  # n2f2.query.engine.QueryEngine of the run
+    engine: QueryEngine,  # the run's
     labels_path: Union[str, Path],  # SCENE or SCENE/segmentations in the 3D-OVS layout
     *,
     modes: Optional[list[str]] = None,  # default: every mode the field supports but oracle

@@ -53,7 +53,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Literal, Optional, Sequence, Union
+from typing import TYPE_CHECKING, Any, Callable, Literal, Optional, Sequence, Union
 
 import numpy as np
 
@@ -78,6 +78,9 @@ from ..query.maps import (  # noqa: F401  (re-exported: the protocol's rules, wr
     segmentation_mask,
     smoothed_relevancy,
 )
+
+if TYPE_CHECKING:
+    from ..data.labels import FrameLabels
 
 
 @dataclass(frozen=True)
@@ -214,7 +217,7 @@ class CategoryTarget:
 
 
 def frame_targets(
-    frame: Any,  # n2f2.data.labels.FrameLabels
+    frame: FrameLabels,
     shape: Optional[tuple[int, int]] = None,  # (H, W) of the relevancy maps; None = label size
     rescale: bool = False,
 ) -> tuple[list[CategoryTarget], int]:

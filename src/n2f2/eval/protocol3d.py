@@ -48,12 +48,15 @@ import time
 from dataclasses import asdict, dataclass
 from dataclasses import field as dc_field
 from pathlib import Path
-from typing import Any, Callable, Literal, Mapping, Optional, Sequence, Union
+from typing import TYPE_CHECKING, Any, Callable, Literal, Mapping, Optional, Sequence, Union
 
 import numpy as np
 
 from ..errors import InputError
 from .protocol import frame_targets, mask_iou, max_locations, points_in_boxes
+
+if TYPE_CHECKING:
+    from ..query.engine import QueryEngine
 
 MODES_3D = ("composite", "explicit", "levels", "soft")  # query modes with a 3D query on the Gaussians
 SELECTION_COVER = 0.5  # a pixel is in the selection mask when render_selection > this (n2f2 query --3d)
@@ -170,7 +173,7 @@ def _render_weights(engine: Any, camera: Any, weights: Any) -> np.ndarray:  # we
 
 
 def evaluate_protocol3d(
-    engine: Any,  # n2f2.query.engine.QueryEngine (or the lift's LiftEngine): anything with Gaussians
+    engine: QueryEngine,  # the run's field, or the lift's LiftEngine
     labels: Sequence[Any],  # list[n2f2.data.labels.FrameLabels]
     *,
     modes: Optional[Sequence[str]] = None,  # default: every 3D mode the engine supports

@@ -32,7 +32,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from dataclasses import field as dc_field
-from typing import Any, Optional, Sequence
+from typing import TYPE_CHECKING, Any, Optional, Sequence
 
 import numpy as np
 import torch
@@ -40,6 +40,9 @@ from torch import Tensor
 
 from ..errors import InputError
 from .model import NUM_LEVELS
+
+if TYPE_CHECKING:
+    from ..segments.bank import ImageSegments, SegmentBank
 
 LIFT_LEVELS = ("part", "object", "group")  # level order of the lifted features (query.engine.LEVEL_NAMES)
 
@@ -58,7 +61,7 @@ def bank_level_rule(bank: Any) -> tuple[str, Optional[tuple[int, ...]]]:
 
 
 def level_segments(
-    record: Any,  # n2f2.segments.bank.ImageSegments (layers [L, H, W], valid, areas, quantized)
+    record: ImageSegments,  # layers [L, H, W], valid, areas, quantized
     rule: tuple[str, Optional[tuple[int, ...]]],  # from bank_level_rule
 ) -> np.ndarray:  # [3, H, W] int64 segment id per level, -1 = none
     """The bank segment covering each pixel at each level (part, object, group)."""
@@ -163,9 +166,9 @@ def load_lift(path: Any, num_gaussians: Optional[int] = None) -> Lift:
 
 
 def lift_features(
-    cache: Any,  # n2f2.train.blend.BlendCache: the blending weights of `views`, in order, at the bank's size
+    cache: Any,  # train.blend.BlendCache (a later stage, not imported): `views`' blending weights, in order
     views: Sequence[int],  # scene views the cache holds (the training views)
-    bank: Any,  # n2f2.segments.bank.SegmentBank
+    bank: SegmentBank,
     num_gaussians: int,
 ) -> Lift:
     """Lift the bank's per-view features onto the Gaussians in one pass over the cached views

@@ -41,7 +41,7 @@ import time
 from dataclasses import dataclass
 from dataclasses import field as dc_field
 from pathlib import Path
-from typing import Any, Callable, Optional, Sequence, Union, cast
+from typing import TYPE_CHECKING, Any, Callable, Optional, Sequence, Union, cast
 
 import numpy as np
 import torch
@@ -76,6 +76,9 @@ from .maps import (
 )
 from .relevancy import DEFAULT_NEGATIVES, check_texts
 from .soft import soft_relevancy
+
+if TYPE_CHECKING:
+    from ..cameras import Camera
 
 MODES = ("composite", "explicit", "levels", "soft", "oracle")
 SELECTIONS = ("smoothed", "max")
@@ -113,7 +116,7 @@ class QueryConfig:
 class ViewCache:
     """Everything a view needs to answer queries without rendering again."""
 
-    camera: Any  # n2f2.cameras.Camera
+    camera: Camera
     index: Optional[int]  # view index in the scene, None for a free camera
     name: str  # image name (e.g. frame_00001) or "camera"
     caches: dict[str, ScoreCache]  # by cache kind: "composite" | "prefix" | "levels"

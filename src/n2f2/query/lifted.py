@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Any, Optional, Sequence
+from typing import TYPE_CHECKING, Any, Optional, Sequence, Union
 
 import torch
 from torch import Tensor
@@ -27,6 +27,11 @@ from ..field.variants import NUM_LEVELS, LevelsVariant
 from .caches import LinearCache
 from .engine import QueryEngine
 from .relevancy import inverse_norm
+
+if TYPE_CHECKING:
+    from ..data.scene import Scene
+    from ..gaussians.model import Gaussians
+    from ..segments.bank import SegmentBank
 
 
 class LevelBlockCache(LinearCache):
@@ -122,9 +127,9 @@ def lift_engine(
 
 
 def build_lift(
-    gaussians: Any,  # n2f2.gaussians.Gaussians, or frozen geometry {"means", "quats", "scales", "opacities"}
-    scene: Any,  # n2f2.data.Scene (cameras)
-    bank: Any,  # n2f2.segments.bank.SegmentBank
+    gaussians: Union[Gaussians, dict[str, Tensor]],  # or frozen geometry {"means", "quats", "scales", "opacities"}
+    scene: Scene,  # its cameras
+    bank: SegmentBank,
     views: Sequence[int],  # scene views to lift from (the training views)
     *,
     cache: Any = None,  # n2f2.train.blend.BlendCache of exactly `views` at the bank's size, if at hand

@@ -20,12 +20,15 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
-from typing import Any, Optional, Union
+from typing import TYPE_CHECKING, Optional, Union
 
 import numpy as np
 
 from ..io import write_json, write_npy, write_png
 from .maps import box_filter, max_locations, segmentation_mask
+
+if TYPE_CHECKING:
+    from .engine import QueryResult, ViewCache
 
 MASK_COLOR = np.array([0.0, 0.9, 1.0], dtype=np.float32)  # cyan tint of masks (no demo object is cyan)
 HEATMAP_ALPHA = 0.8  # opacity of the heatmap over the RGB at normalised relevancy 1 (the viewer uses it too)
@@ -112,8 +115,8 @@ def mask_overlay(
 
 def write_view_outputs(
     out_dir: Union[str, Path],
-    view: Any,  # n2f2.query.engine.ViewCache
-    result: Any,  # n2f2.query.engine.QueryResult for this view
+    view: ViewCache,
+    result: QueryResult,  # for this view
     box_size: int,
     threshold: float,
 ) -> list[dict]:

@@ -17,12 +17,15 @@ alpha_min, early termination) by construction.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import TYPE_CHECKING, Any, Sequence
 
 import torch
 from torch import Tensor
 
 from ..sparse import constant_sparse_matmul, csr_matrix
+
+if TYPE_CHECKING:
+    from ..cameras import Camera
 
 
 @dataclass
@@ -63,7 +66,7 @@ class BlendCache:
 @torch.no_grad()
 def view_blend_weights(
     geometry: dict[str, Tensor],  # means [N,3], quats [N,4], scales [N,3], opacities [N]
-    camera: Any,  # n2f2.cameras.Camera
+    camera: Camera,
 ) -> tuple[Tensor, Tensor, Tensor]:  # pixel [nnz] long, gid [nnz] long, weight [nnz]
     """Every non-zero (pixel, Gaussian, weight) of one view, with the torch backend's defaults
     (tile 8, alpha clamp 0.99, alpha_min 1/255, transmittance_min 1e-4, eps2d 0.3)."""

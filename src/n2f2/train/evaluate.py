@@ -15,7 +15,7 @@ field's own variant mask (prefix M(s) for nested, all dims for flat, the scale g
 
 from __future__ import annotations
 
-from typing import Any, Optional, Sequence
+from typing import TYPE_CHECKING, Any, Optional, Sequence
 
 import numpy as np
 import torch
@@ -23,6 +23,9 @@ import torch.nn.functional as F
 
 from ..field.model import NestedField, gaussian_features
 from .trainer import bank_cameras, frozen_geometry, render_features
+
+if TYPE_CHECKING:
+    from ..data.scene import Scene
 
 DEFAULT_LEVELS = ("part", "object", "group")
 
@@ -58,7 +61,7 @@ def match_regions_to_segments(
 def evaluate_cosine_by_level(
     field: NestedField,
     gaussians: Any,  # has means [N, 3], quats, scales, opacities
-    scene: Any,  # n2f2.data.Scene with ground_truth
+    scene: Scene,  # with ground_truth
     bank: Any,  # segment bank (record(i) -> layers, embeddings, quantized)
     views: Sequence[int],
     *,

@@ -34,7 +34,7 @@ import shutil
 import time
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
-from typing import Any, Callable, ClassVar, Optional, Union
+from typing import TYPE_CHECKING, Any, Callable, ClassVar, Optional, Union
 
 import numpy as np
 import torch
@@ -57,6 +57,11 @@ from ..validate import (
 )
 from .blend import BlendCache, build_blend_cache
 from .sampling import PixelBatch, SegmentPool, ViewSegments
+
+if TYPE_CHECKING:
+    from ..data.scene import Scene
+    from ..gaussians.model import Gaussians
+    from ..segments.bank import SegmentBank
 
 FIELD_NAME = "field.pt"
 CHECKPOINT_NAME = "checkpoint.pt"
@@ -303,9 +308,9 @@ def _view_segments(bank: Any, views: list[int], cameras: list, show_progress: bo
 
 
 def train_field(
-    scene: Any,  # n2f2.data.Scene
-    gaussians: Any,  # n2f2.gaussians.Gaussians (frozen)
-    bank: Any,  # n2f2.segments SegmentBank
+    scene: Scene,
+    gaussians: Gaussians,  # frozen
+    bank: SegmentBank,
     out_dir: Union[str, Path],
     *,
     field_config: Optional[FieldConfig] = None,

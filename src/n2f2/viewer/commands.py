@@ -8,9 +8,13 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Optional
+from typing import TYPE_CHECKING, Any, Optional
 
 from ..validate import nonneg_float, port_number, positive_int
+
+if TYPE_CHECKING:
+    from .server import Viewer
+    from .splats import SplatViewer
 
 LOCAL_HOSTS = ("127.0.0.1", "localhost", "::1")
 
@@ -19,9 +23,9 @@ LOCAL_HOSTS = ("127.0.0.1", "localhost", "::1")
 class RunningViewer:
     """Both servers of ``n2f2 view``, started; :meth:`stop` shuts them down."""
 
-    viewer: Any  # n2f2.viewer.server.Viewer (engine, lock, render cache)
+    viewer: Viewer  # engine, lock, render cache
     viser: Any  # viser.ViserServer
-    splats: Any  # n2f2.viewer.splats.SplatViewer
+    splats: SplatViewer
     api: Optional[Any] = None  # uvicorn.Server of the JSON API, None with --no-api
     api_thread: Optional[threading.Thread] = None
 
