@@ -1,5 +1,8 @@
 """The bench's report: ``bench.md`` (the claims' verdicts and one section per ablation) and
-its PNG plots (mIoU per method, the k sweep, the training loss curves)."""
+its PNG plots (mIoU per method, the k sweep, the training loss curves).
+
+(Longer than 600 lines: one section writer per ablation table and plot of ``bench.md``, each
+short; none computes a score.)"""
 
 from __future__ import annotations
 
