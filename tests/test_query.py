@@ -11,7 +11,8 @@ import torch
 
 from n2f2.query.composite import (canonical_scores, composite_weights, prefix_dot, prefix_margin_at,
                                   prefix_margin_max, prefix_sq_norms, prefix_terms, prefix_weights, premultiply,
-                                  supervised_dims, to_blocks)
+                                  to_blocks)
+from n2f2.segments.bins import supervised_dims
 from n2f2.query.caches import build_composite_cache, build_linear_cache, build_prefix_cache, select_scale
 from n2f2.query.relevancy import normalize_features, relevancy
 

@@ -763,7 +763,7 @@ def evaluate_run(
             "10 saturates for related captions, and part queries score low even for the teacher; "
             "the protocol is not tuned to hide it."
         )
-    labels_of_scales = _scale_labels(engine)
+    labels_of_scales = list(engine.scale_labels)
     result = EvalResult(
         scene=Path(scene_obj.root).name,
         run_dir=str(run_dir),
@@ -838,11 +838,6 @@ def kind_scores(pairs: Sequence[PairRecord], ap_pairs: Sequence[Mapping], kinds:
             "map": float(np.mean(aps)) if aps else math.nan,
         }
     return out
-
-
-def _scale_labels(engine: Any) -> list[str]:
-    """The names of the field's scales (its variant's: prefix lengths, or the 3 levels)."""
-    return list(engine.scale_labels)
 
 
 # ------------------------------------------------------------------------------ comparison

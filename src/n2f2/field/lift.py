@@ -39,12 +39,12 @@ import torch
 from torch import Tensor
 
 from ..errors import InputError
-from .model import NUM_LEVELS
+from .variants import LEVEL_NAMES, NUM_LEVELS
 
 if TYPE_CHECKING:
     from ..segments.bank import ImageSegments, SegmentBank
 
-LIFT_LEVELS = ("part", "object", "group")  # level order of the lifted features (query.engine.LEVEL_NAMES)
+LIFT_LEVELS = LEVEL_NAMES  # level order of the lifted features: the levels field's
 
 
 # ------------------------------------------------------------------------------ bank levels

@@ -15,7 +15,6 @@ __getattr__, __all__ = lazy_exports(
         "prefix_sq_norms": "composite",
         "prefix_weights": "composite",
         "premultiply": "composite",
-        "supervised_dims": "composite",
         "to_blocks": "composite",
         "MODES": "engine",
         "QueryConfig": "engine",

@@ -35,9 +35,6 @@ import numpy as np
 import torch
 from torch import Tensor
 
-# The scales (prefix lengths) are defined once, with the dimension-scale mapping M(s).
-from ..segments.bins import supervised_dims as supervised_dims
-
 # Canonical phrases of paper Eq. 6 ("object", "stuff", "thing", "part", "texture").
 DEFAULT_CANONICAL: tuple[str, ...] = ("object", "stuff", "thing", "part", "texture")
 
