@@ -18,6 +18,7 @@ from n2f2.eval import ovs3d
 from n2f2.eval.protocol import (ProtocolConfig, box_filter, evaluate_frame_category,
                                 evaluate_label_dir, evaluate_scene, frame_targets,
                                 localization_hit, majority_filter, mask_from_smoothed,
+                                pixels_in_boxes, points_in_boxes,
                                 resolve_box_size, resolve_majority_radius, segmentation_mask,
                                 smoothed_relevancy)
 
@@ -31,11 +32,10 @@ def ref_box_filter(r: np.ndarray, size: int) -> np.ndarray:
     return np.lib.stride_tricks.sliding_window_view(pad, (size, size)).mean(axis=(2, 3))
 
 
-def ref_smooth(mask: np.ndarray) -> np.ndarray:
-    """Literal port of LangSplat's utils.smooth (per-pixel loop)."""
+def ref_smooth(mask: np.ndarray, scale: int = 3) -> np.ndarray:
+    """Literal port of LangSplat's utils.smooth (per-pixel loop; ``scale`` is its half-window)."""
     h, w = mask.shape[:2]
     out = mask.copy()
-    scale = 3
     for i in range(h):
         for j in range(w):
             square = mask[max(0, i - scale): min(i + scale + 1, h - 1),
@@ -118,18 +118,17 @@ def test_box_filter_anchor_of_even_kernel():
     np.testing.assert_allclose(out[support], 1.0, atol=1e-4)
 
 
-def test_box_filter_stack_equals_per_map_bitwise():
-    # LangSplat filters per level for segmentation and the [H, W, L] stack for localization.
-    r = np.random.default_rng(2).random((3, 2, 37, 41)).astype(np.float32)
-    stacked = box_filter(r, 30)
-    for idx in np.ndindex(3, 2):
-        single = cv2.filter2D(r[idx], -1, np.ones((30, 30)) / 900)
-        assert np.array_equal(stacked[idx], single)
-    # more maps than filter2D's 128-channel limit are filtered in chunks
-    big = np.random.default_rng(3).random((300, 9, 11)).astype(np.float32)
-    out = box_filter(big, 4)
-    for i in (0, 127, 128, 299):
-        assert np.array_equal(out[i], cv2.filter2D(big[i], -1, np.ones((4, 4)) / 16))
+@pytest.mark.parametrize("size", [30, 5, 4])
+def test_box_filter_stack_equals_per_map_and_multichannel_bitwise(size):
+    # LangSplat filters per level for segmentation and the [H, W, L] stack (one multi-channel
+    # filter2D call) for localization; both must equal box_filter's stack bit for bit.
+    r = np.random.default_rng(size).random((6, 37, 41)).astype(np.float32)
+    kernel = np.ones((size, size)) / size**2
+    stacked = box_filter(r.reshape(3, 2, 37, 41), size).reshape(6, 37, 41)
+    multichannel = cv2.filter2D(np.ascontiguousarray(r.transpose(1, 2, 0)), -1, kernel).transpose(2, 0, 1)
+    assert np.array_equal(stacked, multichannel)
+    for i in range(6):
+        assert np.array_equal(stacked[i], cv2.filter2D(r[i], -1, kernel))
 
 
 # ------------------------------------------------------------------------- majority filter
@@ -137,6 +136,17 @@ def test_box_filter_stack_equals_per_map_bitwise():
 def test_majority_filter_matches_loop_port(seed, density):
     m = (np.random.default_rng(seed).random((12, 9)) < density).astype(np.uint8)
     assert np.array_equal(majority_filter(m), ref_smooth(m))
+
+
+@pytest.mark.parametrize("radius", [1, 2, 5, 9])
+def test_majority_filter_stack_and_radii_match_loop_port(radius):
+    # A stack is filtered map by map; windows larger than the image clip at its edges.
+    rng = np.random.default_rng(radius)
+    stack = (rng.random((3, 2, 13, 10)) < 0.5).astype(np.uint8)
+    out = majority_filter(stack.astype(bool), radius)
+    assert out.shape == stack.shape and out.dtype == np.uint8
+    for idx in np.ndindex(3, 2):
+        assert np.array_equal(out[idx], ref_smooth(stack[idx], radius))
 
 
 def test_majority_filter_far_edge_is_excluded_and_ties_go_to_zero():
@@ -263,6 +273,19 @@ def test_pair_matches_literal_langsplat_port(seed, size):
     iou, hit, seg_level, loc_level = ref_pair(rel, gt.astype(np.uint8), boxes, size=size)
     assert res.iou == pytest.approx(iou, abs=1e-12)
     assert (res.hit, res.seg_level, res.loc_level) == (hit, seg_level, loc_level)
+
+
+def test_pixels_in_boxes_is_points_in_boxes_pixel_by_pixel():
+    # Float corners in either order, a box on the image edge, one partly outside.
+    boxes = np.array([[3.5, 2.0, 1.0, 6.2], [8, 0, 8, 3], [10.4, 5.5, 14.0, 20.0]])
+    inside = pixels_in_boxes(boxes, 9, 12)
+    assert inside.shape == (9, 12)
+    for y in range(9):
+        for x in range(12):
+            assert inside[y, x] == points_in_boxes(np.array([[x, y]]), boxes)
+    assert inside[2, 1] and inside[6, 3] and not inside[7, 2]  # rows 2..6, cols 1..3
+    assert inside[3, 8] and not inside[4, 8]
+    assert not pixels_in_boxes(np.zeros((0, 4)), 4, 4).any()
 
 
 @pytest.mark.parametrize("seed", range(3))

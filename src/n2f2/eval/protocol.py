@@ -138,6 +138,19 @@ def points_in_boxes(
     return bool(inside.any())
 
 
+def pixels_in_boxes(
+    boxes: np.ndarray,  # [B, 4] (x1, y1, x2, y2), either corner order
+    height: int,
+    width: int,
+) -> np.ndarray:  # bool [H, W]
+    """The pixels (x = column, y = row) that :func:`points_in_boxes` finds inside any box."""
+    b = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
+    x, y = np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64)
+    cols = (x >= np.minimum(b[:, 0], b[:, 2])[:, None]) & (x <= np.maximum(b[:, 0], b[:, 2])[:, None])  # [B, W]
+    rows = (y >= np.minimum(b[:, 1], b[:, 3])[:, None]) & (y <= np.maximum(b[:, 1], b[:, 3])[:, None])  # [B, H]
+    return np.asarray((rows[:, :, None] & cols[:, None, :]).any(axis=0))
+
+
 def localization_hit(
     relevancy: np.ndarray,  # [H, W] raw relevancy of one level
     boxes: np.ndarray,  # [B, 4] (x1, y1, x2, y2)
@@ -193,7 +206,10 @@ def evaluate_frame_category(
     # Localization: box(R) without the mix; the level with the highest filtered maximum.
     peaks = filtered.reshape(len(rel), -1).max(axis=1)  # [L]
     loc_level = int(np.argmax(peaks))
-    hits = [points_in_boxes(max_locations(f), boxes) for f in filtered]
+    # Any maximum of a level inside any box (points_in_boxes of max_locations, for every level
+    # at once): the maxima of each level against the pixels the boxes cover.
+    at_peak = filtered == peaks[:, None, None]  # [L, H, W]
+    hits = [bool(h) for h in (at_peak & pixels_in_boxes(boxes, *rel.shape[1:])).any(axis=(1, 2))]
     return PairResult(
         iou=float(ious[seg_level]),
         hit=hits[loc_level],

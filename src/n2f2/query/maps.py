@@ -21,9 +21,6 @@ LANGSPLAT_MAJORITY_RADIUS = 3  # utils.smooth: scale = 3
 # Width of the LERF-OVS label images LangSplat evaluates at (about 986 px, e.g. 986 x 728).
 # Reference width for box_size="scaled"; pass box_ref_width to use another.
 LERF_REFERENCE_WIDTH = 986
-# cv2.filter2D refuses images of more than 128 channels (OpenCV 4.x/5.0 Python bindings); stacks
-# of maps are filtered in chunks of this many.
-_CV_MAX_CHANNELS = 128
 
 BoxSize = Union[int, Literal["scaled"]]
 Radius = Union[int, Literal["scaled"]]
@@ -56,8 +53,7 @@ def box_filter(
 ) -> np.ndarray:  # float32, same shape
     """``size x size`` mean filter exactly as LangSplat computes it: ``cv2.filter2D`` on a
     float32 map with kernel ``np.ones((size, size)) / size**2``, default anchor (kernel centre)
-    and default border (BORDER_REFLECT_101). Stacks are filtered as one multi-channel image
-    (LangSplat's localization filters its [H, W, levels] stack in one call)."""
+    and default border (BORDER_REFLECT_101); a stack ``[..., H, W]`` map by map."""
     import cv2
 
     r = np.asarray(relevancy, dtype=np.float32)
@@ -70,13 +66,13 @@ def box_filter(
     h, w = r.shape[-2:]
     if r.ndim == 2:
         return cv2.filter2D(np.ascontiguousarray(r), -1, kernel)
-    lead = r.shape[:-2]
-    stack = r.reshape(-1, h, w).transpose(1, 2, 0)  # [H, W, C]
-    out = np.empty_like(stack)
-    for c0 in range(0, stack.shape[-1], _CV_MAX_CHANNELS):
-        chunk = np.ascontiguousarray(stack[..., c0 : c0 + _CV_MAX_CHANNELS])
-        out[..., c0 : c0 + _CV_MAX_CHANNELS] = cv2.filter2D(chunk, -1, kernel).reshape(chunk.shape)
-    return out.transpose(2, 0, 1).reshape(*lead, h, w)
+    # Map by map: bitwise what one multi-channel call gives (LangSplat's localization filters its
+    # [H, W, levels] stack in one call), and faster on CPU than the transposes that call needs.
+    flat = r.reshape(-1, h, w)
+    out = np.empty_like(flat)
+    for i, one in enumerate(flat):
+        out[i] = cv2.filter2D(np.ascontiguousarray(one), -1, kernel)
+    return out.reshape(r.shape)
 
 
 def smoothed_relevancy(
@@ -107,7 +103,7 @@ def majority_filter(
     mask: np.ndarray,  # [..., H, W] binary (bool or 0/1); a stack is filtered map by map
     radius: int = LANGSPLAT_MAJORITY_RADIUS,
 ) -> np.ndarray:  # uint8 [..., H, W], 0/1
-    """LangSplat's ``utils.smooth``, vectorised with an integral image.
+    """LangSplat's ``utils.smooth``, as window counts of an unnormalised box filter.
 
     Pixel (i, j) becomes the majority value of the window rows
     ``[max(0, i - r), min(i + r + 1, H - 1))`` x cols ``[max(0, j - r), min(j + r + 1, W - 1))``.
@@ -123,19 +119,21 @@ def majority_filter(
         raise ValueError(f"majority filter needs an image of at least 2x2 pixels, got {h}x{w}")
     if m.dtype != bool and not np.isin(m, (0, 1)).all():
         raise ValueError("majority filter expects a binary mask")
-    ones = (m != 0).astype(np.int32)  # window counts fit easily: at most H * W
-    integral = np.zeros((*m.shape[:-2], h + 1, w + 1), dtype=np.int32)
-    integral[..., 1:, 1:] = ones.cumsum(-2).cumsum(-1)
+    # The far row and column never take part, so zero them; then the clipped window is a
+    # zero-padded box: an unnormalised box filter with a constant 0 border counts its ones.
+    import cv2
+
+    ones = (m != 0).astype(np.uint8).reshape(-1, h, w)
+    ones[:, h - 1, :] = 0
+    ones[:, :, w - 1] = 0
+    size = (2 * radius + 1, 2 * radius + 1)
+    count = np.stack(
+        [cv2.boxFilter(o, cv2.CV_32S, size, normalize=False, borderType=cv2.BORDER_CONSTANT) for o in ones]
+    ).reshape(m.shape)
     i = np.arange(h)
     j = np.arange(w)
     r0, r1 = np.maximum(0, i - radius), np.minimum(i + radius + 1, h - 1)
     c0, c1 = np.maximum(0, j - radius), np.minimum(j + radius + 1, w - 1)
-    count = (
-        integral[..., r1[:, None], c1[None, :]]
-        - integral[..., r0[:, None], c1[None, :]]
-        - integral[..., r1[:, None], c0[None, :]]
-        + integral[..., r0[:, None], c0[None, :]]
-    )
     n = (r1 - r0)[:, None] * (c1 - c0)[None, :]
     return (2 * count > n).astype(np.uint8)  # strictly more ones than zeros; ties -> 0
 
