@@ -25,7 +25,8 @@ from n2f2.train.evaluate import evaluate_cosine_by_level, match_regions_to_segme
 from n2f2.train.sampling import (SegmentPool, ViewSegments, covering_probabilities, sample_segments,
                                  segment_weights)
 from n2f2.train.trainer import (CHECKPOINT_NAME, FIELD_NAME, REPORT_NAME, TrainConfig, bank_cameras,
-                                frozen_geometry, hierarchical_loss, jitter_scales, render_features, train_field)
+                                frozen_geometry, hierarchical_loss, jitter_scales, projected_loss,
+                                render_features, train_field)
 
 FIELD = FieldConfig(dim=12, plane_resolution=16, plane_channels=4, hidden=32)
 
@@ -151,6 +152,45 @@ def test_hierarchical_loss_known_values():
     assert l2.item() == pytest.approx((1 + 1 + 0 + 1) / 4)  # mean squared error
     assert cos.item() == pytest.approx((1.0 + 0.0) / 2)  # mean of 1 - cos
     assert loss.item() == pytest.approx(0.75 + 0.0005)
+
+
+@pytest.mark.parametrize("mask_kind", ["prefix", "ones", "zero-rows"])
+def test_projected_loss_equals_the_loss_of_the_projected_features(mask_kind):
+    # The reference: phi = x W^T, targets gathered per pixel, hierarchical_loss (paper eq. 5).
+    g = torch.Generator().manual_seed(3)
+    P, D, E, T = 50, 6, 9, 7
+    theta = torch.randn(P, D, generator=g, dtype=torch.float64)
+    if mask_kind == "prefix":
+        mask = (torch.arange(D) < torch.randint(1, D + 1, (P, 1), generator=g)).double()
+    elif mask_kind == "ones":
+        mask = torch.ones(P, D, dtype=torch.float64)
+    else:  # some rows project to phi = 0 (cosine clamped, as F.cosine_similarity does)
+        mask = torch.ones(P, D, dtype=torch.float64)
+        mask[::4] = 0
+    targets = torch.randn(T, E, generator=g, dtype=torch.float64)
+    index = torch.randint(T, (P,), generator=g)
+    W0 = torch.randn(E, D, generator=g, dtype=torch.float64)
+
+    def grads(fn):
+        x = (theta * mask).requires_grad_()
+        W = W0.clone().requires_grad_()
+        loss, l2, cos = fn(x, W)
+        gx, gw = torch.autograd.grad(loss, (x, W))
+        return [v.detach() for v in (loss, l2, cos, gx, gw)]
+
+    ref = grads(lambda x, W: hierarchical_loss(x @ W.t(), targets[index], 0.1))
+    got = grads(lambda x, W: projected_loss(x, W, targets, index, 0.1))
+    for a, b in zip(got, ref):
+        torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-9)
+
+
+def test_projected_loss_at_zero_projection():
+    # W = 0 (its initial value): phi = 0, so L2 = mean |t|^2 and 1 - cos = 1 for every pixel.
+    targets = torch.tensor([[3.0, 4.0], [0.0, 1.0]])
+    loss, l2, cos = projected_loss(torch.ones(3, 2), torch.zeros(2, 2), targets, torch.tensor([0, 1, 1]), 0.5)
+    assert l2.item() == pytest.approx((25 + 1 + 1) / 6)
+    assert cos.item() == pytest.approx(1.0)
+    assert loss.item() == pytest.approx(27 / 6 + 0.5)
 
 
 def test_scale_jitter_stays_in_range_and_spreads():

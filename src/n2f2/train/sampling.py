@@ -101,6 +101,7 @@ class PixelBatch:
     segment: Tensor  # [P] long, local segment id within that view
     scale: Tensor  # [P] float32 quantized scale
     target: Tensor  # [P, E] float32 teacher embedding
+    pooled: Optional[Tensor] = None  # [P] long, the segment's id in the SegmentPool it came from
 
 
 def sample_segments(
@@ -164,4 +165,6 @@ class SegmentPool:
             raise ValueError("no pixel of the selected views is covered by a valid segment")
         pick = torch.randint(self.pixel.numel(), (num_pixels,), generator=generator)
         seg = sample_segments(self.candidates[pick], self.weights, generator)  # [P] pooled id
-        return PixelBatch(self.slot[pick], self.pixel[pick], self.local[seg], self.quantized[seg], self.embeddings[seg])
+        return PixelBatch(
+            self.slot[pick], self.pixel[pick], self.local[seg], self.quantized[seg], self.embeddings[seg], seg
+        )

@@ -14,8 +14,9 @@ One step:
    with ``blend_cache`` (CPU preset), gathering the sampled pixels' entries of per-view blending
    weights computed once (:mod:`n2f2.train.blend`; exact, since the Gaussians are frozen), with
    pixels sampled across all training views every step;
-3. ``phi = W (B(s) * theta)`` with the variant's mask B(s); loss ``L2 + lambda * (1 - cos)``;
-   Adam, TriPlane at ``0.0016 x scene extent``, MLP and W at ``0.00125``.
+3. ``phi = W (B(s) * theta)`` with the variant's mask B(s); loss ``L2 + lambda * (1 - cos)``
+   (computed in the field's D dims, :func:`projected_loss`); Adam, TriPlane at
+   ``0.0016 x scene extent``, MLP and W at ``0.00125``.
 
 Checkpoints (``RUN/checkpoint.pt``: field + W + config + optimiser + step + sampler RNG + loss
 curve) are written atomically every ``checkpoint_every`` steps; ``resume=True`` continues from
@@ -180,6 +181,31 @@ def hierarchical_loss(
     ``(loss, l2, cos)``."""
     l2 = F.mse_loss(phi, target)
     cos = (1.0 - F.cosine_similarity(phi, target, dim=-1, eps=1e-8)).mean()
+    return l2 + cos_weight * cos, l2, cos
+
+
+def projected_loss(
+    x: Tensor,  # [P, D] B(s) * theta(u), the masked features
+    W: Tensor,  # [E, D] the field's projection
+    targets: Tensor,  # [T, E] the distinct teacher embeddings of the batch
+    index: Tensor,  # [P] long, each pixel's row of ``targets``
+    cos_weight: float,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`hierarchical_loss` of ``phi = x W^T`` against ``targets[index]``, computed in the D
+    field dims instead of the E teacher dims: with ``G = W^T W`` and ``u = W^T t``,
+    ``|phi - t|^2 = x G x - 2 u.x + |t|^2`` and ``cos(phi, t) = u.x / (sqrt(x G x) |t|)``
+    (each norm clamped at 1e-8, as ``F.cosine_similarity`` clamps them). ``u`` is computed once per distinct
+    target: a batch samples a few hundred segments for thousands of pixels. Same value and
+    gradients up to float rounding, about half the work when D < E."""
+    P, E = x.shape[0], W.shape[0]
+    gx = x @ (W.t() @ W)  # [P, D]
+    u = (targets @ W)[index]  # [P, D]
+    tt = (targets * targets).sum(1)[index]  # [P]
+    xgx = (gx * x).sum(1)
+    ux = (u * x).sum(1)
+    l2 = (xgx - 2.0 * ux + tt).sum() / (P * E)
+    norms = torch.sqrt(xgx.clamp(min=1e-16)) * torch.sqrt(tt.clamp(min=1e-16))  # |phi|, |t| each >= 1e-8
+    cos = (1.0 - ux / norms).mean()
     return l2 + cos_weight * cos, l2, cos
 
 
@@ -374,7 +400,8 @@ def train_field(
         bbox_min, bbox_max = bbox_from_points(geometry["means"])
     torch.manual_seed(config.seed)  # initial TriPlane / MLP weights
     field = NestedField(field_config, E, bbox_min, bbox_max).to(device)
-    optimizer = torch.optim.Adam(field.param_groups(config.lr_triplane * extent, config.lr_mlp))
+    # Fused Adam (one kernel for all parameters): ~10x faster on CPU than the per-tensor loop.
+    optimizer = torch.optim.Adam(field.param_groups(config.lr_triplane * extent, config.lr_mlp), fused=True)
     generator = torch.Generator().manual_seed(config.seed)
     step, curve, train_time = 0, {"step": [], "loss": [], "l2": [], "cos": []}, 0.0
     skipped = bad_run = 0  # steps skipped for a non-finite loss / gradient: in all, and in a row
@@ -485,8 +512,10 @@ def train_field(
         )
         scale = jitter_scales(batch.scale, config.scale_jitter, generator)
         mask = field.supervision_mask(scale.to(device))
-        phi = field.project(theta, mask)
-        loss, l2, cos = hierarchical_loss(phi, batch.target.to(device), config.cos_weight)
+        assert batch.pooled is not None  # SegmentPool.sample gives every pixel's pooled segment
+        ids, index = torch.unique(batch.pooled, return_inverse=True)
+        targets = pool.embeddings[ids].to(device)
+        loss, l2, cos = projected_loss(theta * mask, field.W, targets, index.to(device), config.cos_weight)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         finite = _finite_step(loss, field.parameters())
@@ -588,7 +617,9 @@ def _finite_step(loss: Tensor, params: Any) -> bool:
 
 
 def _to(batch: PixelBatch, device: torch.device) -> PixelBatch:
-    return PixelBatch(*(getattr(batch, f.name).to(device) for f in fields(PixelBatch)))
+    return replace(
+        batch, **{f.name: v.to(device) for f in fields(PixelBatch) if (v := getattr(batch, f.name)) is not None}
+    )
 
 
 def _record_gaussians(path: Optional[str], out: Path) -> Optional[str]:
