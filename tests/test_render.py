@@ -384,3 +384,21 @@ def test_numba_many_channels_long_lists_and_termination():
     endless, _ = _compare(params, camera, rtol=1e-10, atol=1e-10, grad_rtol=1e-8, grad_atol=1e-9, backend="numba",
                           transmittance_min=1e-300)
     assert out.n_pairs < endless.n_pairs  # with the default limit, pixels stopped early
+
+
+def test_numba_kernels_compile_in_a_child_process_and_the_first_render_waits(monkeypatch):
+    # The child compiles (or loads from the disk cache) every kernel a pipeline uses and exits 0;
+    # a render started meanwhile waits for it first, and the child is only started once.
+    from n2f2.render import numba_backend as nb
+
+    monkeypatch.setattr(nb, "_BACKGROUND", None)
+    nb.compile_in_background()
+    child = nb._BACKGROUND
+    assert child is not None
+    nb.compile_in_background()
+    assert nb._BACKGROUND is child
+    camera = _camera()
+    params = _scene(20, 3, seed=2)
+    rasterize(*params, camera, backend="numba")
+    assert nb._BACKGROUND is None and child.returncode == 0
+    assert nb.wait_for_background_compile() is None

@@ -312,13 +312,16 @@ def plot_level_histogram(
     fig = Figure(figsize=(4.0, 3.0))
     ax = fig.add_subplot(1, 1, 1)
     x = np.arange(n)
-    ax.bar(x - 0.2, np.bincount(seg, minlength=n), 0.4, label="segmentation")
-    ax.bar(x + 0.2, np.bincount(loc, minlength=n), 0.4, label="localization")
+    counts = {"segmentation": np.bincount(seg, minlength=n), "localization": np.bincount(loc, minlength=n)}
     if n <= 16:
+        for shift, (label, c) in zip((-0.2, 0.2), counts.items()):
+            ax.bar(x + shift, c, 0.4, label=label)
         ax.set_xticks(x)
-    else:  # a field's many scales: a tick per scale costs seconds and cannot be read
+    else:  # a field's many scales: one outline per series (a bar each costs seconds), sparse ticks
         from matplotlib.ticker import MaxNLocator
 
+        for label, c in counts.items():
+            ax.stairs(c, np.arange(n + 1) - 0.5, label=label)
         ax.xaxis.set_major_locator(MaxNLocator(nbins=8, integer=True))
     ax.set_xlabel("level")
     ax.set_ylabel("pairs")

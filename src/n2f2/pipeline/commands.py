@@ -176,6 +176,10 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     out = Path(args.out)
     start = time.perf_counter()
     spec = DemoScene(views=args.views, width=args.width, height=args.height, seed=args.seed, layout=args.layout)
+    if not args.scene_only and args.device == "cpu":  # the rasterizer compiles while the scene is made
+        from ..render.numba_backend import compile_in_background
+
+        compile_in_background()
     scene_dir = demo_scene(out, spec, progress=not args.quiet)
     print(f"demo scene: {scene_dir}\ncontact sheet: {out / 'contact_sheet.png'}")
     if args.scene_only:

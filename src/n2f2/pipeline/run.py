@@ -107,6 +107,10 @@ def run_pipeline(opt: RunOptions, log: Callable[[str], None] = print) -> dict:
     if opt.labels is not None and not Path(opt.labels).is_dir():
         raise InputError(opt.labels, "labels folder does not exist")
     out.mkdir(parents=True, exist_ok=True)
+    if opt.device == "cpu":  # compile the rasterizer while the scene is read; the first render waits
+        from ..render.numba_backend import compile_in_background
+
+        compile_in_background()
     cache = StageCache.open(out)
     progress = not opt.quiet
     common = _StageOptions(

@@ -51,6 +51,8 @@ from __future__ import annotations
 
 import math
 import os
+import subprocess
+import sys
 import threading
 
 import numpy as np
@@ -625,6 +627,7 @@ def rasterize_numba(
     same dict (``n_pairs`` counts the pairs the pixels walked, without padding)."""
     if means.device.type != "cpu":
         raise ValueError("the numba backend runs on CPU tensors only")
+    wait_for_background_compile()
     return rasterize_torch(
         means, quats, scales, opacities, features, viewmat, K, width, height, composite=_composite, **kw
     )
@@ -657,3 +660,52 @@ def count_pairs(
         raise ValueError("the numba backend runs on CPU tensors only")
     rasterize_torch(means, quats, scales, opacities, features, viewmat, K, width, height, composite=composite, **kw)
     return counts[0], counts[1]
+
+
+# ------------------------------------------------------------------------------ compiling ahead
+# Compiling the kernels takes ~20 s on 2 cores, once per install (then they load from the disk
+# cache in under a second). A pipeline starts that compile in a child process while it does
+# work that does not render (generating or reading the scene), and its first render waits for
+# the child, so the kernels are compiled once and the compile overlaps that work.
+_BACKGROUND: subprocess.Popen | None = None
+
+
+def warm_up() -> None:
+    """Compile (or load from the cache) every kernel a pipeline uses: a tiny render with
+    gradients (the fit) and one without (the trainer's blend weights, queries, evaluation)."""
+    from n2f2.cameras import Camera
+    from n2f2.render import rasterize, rasterize_in_bands
+
+    gen = torch.Generator().manual_seed(0)
+    n = 32
+    means = (torch.rand(n, 3, generator=gen) - 0.5) + torch.tensor([0.0, 0.0, 3.0])
+    quats, scales, opacities = torch.randn(n, 4, generator=gen), torch.full((n, 3), 0.05), torch.full((n,), 0.5)
+    camera = Camera(fx=40.0, fy=40.0, cx=8.0, cy=8.0, width=16, height=16)
+    features = torch.rand(n, 4, generator=gen, requires_grad=True)
+    out = rasterize(means.requires_grad_(), quats, scales, opacities, features, camera, backend="numba")
+    (out.features.sum() + out.depth.sum()).backward()
+    with torch.no_grad():
+        rasterize_in_bands(means.detach(), quats, scales, opacities, features.detach(), camera, backend="numba")
+
+
+def compile_in_background() -> None:
+    """Start :func:`warm_up` in a child process (once; nothing without numba). The first
+    compiled render of this process waits for it (:func:`wait_for_background_compile`)."""
+    global _BACKGROUND
+    if _BACKGROUND is not None or numba is None:
+        return
+    code = "from n2f2.render.numba_backend import warm_up; warm_up()"
+    try:
+        _BACKGROUND = subprocess.Popen(
+            [sys.executable, "-c", code], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+        )
+    except OSError:  # no child process here: the first render compiles, as without this
+        _BACKGROUND = None
+
+
+def wait_for_background_compile() -> int | None:
+    """Wait for the child of :func:`compile_in_background` and return its exit code (None when
+    none runs). A failed child only means this process compiles what it needs itself."""
+    global _BACKGROUND
+    child, _BACKGROUND = _BACKGROUND, None
+    return None if child is None else child.wait()
