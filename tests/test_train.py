@@ -184,6 +184,24 @@ def test_projected_loss_equals_the_loss_of_the_projected_features(mask_kind):
         torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-9)
 
 
+def test_projected_loss_is_the_same_on_one_and_two_threads():
+    # Serial and Ray runs (one thread per worker) must train the same field bit for bit.
+    g = torch.Generator().manual_seed(0)
+    x0, W0 = torch.randn(4096, 16, generator=g), torch.randn(384, 16, generator=g) * 0.01
+    targets, index = torch.randn(300, 384, generator=g), torch.randint(300, (4096,), generator=g)
+    threads, results = torch.get_num_threads(), []
+    try:
+        for n in (1, 2):
+            torch.set_num_threads(n)
+            x, W = x0.clone().requires_grad_(), W0.clone().requires_grad_()
+            loss = projected_loss(x, W, targets, index, 0.001)[0]
+            results.append((loss.detach(), *torch.autograd.grad(loss, (x, W))))
+    finally:
+        torch.set_num_threads(threads)
+    for a, b in zip(*results):
+        assert torch.equal(a, b)
+
+
 def test_projected_loss_at_zero_projection():
     # W = 0 (its initial value): phi = 0, so L2 = mean |t|^2 and 1 - cos = 1 for every pixel.
     targets = torch.tensor([[3.0, 4.0], [0.0, 1.0]])

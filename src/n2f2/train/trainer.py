@@ -199,8 +199,10 @@ def projected_loss(
     gradients up to float rounding, about half the work when D < E."""
     P, E = x.shape[0], W.shape[0]
     gx = x @ (W.t() @ W)  # [P, D]
-    u = (targets @ W)[index]  # [P, D]
-    tt = (targets * targets).sum(1)[index]  # [P]
+    # index_select, not [index]: its backward (index_add) sums in the same order whatever the
+    # thread count, so a run gives the same field on 1 or 2 threads (serial and Ray runs agree).
+    u = (targets @ W).index_select(0, index)  # [P, D]
+    tt = (targets * targets).sum(1).index_select(0, index)  # [P]
     xgx = (gx * x).sum(1)
     ux = (u * x).sum(1)
     l2 = (xgx - 2.0 * ux + tt).sum() / (P * E)
