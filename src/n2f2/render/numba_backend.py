@@ -34,9 +34,11 @@ zeroed and summed, cost N * D * threads of memory traffic per call.) Per-pair gr
 written by the one thread that owns the tile (no race).
 
 numba ships its compiler in its wheel, so nothing is built at install time. Kernels are
-compiled on first use (a few seconds) and cached on disk beside this file, or in numba's
-user cache when that folder is read-only. Calls are serialised by a lock: the thread pool
-used here does not allow two Python threads inside a parallel region at once.
+compiled on first use (about 20 s on 2 cores) and cached on disk beside this file, or in numba's
+user cache when that folder is read-only; ``n2f2 demo`` and ``n2f2 run`` start that compile in a
+child process while they make or read the scene (:func:`compile_in_background`). Calls are
+serialised by a lock: the thread pool used here does not allow two Python threads inside a
+parallel region at once.
 
 torch's OpenMP threads must not spin-wait through these kernels (with OpenMP's default spin
 count a render took 25x longer on 2 cores): the ``n2f2`` command sets ``GOMP_SPINCOUNT`` (see
