@@ -388,10 +388,11 @@ def test_numba_many_channels_long_lists_and_termination():
 
 def test_numba_kernels_compile_in_a_child_process_and_the_first_render_waits(monkeypatch):
     # The child compiles (or loads from the disk cache) every kernel a pipeline uses and exits 0;
-    # a render started meanwhile waits for it first, and the child is only started once.
+    # a render started meanwhile waits for it first, and a process starts only one child.
     from n2f2.render import numba_backend as nb
 
     monkeypatch.setattr(nb, "_BACKGROUND", None)
+    monkeypatch.setattr(nb, "_STARTED", False)
     nb.compile_in_background()
     child = nb._BACKGROUND
     assert child is not None
@@ -402,3 +403,5 @@ def test_numba_kernels_compile_in_a_child_process_and_the_first_render_waits(mon
     rasterize(*params, camera, backend="numba")
     assert nb._BACKGROUND is None and child.returncode == 0
     assert nb.wait_for_background_compile() is None
+    nb.compile_in_background()  # the next pipeline in this process starts no second child
+    assert nb._BACKGROUND is None

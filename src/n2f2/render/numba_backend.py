@@ -670,6 +670,7 @@ def count_pairs(
 # work that does not render (generating or reading the scene), and its first render waits for
 # the child, so the kernels are compiled once and the compile overlaps that work.
 _BACKGROUND: subprocess.Popen | None = None
+_STARTED = False  # a process starts at most one child (run-many calls the pipeline per scene)
 
 
 def warm_up() -> None:
@@ -691,11 +692,12 @@ def warm_up() -> None:
 
 
 def compile_in_background() -> None:
-    """Start :func:`warm_up` in a child process (once; nothing without numba). The first
-    compiled render of this process waits for it (:func:`wait_for_background_compile`)."""
-    global _BACKGROUND
-    if _BACKGROUND is not None or numba is None:
+    """Start :func:`warm_up` in a child process, once per process (nothing without numba). The
+    first compiled render after that waits for it (:func:`wait_for_background_compile`)."""
+    global _BACKGROUND, _STARTED
+    if _STARTED or numba is None:
         return
+    _STARTED = True
     code = "from n2f2.render.numba_backend import warm_up; warm_up()"
     try:
         _BACKGROUND = subprocess.Popen(
