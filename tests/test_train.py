@@ -116,7 +116,8 @@ def test_pixels_uniform_over_covered_pixels_of_views():
     va = ViewSegments.from_record(0, _Record(la, [2, 1, 1], [True, True, False]))
     vb = ViewSegments.from_record(1, _Record(lb, [6], [True]))
     assert va.covered.tolist() == [0, 1, 3] and len(vb.covered) == 6
-    batch = SegmentPool.from_views([va, vb]).sample(27000, torch.Generator().manual_seed(1))
+    pool = SegmentPool.from_views([va, vb])
+    batch = pool.sample(27000, torch.Generator().manual_seed(1))
     counts = np.bincount((batch.slot * 6 + batch.pixel).numpy(), minlength=12)
     covered = [0, 1, 3] + [6 + i for i in range(6)]
     assert set(np.nonzero(counts)[0]) == set(covered)  # never an uncovered pixel
@@ -125,7 +126,7 @@ def test_pixels_uniform_over_covered_pixels_of_views():
     seg_of = {0: 0, 1: 0, 3: 1}
     a = batch.slot == 0
     assert all(seg_of[p] == s for p, s in zip(batch.pixel[a].tolist(), batch.segment[a].tolist()))
-    torch.testing.assert_close(batch.target[a], torch.eye(3, 4)[batch.segment[a]])
+    torch.testing.assert_close(pool.embeddings[batch.pooled[a]], torch.eye(3, 4)[batch.segment[a]])
 
 
 def test_pool_of_views_with_different_layer_counts():
@@ -135,13 +136,14 @@ def test_pool_of_views_with_different_layer_counts():
     lb = np.stack([np.full((2, 3), 0, np.int32), np.array([[1, -1, 2], [1, -1, 2]], np.int32)])  # 2 layers
     va = ViewSegments.from_record(0, _Record(la, [2, 2], [True, True]))
     vb = ViewSegments.from_record(1, _Record(lb, [6, 2, 2], [True, True, True]))
-    batch = SegmentPool.from_views([va, vb]).sample(4000, torch.Generator().manual_seed(3))
+    pool = SegmentPool.from_views([va, vb])
+    batch = pool.sample(4000, torch.Generator().manual_seed(3))
     layers = [la.reshape(1, -1), lb.reshape(2, -1)]
     for slot, pixel, seg in zip(batch.slot.tolist(), batch.pixel.tolist(), batch.segment.tolist()):
         assert seg in layers[slot][:, pixel]
     b = batch.slot == 1
     assert set(batch.segment[b].tolist()) == {0, 1, 2}
-    torch.testing.assert_close(batch.target[b], torch.eye(3, 4)[batch.segment[b]])
+    torch.testing.assert_close(pool.embeddings[batch.pooled[b]], torch.eye(3, 4)[batch.segment[b]])
 
 
 # ---------------------------------------------------------------------------------- loss
@@ -312,7 +314,8 @@ def test_deferred_gather_matches_full_render(setup):
     geometry = frozen_geometry(setup["gaussians"], "cpu")
     cams = [bank_cameras(scene, bank)[v] for v in (1, 2)]
     batch = PixelBatch(slot=torch.tensor([1, 0, 1, 0]), pixel=torch.tensor([5, 100, 700, 33]),
-                       segment=torch.zeros(4, dtype=torch.long), scale=torch.zeros(4), target=torch.zeros(4, 16))
+                       segment=torch.zeros(4, dtype=torch.long), scale=torch.zeros(4),
+                       pooled=torch.zeros(4, dtype=torch.long))
     with torch.no_grad():
         feats = field.encode(field.normalize(geometry["means"]))
         images = [render_features(geometry, feats, cam) for cam in cams]

@@ -94,14 +94,15 @@ class ViewSegments:
 @dataclass
 class PixelBatch:
     """Sampled supervision: for pixel ``pixel[i]`` of rendered view ``slot[i]`` (index into
-    the views rendered this step), the chosen segment's quantized scale and teacher embedding."""
+    the views rendered this step), the chosen segment's quantized scale and its id in the pool
+    (its teacher embedding is the pool's ``embeddings[pooled[i]]``, gathered once per distinct
+    segment by the loss)."""
 
     slot: Tensor  # [P] long, index into the step's views
     pixel: Tensor  # [P] long, flat pixel index (row * W + col)
     segment: Tensor  # [P] long, local segment id within that view
     scale: Tensor  # [P] float32 quantized scale
-    target: Tensor  # [P, E] float32 teacher embedding
-    pooled: Optional[Tensor] = None  # [P] long, the segment's id in the SegmentPool it came from
+    pooled: Tensor  # [P] long, the segment's id in the SegmentPool it came from
 
 
 def sample_segments(
@@ -165,6 +166,4 @@ class SegmentPool:
             raise ValueError("no pixel of the selected views is covered by a valid segment")
         pick = torch.randint(self.pixel.numel(), (num_pixels,), generator=generator)
         seg = sample_segments(self.candidates[pick], self.weights, generator)  # [P] pooled id
-        return PixelBatch(
-            self.slot[pick], self.pixel[pick], self.local[seg], self.quantized[seg], self.embeddings[seg], seg
-        )
+        return PixelBatch(self.slot[pick], self.pixel[pick], self.local[seg], self.quantized[seg], seg)

@@ -514,7 +514,6 @@ def train_field(
         )
         scale = jitter_scales(batch.scale, config.scale_jitter, generator)
         mask = field.supervision_mask(scale.to(device))
-        assert batch.pooled is not None  # SegmentPool.sample gives every pixel's pooled segment
         ids, index = torch.unique(batch.pooled, return_inverse=True)
         targets = pool.embeddings[ids].to(device)
         loss, l2, cos = projected_loss(theta * mask, field.W, targets, index.to(device), config.cos_weight)
@@ -619,9 +618,7 @@ def _finite_step(loss: Tensor, params: Any) -> bool:
 
 
 def _to(batch: PixelBatch, device: torch.device) -> PixelBatch:
-    return replace(
-        batch, **{f.name: v.to(device) for f in fields(PixelBatch) if (v := getattr(batch, f.name)) is not None}
-    )
+    return PixelBatch(*(getattr(batch, f.name).to(device) for f in fields(PixelBatch)))
 
 
 def _record_gaussians(path: Optional[str], out: Path) -> Optional[str]:
