@@ -25,8 +25,8 @@ from n2f2.train.evaluate import evaluate_cosine_by_level, match_regions_to_segme
 from n2f2.train.sampling import (SegmentPool, ViewSegments, covering_probabilities, sample_segments,
                                  segment_weights)
 from n2f2.train.trainer import (CHECKPOINT_NAME, FIELD_NAME, REPORT_NAME, TrainConfig, bank_cameras,
-                                frozen_geometry, hierarchical_loss, jitter_scales, projected_loss,
-                                render_features, train_field)
+                                frozen_geometry, hierarchical_loss, jitter_scales, prefix_projected_loss,
+                                projected_loss, render_features, train_field)
 
 FIELD = FieldConfig(dim=12, plane_resolution=16, plane_channels=4, hidden=32)
 
@@ -146,6 +146,64 @@ def test_pool_of_views_with_different_layer_counts():
     torch.testing.assert_close(pool.embeddings[batch.pooled[b]], torch.eye(3, 4)[batch.segment[b]])
 
 
+def test_every_segment_rows_are_each_covering_segment_with_its_draw_probability():
+    """Hand-built view: 2 layers over a 2x3 image; segment areas 4, 16, 2, 9 -> weights 1/log(area)
+    (area 2 stays 2: MIN_AREA). Each sampled pixel gets one row per covering segment, in layer
+    order, weighted by its share of the pixel's weights; the pixels are those `sample` draws."""
+    import math
+
+    layers = np.stack([np.array([[0, 0, 1], [1, 1, -1]], np.int32), np.array([[2, -1, 3], [3, -1, -1]], np.int32)])
+    areas = [4, 16, 2, 9]
+    view = ViewSegments.from_record(0, _Record(layers, areas, [True] * 4))
+    pool = SegmentPool.from_views([view])
+    batch = pool.sample_every_segment(200, torch.Generator().manual_seed(5))
+    assert torch.equal(batch.pixel, pool.sample(200, torch.Generator().manual_seed(5)).pixel)
+    w = [1 / math.log(a) for a in areas]
+    expected = {0: [(0, w[0]), (2, w[2])], 1: [(0, w[0])], 2: [(1, w[1]), (3, w[3])], 3: [(1, w[1]), (3, w[3])],
+                4: [(1, w[1])]}
+    for i, pixel in enumerate(batch.pixel.tolist()):
+        rows = torch.nonzero(batch.row == i).squeeze(1)
+        total = sum(x for _, x in expected[pixel])
+        assert batch.segment[rows].tolist() == [seg for seg, _ in expected[pixel]]
+        assert batch.weight[rows].tolist() == pytest.approx([x / total for _, x in expected[pixel]], rel=1e-6)
+        assert batch.scale[rows].tolist() == pytest.approx(view.quantized[batch.segment[rows]].tolist())
+    assert torch.equal(batch.pooled, batch.segment)  # one view: pooled ids are its own
+
+
+def test_weighted_projected_loss_is_the_expected_one_segment_loss():
+    """Pixel 0 is covered by segments a, b (draw probabilities 0.3, 0.7), pixel 1 by c, d, e
+    (0.2, 0.5, 0.3). The weighted loss over all five rows equals the probability-weighted sum of
+    the paper's one-segment loss (eq. 5 of phi = x W^T) over all 6 draws, value and gradients."""
+    g = torch.Generator().manual_seed(7)
+    D, E = 5, 8
+    theta = torch.randn(2, D, generator=g, dtype=torch.float64)
+    W0 = torch.randn(E, D, generator=g, dtype=torch.float64)
+    targets = torch.randn(5, E, generator=g, dtype=torch.float64)  # segments a..e
+    dims = [2, 5, 1, 3, 4]  # M(s) of each segment's prefix mask
+    mask = (torch.arange(D)[None] < torch.tensor(dims)[:, None]).double()  # [5, D]
+    row, prob = torch.tensor([0, 0, 1, 1, 1]), [0.3, 0.7, 0.2, 0.5, 0.3]
+
+    def grads(fn):
+        t, W = theta.clone().requires_grad_(), W0.clone().requires_grad_()
+        loss = fn(t, W)
+        return [loss.detach(), *torch.autograd.grad(loss, (t, W))]
+
+    def expected(t, W):
+        total = 0
+        for a in (0, 1):
+            for b in (2, 3, 4):
+                phi = torch.stack([t[0] * mask[a], t[1] * mask[b]]) @ W.t()
+                total = total + prob[a] * prob[b] * hierarchical_loss(phi, targets[[a, b]], 0.1)[0]
+        return total
+
+    def weighted(t, W):
+        x = t.index_select(0, row) * mask
+        return projected_loss(x, W, targets, torch.arange(5), 0.1, weight=torch.tensor(prob, dtype=torch.float64))[0]
+
+    for a, b in zip(grads(weighted), grads(expected)):
+        torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-9)
+
+
 # ---------------------------------------------------------------------------------- loss
 def test_hierarchical_loss_known_values():
     phi = torch.tensor([[1.0, 0.0], [0.0, 2.0]])
@@ -186,11 +244,43 @@ def test_projected_loss_equals_the_loss_of_the_projected_features(mask_kind):
         torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-9)
 
 
+@pytest.mark.parametrize("weighted", [False, True])
+def test_prefix_projected_loss_equals_the_loss_of_the_masked_rows(weighted):
+    # The reference: each row's x = theta[row] * prefix mask of M dims through projected_loss (itself
+    # checked against eq. 5 above). Rows repeat pixels, M spans 1 .. D, one target is all zeros.
+    from n2f2.field.model import prefix_mask
+
+    g = torch.Generator().manual_seed(11)
+    P, R, D, E, T = 20, 55, 7, 10, 6
+    theta0 = torch.randn(P, D, generator=g, dtype=torch.float64)
+    W0 = torch.randn(E, D, generator=g, dtype=torch.float64)
+    targets = torch.randn(T, E, generator=g, dtype=torch.float64)
+    targets[2] = 0
+    row = torch.randint(P, (R,), generator=g)
+    dims = torch.randint(1, D + 1, (R,), generator=g)
+    dims[:3] = torch.tensor([1, D, D])
+    index = torch.randint(T, (R,), generator=g)
+    weight = torch.rand(R, generator=g, dtype=torch.float64) if weighted else None
+
+    def grads(fn):
+        t, W = theta0.clone().requires_grad_(), W0.clone().requires_grad_()
+        loss, l2, cos = fn(t, W)
+        return [loss.detach(), l2.detach(), cos.detach(), *torch.autograd.grad(loss, (t, W))]
+
+    ref = grads(lambda t, W: projected_loss(t[row] * prefix_mask(dims, D, torch.float64), W, targets, index, 0.1,
+                                            weight))
+    got = grads(lambda t, W: prefix_projected_loss(t, row, dims, W, targets, index, 0.1, weight))
+    for a, b in zip(got, ref):
+        torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-9)
+
+
 def test_projected_loss_is_the_same_on_one_and_two_threads():
     # Serial and Ray runs (one thread per worker) must train the same field bit for bit.
     g = torch.Generator().manual_seed(0)
     x0, W0 = torch.randn(4096, 16, generator=g), torch.randn(384, 16, generator=g) * 0.01
     targets, index = torch.randn(300, 384, generator=g), torch.randint(300, (4096,), generator=g)
+    rows, index3 = torch.arange(4096).repeat_interleave(3), torch.randint(300, (3 * 4096,), generator=g)
+    dims, weight = torch.randint(1, 17, (3 * 4096,), generator=g), torch.rand(3 * 4096, generator=g)
     threads, results = torch.get_num_threads(), []
     try:
         for n in (1, 2):
@@ -198,6 +288,9 @@ def test_projected_loss_is_the_same_on_one_and_two_threads():
             x, W = x0.clone().requires_grad_(), W0.clone().requires_grad_()
             loss = projected_loss(x, W, targets, index, 0.001)[0]
             results.append((loss.detach(), *torch.autograd.grad(loss, (x, W))))
+            x, W = x0.clone().requires_grad_(), W0.clone().requires_grad_()
+            loss = prefix_projected_loss(x, rows, dims, W, targets, index3, 0.001, weight)[0]
+            results[-1] += (loss.detach(), *torch.autograd.grad(loss, (x, W)))
     finally:
         torch.set_num_threads(threads)
     for a, b in zip(*results):
@@ -230,10 +323,11 @@ def test_scale_jitter_stays_in_range_and_spreads():
 
 
 # ---------------------------------------------------------------------------------- training
-def test_short_training_lowers_loss(setup, tmp_path):
+@pytest.mark.parametrize("every_segment", [False, True])
+def test_short_training_lowers_loss(setup, tmp_path, every_segment):
     bank = setup["banks"][16]
-    report = train_field(setup["scene"], setup["gaussians"], bank, tmp_path,
-                         field_config=FIELD, config=tiny_config(iterations=25, lr_mlp=0.01, checkpoint_every=0),
+    config = tiny_config(iterations=25, lr_mlp=0.01, checkpoint_every=0, every_segment=every_segment)
+    report = train_field(setup["scene"], setup["gaussians"], bank, tmp_path, field_config=FIELD, config=config,
                          progress=False)
     loss = report["curve"]["loss"]
     assert len(loss) == 25
@@ -314,8 +408,8 @@ def test_deferred_gather_matches_full_render(setup):
     geometry = frozen_geometry(setup["gaussians"], "cpu")
     cams = [bank_cameras(scene, bank)[v] for v in (1, 2)]
     batch = PixelBatch(slot=torch.tensor([1, 0, 1, 0]), pixel=torch.tensor([5, 100, 700, 33]),
-                       segment=torch.zeros(4, dtype=torch.long), scale=torch.zeros(4),
-                       pooled=torch.zeros(4, dtype=torch.long))
+                       row=torch.arange(4), segment=torch.zeros(4, dtype=torch.long), scale=torch.zeros(4),
+                       pooled=torch.zeros(4, dtype=torch.long), weight=torch.ones(4))
     with torch.no_grad():
         feats = field.encode(field.normalize(geometry["means"]))
         images = [render_features(geometry, feats, cam) for cam in cams]

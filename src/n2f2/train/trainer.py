@@ -5,7 +5,8 @@ One step:
 
 1. sample ``pixels_per_step`` pixels uniformly over the segment-covered pixels of the training
    views and, per pixel, one covering segment with probability ∝ 1 / log(area)
-   (:mod:`n2f2.train.sampling`);
+   (:mod:`n2f2.train.sampling`); with ``every_segment`` (not in the paper), every covering
+   segment instead, weighted by the probability of that draw;
 2. **deferred rendering** (default): query the backbone at the (frozen) Gaussian centres,
    render those low-dimensional features (F = TriPlane channels) at the sampled pixels and run
    the MLP there, giving ``theta(u) [P, D]``. Without deferral the MLP runs per Gaussian and D
@@ -119,6 +120,14 @@ class TrainConfig(ConfigDict):
         "paper; 0 = off, as the paper",
         type=nonneg_float,
     )
+    # Not in the paper: the loss's expectation over the segment draw instead of one draw
+    # (train/sampling.py). The field runs once per pixel either way; the loss runs per row.
+    every_segment: bool = option(
+        False,
+        help="supervise each sampled pixel with every segment covering it, weighted by the probability "
+        "that the paper's draw of one segment picks it (same expected loss, less variance); "
+        "off: one segment drawn per pixel, as the paper",
+    )
     deferred: bool = option(
         True,
         help="deferred rendering (paper, training only): rasterize the backbone's features, MLP per pixel; "
@@ -190,13 +199,16 @@ def projected_loss(
     targets: Tensor,  # [T, E] the distinct teacher embeddings of the batch
     index: Tensor,  # [P] long, each pixel's row of ``targets``
     cos_weight: float,
+    weight: Optional[Tensor] = None,  # [P] each row's share of the loss (PixelBatch.weight); None: 1 each
 ) -> tuple[Tensor, Tensor, Tensor]:
     """:func:`hierarchical_loss` of ``phi = x W^T`` against ``targets[index]``, computed in the D
     field dims instead of the E teacher dims: with ``G = W^T W`` and ``u = W^T t``,
     ``|phi - t|^2 = x G x - 2 u.x + |t|^2`` and ``cos(phi, t) = u.x / (sqrt(x G x) |t|)``
     (each norm clamped at 1e-8, as ``F.cosine_similarity`` clamps them). ``u`` is computed once per distinct
     target: a batch samples a few hundred segments for thousands of pixels. Same value and
-    gradients up to float rounding, about half the work when D < E."""
+    gradients up to float rounding, about half the work when D < E. With ``weight``, both terms
+    are weighted means over the rows (``sum(w * term) / sum(w)``): rows of a pixel whose weights
+    sum to 1 give that pixel's expected loss."""
     P, E = x.shape[0], W.shape[0]
     gx = x @ (W.t() @ W)  # [P, D]
     # index_select, not [index]: its backward (index_add) sums in the same order whatever the
@@ -205,9 +217,48 @@ def projected_loss(
     tt = (targets * targets).sum(1).index_select(0, index)  # [P]
     xgx = (gx * x).sum(1)
     ux = (u * x).sum(1)
-    l2 = (xgx - 2.0 * ux + tt).sum() / (P * E)
     norms = torch.sqrt(xgx.clamp(min=1e-16)) * torch.sqrt(tt.clamp(min=1e-16))  # |phi|, |t| each >= 1e-8
-    cos = (1.0 - ux / norms).mean()
+    if weight is None:
+        l2 = (xgx - 2.0 * ux + tt).sum() / (P * E)
+        cos = (1.0 - ux / norms).mean()
+    else:
+        total = weight.sum()
+        l2 = (weight * (xgx - 2.0 * ux + tt)).sum() / (total * E)
+        cos = (weight * (1.0 - ux / norms)).sum() / total
+    return l2 + cos_weight * cos, l2, cos
+
+
+def prefix_projected_loss(
+    theta: Tensor,  # [P, D] theta(u) per pixel
+    row: Tensor,  # [R] long, each row's pixel
+    dims: Tensor,  # [R] long in [1, D], each row's M(s): its mask B(s) keeps the first M(s) dims
+    W: Tensor,  # [E, D] the field's projection
+    targets: Tensor,  # [T, E] the distinct teacher embeddings of the batch
+    index: Tensor,  # [R] long, each row's row of ``targets``
+    cos_weight: float,
+    weight: Optional[Tensor] = None,  # [R] each row's share of the loss; None: 1 each
+) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`projected_loss` of the rows ``x_r = theta[row_r] * B(s_r)`` when every B(s) is a
+    prefix mask (nested and flat fields), with the D x D work done once per pixel instead of once
+    per row. ``x G x`` over the first M dims is a prefix sum: with ``a_k = theta_k (2 sum_{j<k}
+    G_kj theta_j + G_kk theta_k)``, ``x_r G x_r = sum_{k < M_r} a_k`` of the row's pixel. Same
+    value and gradients up to float rounding."""
+    P, D = theta.shape
+    E = W.shape[0]
+    G = W.t() @ W  # [D, D]
+    a = theta * (2.0 * (theta @ torch.tril(G, diagonal=-1).t()) + theta * torch.diagonal(G))  # [P, D]
+    last = dims.long() - 1  # [R] the row's last kept dim
+    # Flat index_select (not advanced indexing): its backward sums in a fixed order on any thread count.
+    xgx = torch.cumsum(a, 1).reshape(-1).index_select(0, row * D + last)  # [R]
+    u = (targets @ W).index_select(0, index)  # [R, D]
+    tx = torch.cumsum(u * theta.index_select(0, row), 1)  # [R, D]
+    ux = tx.reshape(-1).index_select(0, torch.arange(len(row), device=row.device) * D + last)  # [R]
+    tt = (targets * targets).sum(1).index_select(0, index)  # [R]
+    norms = torch.sqrt(xgx.clamp(min=1e-16)) * torch.sqrt(tt.clamp(min=1e-16))
+    w = torch.ones_like(xgx) if weight is None else weight
+    total = w.sum()
+    l2 = (w * (xgx - 2.0 * ux + tt)).sum() / (total * E)
+    cos = (w * (1.0 - ux / norms)).sum() / total
     return l2 + cos_weight * cos, l2, cos
 
 
@@ -502,7 +553,10 @@ def train_field(
             ]
             pool = SegmentPool.from_views([segments[v] for v in views])
         assert pool is not None  # pool_all is built whenever every_view is set
-        batch = pool.sample(config.pixels_per_step, generator)
+        if config.every_segment:
+            batch = pool.sample_every_segment(config.pixels_per_step, generator)
+        else:
+            batch = pool.sample(config.pixels_per_step, generator)
         theta = pixel_theta(
             field,
             geometry,
@@ -513,10 +567,20 @@ def train_field(
             encoder=encoder,
         )
         scale = jitter_scales(batch.scale, config.scale_jitter, generator)
-        mask = field.supervision_mask(scale.to(device))
         ids, index = torch.unique(batch.pooled, return_inverse=True)
         targets = pool.embeddings[ids].to(device)
-        loss, l2, cos = projected_loss(theta * mask, field.W, targets, index.to(device), config.cos_weight)
+        weight = batch.weight.to(device)
+        if config.every_segment and field.variant != "levels":  # rows: weighted (pixel, segment) pairs
+            dims = field.dims_for_scale(scale.to(device))
+            loss, l2, cos = prefix_projected_loss(
+                theta, batch.row.to(device), dims, field.W, targets, index.to(device), config.cos_weight, weight
+            )
+        elif config.every_segment:  # block masks of the 3-level field
+            x = theta.index_select(0, batch.row.to(device)) * field.supervision_mask(scale.to(device))
+            loss, l2, cos = projected_loss(x, field.W, targets, index.to(device), config.cos_weight, weight)
+        else:  # one row per pixel, as the paper
+            mask = field.supervision_mask(scale.to(device))
+            loss, l2, cos = projected_loss(theta * mask, field.W, targets, index.to(device), config.cos_weight)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         finite = _finite_step(loss, field.parameters())
