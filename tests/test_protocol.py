@@ -131,6 +131,24 @@ def test_box_filter_stack_equals_per_map_and_multichannel_bitwise(size):
         assert np.array_equal(stacked[i], cv2.filter2D(r[i], -1, kernel))
 
 
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_box_filter_stack_on_threads_equals_per_map_bitwise(threads):
+    # 40 maps at 30 px (the DFT filter): on 2 or 3 threads the stack is split in chunks, each map
+    # still filtered alone, so every map equals its own filter2D call bit for bit.
+    import torch
+
+    r = np.random.default_rng(threads).random((40, 37, 41)).astype(np.float32)
+    kernel = np.ones((30, 30)) / 900
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(threads)
+        stacked = box_filter(r, 30)
+    finally:
+        torch.set_num_threads(before)
+    for i in range(40):
+        assert np.array_equal(stacked[i], cv2.filter2D(r[i], -1, kernel)), i
+
+
 # ------------------------------------------------------------------------- majority filter
 @pytest.mark.parametrize("seed,density", [(0, 0.5), (1, 0.3), (2, 0.7), (3, 0.5)])
 def test_majority_filter_matches_loop_port(seed, density):

@@ -9,7 +9,9 @@ once: ``n2f2 query`` and the viewer use them to turn relevancy into masks and lo
 from __future__ import annotations
 
 import math
-from typing import Literal, Union
+from concurrent.futures import ThreadPoolExecutor
+from functools import lru_cache
+from typing import Callable, Literal, Union
 
 import numpy as np
 
@@ -47,6 +49,43 @@ def resolve_majority_radius(radius: Radius, width: int, ref_width: int = LERF_RE
 
 
 # ------------------------------------------------------------------------------ filters
+MIN_MAPS_PER_THREAD = 8  # a stack filters on one thread below 2x this many maps
+# OpenCV's filter2D filters through the DFT from an 11x11 kernel up (0.5 ms per 160x120 map at
+# 30x30); below, a map costs about what handing it to a thread does.
+THREADED_FROM_SIZE = 11
+
+
+@lru_cache(maxsize=None)
+def _executor(threads: int) -> ThreadPoolExecutor:
+    return ThreadPoolExecutor(max_workers=threads, thread_name_prefix="n2f2-maps")
+
+
+def _each_map(
+    fn: Callable[[np.ndarray], np.ndarray],
+    stack: np.ndarray,  # [n, H, W]
+    out: np.ndarray,  # [n, H, W] written: out[i] = fn(stack[i])
+    threaded: bool,
+) -> None:
+    """Apply an OpenCV filter map by map; ``threaded``: the stack split into contiguous chunks
+    over torch's thread count (OpenCV releases the GIL). The same call on the same map whatever
+    the split, so the result is bitwise one loop's."""
+    import torch
+
+    n = len(stack)
+    threads = min(torch.get_num_threads(), n // MIN_MAPS_PER_THREAD) if threaded else 1
+
+    def run(lo: int, hi: int) -> None:
+        for i in range(lo, hi):
+            out[i] = fn(stack[i])
+
+    if threads < 2:
+        run(0, n)
+        return
+    bounds = np.linspace(0, n, threads + 1).round().astype(int)
+    for job in [_executor(threads).submit(run, int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]:
+        job.result()
+
+
 def box_filter(
     relevancy: np.ndarray,  # [H, W] or [..., H, W] relevancy maps
     size: int = LANGSPLAT_BOX_SIZE,
@@ -70,8 +109,7 @@ def box_filter(
     # [H, W, levels] stack in one call), and faster on CPU than the transposes that call needs.
     flat = r.reshape(-1, h, w)
     out = np.empty_like(flat)
-    for i, one in enumerate(flat):
-        out[i] = cv2.filter2D(np.ascontiguousarray(one), -1, kernel)
+    _each_map(lambda one: cv2.filter2D(np.ascontiguousarray(one), -1, kernel), flat, out, size >= THREADED_FROM_SIZE)
     return out.reshape(r.shape)
 
 
