@@ -128,15 +128,6 @@ class TrainConfig(ConfigDict):
         "that the paper's draw of one segment picks it (same expected loss, less variance); "
         "off: one segment drawn per pixel, as the paper",
     )
-    # Not in the paper: at the paper's constant learning rate the last iterate wanders; the mean
-    # of the iterates after a point (Polyak averaging) is what the run saves instead.
-    average_from: float = option(
-        1.0,
-        help="save the mean of the field's parameters over the steps after this fraction of the run "
-        "(0.5: the second half) instead of the last step's; 1 = off, as the paper",
-        type=float,
-        metavar="F",
-    )
     deferred: bool = option(
         True,
         help="deferred rendering (paper, training only): rasterize the backbone's features, MLP per pixel; "
@@ -153,8 +144,6 @@ class TrainConfig(ConfigDict):
     def __post_init__(self) -> None:
         if not 0.0 <= self.scale_jitter < 1.0:  # NaN fails too
             raise ValueError(f"scale_jitter must be in [0, 1), got {self.scale_jitter}")
-        if not 0.0 <= self.average_from <= 1.0:
-            raise ValueError(f"average_from must be in [0, 1], got {self.average_from}")
         for name in ("views_per_step", "render_downscale", "pixels_per_step", "log_every"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
@@ -475,15 +464,6 @@ def train_field(
         generator.set_state(checkpoint["rng"])
         step, curve, train_time = int(checkpoint["step"]), checkpoint["curve"], float(checkpoint["train_time"])
         skipped = int(checkpoint.get("skipped", 0))
-    # Polyak averaging (config.average_from): the mean of the parameters after each step past
-    # average_start, over `averaged_steps` steps.
-    average_start = int(round(config.average_from * config.iterations))
-    params = list(field.parameters())
-    averaged: Optional[list[Tensor]] = None
-    averaged_steps = 0
-    if checkpoint is not None and checkpoint.get("average") is not None:
-        averaged = [t.to(device) for t in checkpoint["average"]]
-        averaged_steps = int(checkpoint["averaged_steps"])
 
     meta = {
         "encoder_spec": getattr(bank, "encoder_spec", None),
@@ -540,8 +520,6 @@ def train_field(
             "train_config": config.to_dict(),
             "curve": curve,
             "window": list(window),
-            "average": None if averaged is None else [t.detach().cpu().clone() for t in averaged],
-            "averaged_steps": averaged_steps,
             "train_time": train_time,
             "num_gaussians": int(geometry["means"].shape[0]),
             "skipped": skipped,
@@ -616,14 +594,6 @@ def train_field(
                 bar.close()
                 raise _stopped(step + 1, f"the last {bad_run} steps")
         step += 1
-        if finite and step > average_start:
-            averaged_steps += 1
-            if averaged is None:
-                averaged = [p.detach().clone() for p in params]
-            else:
-                with torch.no_grad():
-                    for mean, p in zip(averaged, params):
-                        mean.lerp_(p, 1.0 / averaged_steps)
         dt = time.perf_counter() - t0
         train_time += dt
         iter_times.append(dt)
@@ -648,10 +618,6 @@ def train_field(
         raise _stopped(step, f"all {bad_run} steps of this run")
 
     save_checkpoint()
-    if averaged is not None:  # the saved field is the mean; checkpoint.pt keeps the last iterate to resume
-        with torch.no_grad():
-            for p, a in zip(params, averaged):
-                p.copy_(a)
     field.eval()
     check_finite(out / FIELD_NAME, field.state_dict())
     gpath = _record_gaussians(paths.get("gaussians"), out)
@@ -684,7 +650,6 @@ def train_field(
         "scene_extent": extent,
         "final_loss": curve["loss"][-1] if curve["loss"] else None,
         "skipped_steps": skipped,
-        "averaged_steps": averaged_steps,  # steps whose parameters field.pt averages (0: the last step's)
         "train_time_s": train_time,
         # This session's iterations only (a resumed run measures what it ran).
         "time_per_iteration_s": float(np.median(iter_times)) if iter_times else None,
