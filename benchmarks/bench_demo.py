@@ -71,11 +71,16 @@ def fit_floor(demo: Path) -> float:
 
 def train_floor(run: Path) -> float:
     """The dense arithmetic of one training step: the MLP forward and backward on its pixels and
-    the loss's projection as the trainer computes it, in the D field dims (``G = W^T W`` and
-    ``u = W^T t`` per distinct target; a step's pixels sample a few hundred segments)."""
+    the loss as the trainer computes it, in the D field dims (``G = W^T W`` and ``u = W^T t`` per
+    distinct target; a step's pixels sample a few hundred segments). With every covering segment
+    per pixel (``every_segment``), the loss runs on the run's mean rows per step."""
+    from n2f2.train.trainer import prefix_projected_loss, projected_loss
+
     report = json.loads((run / "train_report.json").read_text())
     f, t = report["field_config"], report["train_config"]
     E, D, P = int(report["embed_dim"]), int(f["dim"]), int(t["pixels_per_step"])
+    every = bool(t.get("every_segment")) and f["variant"] != "levels"
+    R = int(round(report.get("rows_per_iteration") or P)) if every else P
     width = int(f["plane_channels"]) if f["backbone"] == "triplane" else 3 * (2 * int(f["pe_frequencies"]) + 1)
     dims = [width] + [int(f["hidden"])] * (int(f["num_layers"]) - 1) + [D]
     layers: list[torch.nn.Module] = []
@@ -85,12 +90,19 @@ def train_floor(run: Path) -> float:
     W = torch.nn.Parameter(torch.randn(E, D) * 0.01)
     x = torch.randn(P, width)
     targets = torch.randn(512, E)
-    index = torch.randint(512, (P,))
+    index = torch.randint(512, (R,))
+    row = torch.arange(R) * P // R  # each pixel's rows side by side, as a batch holds them
+    keep = torch.randint(1, D + 1, (R,))  # each row's M(s)
+    weight = torch.full((R,), P / R)
 
     def step() -> None:
         theta = mlp(x)
-        u = (targets @ W)[index]
-        ((theta @ (W.T @ W) * theta).sum() - 2 * (u * theta).sum()).backward()
+        if every:
+            loss = prefix_projected_loss(theta, row, keep, W, targets, index, 0.001, weight)[0]
+        else:
+            loss = projected_loss(theta * (torch.arange(D) < keep[:, None]), W, targets, index, 0.001)[0]
+        loss.backward()
+
     return median_time(step)
 
 

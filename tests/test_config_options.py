@@ -143,7 +143,8 @@ def test_train_help_shows_each_presets_value(capsys):
     iters = f"(cpu {TrainConfig.cpu().iterations}, paper {TrainConfig.paper().iterations})"
     assert f"--iterations ITERATIONS optimisation steps of the field {iters}" in text
     assert "--blend-cache, --no-blend-cache" in text and "--deferred, --no-deferred" in text
-    assert f"(default {TrainConfig.cpu().pixels_per_step})" in text and TrainConfig.cpu().pixels_per_step == 4096
+    cpu_px, paper_px = TrainConfig.cpu().pixels_per_step, TrainConfig.paper().pixels_per_step
+    assert f"(cpu {cpu_px}, paper {paper_px})" in text and (cpu_px, paper_px) == (2048, 4096)
 
 
 def test_fit_and_run_help_show_each_presets_value(capsys):
