@@ -726,15 +726,18 @@ def _tiny_train(**over):
 def _flaky_loss(monkeypatch, bad: Callable[[int], bool]) -> dict:
     import n2f2.train.trainer as trainer
 
-    real = trainer.projected_loss
     calls = {"n": 0}
 
-    def loss(*args):
-        calls["n"] += 1
-        total, l2, cos = real(*args)
-        return (total * float("nan") if bad(calls["n"]) else total), l2, cos
+    def flaky(real):  # both losses (the cpu preset's every-segment one too), one step count
+        def loss(*args):
+            calls["n"] += 1
+            total, l2, cos = real(*args)
+            return (total * float("nan") if bad(calls["n"]) else total), l2, cos
 
-    monkeypatch.setattr(trainer, "projected_loss", loss)
+        return loss
+
+    monkeypatch.setattr(trainer, "projected_loss", flaky(trainer.projected_loss))
+    monkeypatch.setattr(trainer, "prefix_projected_loss", flaky(trainer.prefix_projected_loss))
     return calls
 
 
