@@ -384,14 +384,21 @@ def test_resume_after_kill_matches_uninterrupted_run(setup, tmp_path):
 
 def test_variants_and_non_deferred_train(setup, tmp_path):
     bank = setup["banks"][16]
-    for i, (fc, deferred) in enumerate([(replace(FIELD, variant="flat"), True),
-                                        (replace(FIELD, variant="levels"), True),
-                                        (replace(FIELD, backbone="mlp", pe_frequencies=2), True),
-                                        (replace(FIELD, step_size=4), False)]):
+    cases = [(replace(FIELD, variant="flat"), True, False),
+             (replace(FIELD, variant="levels"), True, False),
+             (replace(FIELD, backbone="mlp", pe_frequencies=2), True, False),
+             (replace(FIELD, step_size=4), False, False),
+             # every covering segment: prefix masks (flat, nested with a step size) and the 3 level blocks
+             (replace(FIELD, variant="flat"), True, True),
+             (replace(FIELD, variant="levels"), True, True),
+             (replace(FIELD, step_size=4), False, True)]
+    for i, (fc, deferred, every) in enumerate(cases):
         report = train_field(setup["scene"], setup["gaussians"], bank, tmp_path / str(i), field_config=fc,
-                             config=tiny_config(iterations=2, checkpoint_every=0, deferred=deferred),
+                             config=tiny_config(iterations=2, checkpoint_every=0, deferred=deferred,
+                                                every_segment=every),
                              progress=False)
         assert report["steps"] == 2 and np.isfinite(report["final_loss"])
+        assert (report["rows_per_iteration"] > 128) == every  # 128 pixels; rows: one per covering segment
 
 
 def test_deferred_gather_matches_full_render(setup):
