@@ -223,17 +223,28 @@ def projected_loss(
     gradients up to float rounding, about half the work when D < E. With ``weight``, both terms
     are weighted means over the rows (``sum(w * term) / sum(w)``): rows of a pixel whose weights
     sum to 1 give that pixel's expected loss."""
-    P, E = x.shape[0], W.shape[0]
+    E = W.shape[0]
     gx = x @ (W.t() @ W)  # [P, D]
     # index_select, not [index]: its backward (index_add) sums in the same order whatever the
     # thread count, so a run gives the same field on 1 or 2 threads (serial and Ray runs agree).
     u = (targets @ W).index_select(0, index)  # [P, D]
     tt = (targets * targets).sum(1).index_select(0, index)  # [P]
-    xgx = (gx * x).sum(1)
-    ux = (u * x).sum(1)
+    return _loss_from_products((gx * x).sum(1), (u * x).sum(1), tt, E, cos_weight, weight)
+
+
+def _loss_from_products(
+    xgx: Tensor,  # [R] x G x = |phi|^2 of each row
+    ux: Tensor,  # [R] u.x = phi.t
+    tt: Tensor,  # [R] |t|^2
+    E: int,
+    cos_weight: float,
+    weight: Optional[Tensor],  # [R] or None
+) -> tuple[Tensor, Tensor, Tensor]:
+    """``(L2 + lambda * (1 - cos), L2, 1 - cos)`` from the rows' inner products: means over the
+    rows, weighted means (``sum(w * term) / sum(w)``) with ``weight``."""
     norms = torch.sqrt(xgx.clamp(min=1e-16)) * torch.sqrt(tt.clamp(min=1e-16))  # |phi|, |t| each >= 1e-8
     if weight is None:
-        l2 = (xgx - 2.0 * ux + tt).sum() / (P * E)
+        l2 = (xgx - 2.0 * ux + tt).sum() / (xgx.shape[0] * E)
         cos = (1.0 - ux / norms).mean()
     else:
         total = weight.sum()
@@ -257,8 +268,7 @@ def prefix_projected_loss(
     per row. ``x G x`` over the first M dims is a prefix sum: with ``a_k = theta_k (2 sum_{j<k}
     G_kj theta_j + G_kk theta_k)``, ``x_r G x_r = sum_{k < M_r} a_k`` of the row's pixel. Same
     value and gradients up to float rounding."""
-    P, D = theta.shape
-    E = W.shape[0]
+    D, E = theta.shape[1], W.shape[0]
     G = W.t() @ W  # [D, D]
     a = theta * (2.0 * (theta @ torch.tril(G, diagonal=-1).t()) + theta * torch.diagonal(G))  # [P, D]
     last = dims.long() - 1  # [R] the row's last kept dim
@@ -268,12 +278,7 @@ def prefix_projected_loss(
     tx = torch.cumsum(u * theta.index_select(0, row), 1)  # [R, D]
     ux = tx.reshape(-1).index_select(0, torch.arange(len(row), device=row.device) * D + last)  # [R]
     tt = (targets * targets).sum(1).index_select(0, index)  # [R]
-    norms = torch.sqrt(xgx.clamp(min=1e-16)) * torch.sqrt(tt.clamp(min=1e-16))
-    w = torch.ones_like(xgx) if weight is None else weight
-    total = w.sum()
-    l2 = (w * (xgx - 2.0 * ux + tt)).sum() / (total * E)
-    cos = (w * (1.0 - ux / norms)).sum() / total
-    return l2 + cos_weight * cos, l2, cos
+    return _loss_from_products(xgx, ux, tt, E, cos_weight, weight)
 
 
 def jitter_scales(
@@ -585,18 +590,17 @@ def train_field(
         supervised_rows += len(batch.row)
         ids, index = torch.unique(batch.pooled, return_inverse=True)
         targets = pool.embeddings[ids].to(device)
-        weight = batch.weight.to(device)
-        if config.every_segment and field.variant != "levels":  # rows: weighted (pixel, segment) pairs
-            dims = field.dims_for_scale(scale.to(device))
+        scale, index = scale.to(device), index.to(device)
+        if config.every_segment and field.variant != "levels":  # weighted rows, prefix masks
+            rows, weight = batch.row.to(device), batch.weight.to(device)
             loss, l2, cos = prefix_projected_loss(
-                theta, batch.row.to(device), dims, field.W, targets, index.to(device), config.cos_weight, weight
+                theta, rows, field.dims_for_scale(scale), field.W, targets, index, config.cos_weight, weight
             )
-        elif config.every_segment:  # block masks of the 3-level field
-            x = theta.index_select(0, batch.row.to(device)) * field.supervision_mask(scale.to(device))
-            loss, l2, cos = projected_loss(x, field.W, targets, index.to(device), config.cos_weight, weight)
-        else:  # one row per pixel, as the paper
-            mask = field.supervision_mask(scale.to(device))
-            loss, l2, cos = projected_loss(theta * mask, field.W, targets, index.to(device), config.cos_weight)
+        else:  # one row per pixel (the paper), or weighted rows with the 3-level field's block masks
+            x = theta.index_select(0, batch.row.to(device)) if config.every_segment else theta
+            weight = batch.weight.to(device) if config.every_segment else None
+            x = x * field.supervision_mask(scale)
+            loss, l2, cos = projected_loss(x, field.W, targets, index, config.cos_weight, weight)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         finite = _finite_step(loss, field.parameters())
