@@ -38,6 +38,11 @@ class PlaneTaps:
     matrix_t: Optional[Tensor] = None
 
 
+def channels_last_planes(planes: Tensor) -> Tensor:  # [3, C, R, R] -> the same values, channels-last strides
+    """``planes`` laid out in memory as ``[3, R, R, C]`` (see :class:`TriPlane`)."""
+    return planes.permute(0, 2, 3, 1).contiguous().permute(0, 3, 1, 2)
+
+
 class TriPlane(nn.Module):
     """Three ``channels x resolution x resolution`` planes; a point's feature is the sum
     (``reduce="sum"``, nerfstudio's default) or product (``"product"``, K-Planes) of its
@@ -62,7 +67,10 @@ class TriPlane(nn.Module):
         else:
             # K-Planes: values near 1 so the product of three planes starts well away from zero.
             init = torch.empty(3, channels, resolution, resolution).uniform_(0.1, 0.5) + 0.5
-        self.planes = nn.Parameter(init)  # [3, C, R, R]
+        # [3, C, R, R] stored channels-last (strides of [3, R, R, C]): the fast path reads the texels
+        # as [3 R^2, C] rows, which is then a view, in its forward and its gradient alike (no copy
+        # of the planes per step); every other use sees the usual [3, C, R, R] tensor.
+        self.planes = nn.Parameter(channels_last_planes(init))
 
     @property
     def out_dim(self) -> int:
@@ -114,7 +122,7 @@ class TriPlane(nn.Module):
     def sample(self, taps: PlaneTaps) -> Tensor:  # -> [N, C], equal to forward(xyz) of the taps' points
         C, R = self.channels, self.resolution
         if taps.matrix is not None:
-            texels = self.planes.permute(0, 2, 3, 1).reshape(3 * R * R, C)  # channels-last rows
+            texels = self.planes.permute(0, 2, 3, 1).reshape(3 * R * R, C)  # channels-last rows (a view)
             return constant_sparse_matmul(taps.matrix, texels, taps.matrix_t)
         n = taps.weight.shape[1]
         out = None

@@ -480,6 +480,7 @@ def train_field(
     if checkpoint is not None:
         field.load_state_dict(checkpoint["field_state"])
         optimizer.load_state_dict(checkpoint["optimizer"])
+        _match_state_layouts(optimizer)
         generator.set_state(checkpoint["rng"])
         step, curve, train_time = int(checkpoint["step"]), checkpoint["curve"], float(checkpoint["train_time"])
         skipped = int(checkpoint.get("skipped", 0))
@@ -683,6 +684,18 @@ def train_field(
     }
     write_json(out / REPORT_NAME, report)
     return report
+
+
+def _match_state_layouts(optimizer: torch.optim.Optimizer) -> None:
+    """Give each moment its parameter's memory layout. Fused Adam walks a parameter and its
+    moments as flat memory, so their strides must agree; a checkpoint may hold moments laid out
+    otherwise (one written before the TriPlane's planes were stored channels-last)."""
+    for group in optimizer.param_groups:
+        for p in group["params"]:
+            state = optimizer.state.get(p, {})
+            for key, value in state.items():
+                if torch.is_tensor(value) and value.shape == p.shape and value.stride() != p.stride():
+                    state[key] = torch.empty_like(p).copy_(value)
 
 
 def _stopped(step: int, which: str) -> NonFiniteError:
