@@ -146,11 +146,27 @@ def test_triplane_taps_equal_grid_sample_with_gradients(reduce):
                                    [1.7, 0.2, -3.0], [0.2, 0.6, 1.0]], dtype=torch.float64)])
     upstream = torch.randn(xyz.shape[0], 3, dtype=torch.float64)
     ref = tp(xyz)
-    (g_ref,) = torch.autograd.grad((ref * upstream).sum(), tp.planes)
+    (g_ref,) = torch.autograd.grad((ref * upstream).sum(), tp.texels)
     fast = tp.sample(tp.taps(xyz))
-    (g_fast,) = torch.autograd.grad((fast * upstream).sum(), tp.planes)
+    (g_fast,) = torch.autograd.grad((fast * upstream).sum(), tp.texels)
     torch.testing.assert_close(fast, ref, rtol=1e-12, atol=1e-12)
     torch.testing.assert_close(g_fast, g_ref, rtol=1e-12, atol=1e-12)
+
+
+def test_triplane_loads_a_state_saved_as_channels_first_planes():
+    """Fields saved before the texel layout hold ``planes [3, C, R, R]``; they load into
+    ``texels [3, R, R, C]`` with every texel in its place."""
+    tp = TriPlane(resolution=4, channels=3)
+    planes = torch.arange(3 * 3 * 4 * 4, dtype=torch.float32).view(3, 3, 4, 4)  # [plane, channel, row, col]
+    tp.load_state_dict({"planes": planes})
+    assert tp.texels.shape == (3, 4, 4, 3) and tp.texels.is_contiguous()
+    assert float(tp.texels.detach()[2, 1, 3, 0]) == float(planes[2, 0, 1, 3])
+    torch.testing.assert_close(tp.planes, planes, rtol=0, atol=0)
+    xyz = torch.rand(7, 3) * 2 - 1
+    reference = TriPlane(resolution=4, channels=3)
+    with torch.no_grad():
+        reference.texels.copy_(planes.permute(0, 2, 3, 1))
+    torch.testing.assert_close(tp(xyz), reference(xyz))
 
 
 @pytest.mark.parametrize("backbone", ["triplane", "mlp"])

@@ -495,30 +495,31 @@ def test_bank_from_another_scene_is_rejected(setup, tmp_path):
         train_field(smaller, setup["gaussians"], bank, tmp_path, field_config=FIELD, config=tiny_config(), progress=False)
 
 
-def test_resume_from_moments_in_the_usual_layout_matches_uninterrupted_run(setup, tmp_path):
-    """The TriPlane's planes are stored channels-last; a checkpoint whose Adam moments are plain
-    contiguous [3, C, R, R] tensors (as written before that) must resume to the same field: fused
-    Adam walks a parameter and its moments as flat memory, so a layout mismatch would mix texels
-    and channels."""
+def test_resume_from_a_checkpoint_with_channels_first_planes_matches_uninterrupted_run(setup, tmp_path):
+    """Checkpoints written before the TriPlane's texel layout (format v1) hold the planes and
+    their Adam moments as [3, C, R, R]; such a checkpoint resumes to the field an uninterrupted
+    run trains (fused Adam walks a parameter and its moments as flat memory, so a moment left in
+    the old layout would mix texels and channels)."""
     bank = setup["banks"][16]
     cfg = tiny_config(iterations=6, checkpoint_every=3)
     train_field(setup["scene"], setup["gaussians"], bank, tmp_path / "a", field_config=FIELD, config=cfg,
                 progress=False)
     field_a, _ = load_field(tmp_path / "a" / FIELD_NAME)
-    assert not field_a.backbone.planes.is_contiguous()  # [3, C, R, R] with [3, R, R, C] strides
-    assert field_a.backbone.planes.permute(0, 2, 3, 1).is_contiguous()
 
     train_field(setup["scene"], setup["gaussians"], bank, tmp_path / "b", field_config=FIELD,
                 config=replace(cfg, iterations=3), progress=False)
     ck_path = tmp_path / "b" / CHECKPOINT_NAME
     ck = torch.load(ck_path, weights_only=True)
-    moments = [v for state in ck["optimizer"]["state"].values() for v in state.values()
-               if torch.is_tensor(v) and v.dim() == 4]
-    assert moments and not any(v.is_contiguous() for v in moments)
+    assert ck["format"] == "n2f2-field-checkpoint-v2"
+    ck["format"] = "n2f2-field-checkpoint-v1"  # rewritten as an older n2f2 wrote it
+    ck["field_state"]["backbone.planes"] = ck["field_state"].pop("backbone.texels").permute(0, 3, 1, 2).contiguous()
+    moments = 0
     for state in ck["optimizer"]["state"].values():
         for key, value in state.items():
-            if torch.is_tensor(value):
-                state[key] = value.contiguous()
+            if torch.is_tensor(value) and value.dim() == 4:
+                state[key] = value.permute(0, 3, 1, 2).contiguous()
+                moments += 1
+    assert moments == 2  # exp_avg and exp_avg_sq of the planes
     torch.save(ck, ck_path)
     train_field(setup["scene"], setup["gaussians"], bank, tmp_path / "b", field_config=FIELD, config=cfg,
                 resume=True, progress=False)

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Optional
+from typing import Any, Optional
 
 import torch
 import torch.nn.functional as F
@@ -38,11 +38,6 @@ class PlaneTaps:
     matrix_t: Optional[Tensor] = None
 
 
-def channels_last_planes(planes: Tensor) -> Tensor:  # [3, C, R, R] -> the same values, channels-last strides
-    """``planes`` laid out in memory as ``[3, R, R, C]`` (see :class:`TriPlane`)."""
-    return planes.permute(0, 2, 3, 1).contiguous().permute(0, 3, 1, 2)
-
-
 class TriPlane(nn.Module):
     """Three ``channels x resolution x resolution`` planes; a point's feature is the sum
     (``reduce="sum"``, nerfstudio's default) or product (``"product"``, K-Planes) of its
@@ -50,6 +45,12 @@ class TriPlane(nn.Module):
 
     Points outside ``[-1, 1]`` read the border texel (``padding_mode="border"``), so a floater
     outside the bounding box gets the feature of the nearest box face instead of zero.
+
+    The parameter is ``texels [3, R, R, C]`` (channels last): the training fast path reads it as
+    ``[3 R^2, C]`` rows, a view, and its gradient and Adam's update run on one contiguous tensor
+    (on CPU, a channels-first parameter cost a copy of the planes each way per step).
+    :attr:`planes` is the usual ``[3, C, R, R]`` view of it. Fields saved with a ``planes``
+    parameter (n2f2 before the texel layout) load unchanged.
     """
 
     def __init__(self, resolution: int = 512, channels: int = 64, reduce: str = "sum", init_scale: float = 0.1) -> None:
@@ -67,10 +68,17 @@ class TriPlane(nn.Module):
         else:
             # K-Planes: values near 1 so the product of three planes starts well away from zero.
             init = torch.empty(3, channels, resolution, resolution).uniform_(0.1, 0.5) + 0.5
-        # [3, C, R, R] stored channels-last (strides of [3, R, R, C]): the fast path reads the texels
-        # as [3 R^2, C] rows, which is then a view, in its forward and its gradient alike (no copy
-        # of the planes per step); every other use sees the usual [3, C, R, R] tensor.
-        self.planes = nn.Parameter(channels_last_planes(init))
+        self.texels = nn.Parameter(init.permute(0, 2, 3, 1).contiguous())  # [3, R, R, C]
+
+    @property
+    def planes(self) -> Tensor:  # [3, C, R, R], a view of the texels
+        return self.texels.permute(0, 3, 1, 2)
+
+    def _load_from_state_dict(self, state_dict: dict, prefix: str, *args: Any, **kwargs: Any) -> None:
+        planes = state_dict.pop(prefix + "planes", None)  # saved before the texel layout: [3, C, R, R]
+        if planes is not None and prefix + "texels" not in state_dict:
+            state_dict[prefix + "texels"] = planes.permute(0, 2, 3, 1)
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     @property
     def out_dim(self) -> int:
@@ -122,16 +130,16 @@ class TriPlane(nn.Module):
     def sample(self, taps: PlaneTaps) -> Tensor:  # -> [N, C], equal to forward(xyz) of the taps' points
         C, R = self.channels, self.resolution
         if taps.matrix is not None:
-            texels = self.planes.permute(0, 2, 3, 1).reshape(3 * R * R, C)  # channels-last rows (a view)
+            texels = self.texels.view(3 * R * R, C)  # channels-last rows
             return constant_sparse_matmul(taps.matrix, texels, taps.matrix_t)
         n = taps.weight.shape[1]
         out = None
         for p in range(3):
-            corners = self.planes[p].reshape(C, R * R).index_select(1, taps.index[p]).view(C, n, 4)
-            value = (corners * taps.weight[p]).sum(-1)  # [C, N]
+            corners = self.texels[p].view(R * R, C).index_select(0, taps.index[p]).view(n, 4, C)
+            value = (corners * taps.weight[p].unsqueeze(-1)).sum(1)  # [N, C]
             out = value if out is None else (out + value if self.reduce == "sum" else out * value)
         assert out is not None  # the loop over the three planes ran
-        return out.t()
+        return out
 
     def extra_repr(self) -> str:
         return f"resolution={self.resolution}, channels={self.channels}, reduce={self.reduce}"

@@ -71,7 +71,9 @@ REPORT_NAME = "train_report.json"
 GAUSSIANS_NAME = "gaussians.ply"
 LIFT_NAME = "lift.pt"
 RESULT_NAMES = (FIELD_NAME, CHECKPOINT_NAME, REPORT_NAME, LIFT_NAME)  # what a finished or started run holds
-_CHECKPOINT_FORMAT = "n2f2-field-checkpoint-v1"
+# v2: the TriPlane's parameter is texels [3, R, R, C]; v1 (read too) held planes [3, C, R, R].
+_CHECKPOINT_FORMAT = "n2f2-field-checkpoint-v2"
+_CHECKPOINT_V1 = "n2f2-field-checkpoint-v1"
 
 
 # ------------------------------------------------------------------------------------ config
@@ -379,8 +381,13 @@ def _peak_rss_mb() -> float:
 
 def _load_checkpoint(path: Path) -> dict:
     ck = load_torch(path, "checkpoint")
-    if not isinstance(ck, dict) or ck.get("format") != _CHECKPOINT_FORMAT:
+    if not isinstance(ck, dict) or ck.get("format") not in (_CHECKPOINT_FORMAT, _CHECKPOINT_V1):
         raise InputError(path, "not an n2f2 train checkpoint")
+    if ck["format"] == _CHECKPOINT_V1:  # the field state loads as is (TriPlane reads "planes")
+        for state in ck["optimizer"]["state"].values():
+            for key, value in state.items():
+                if torch.is_tensor(value) and value.dim() == 4:  # the planes' moments: the one 4-D parameter
+                    state[key] = value.permute(0, 2, 3, 1).contiguous()
     return ck
 
 
@@ -480,7 +487,6 @@ def train_field(
     if checkpoint is not None:
         field.load_state_dict(checkpoint["field_state"])
         optimizer.load_state_dict(checkpoint["optimizer"])
-        _match_state_layouts(optimizer)
         generator.set_state(checkpoint["rng"])
         step, curve, train_time = int(checkpoint["step"]), checkpoint["curve"], float(checkpoint["train_time"])
         skipped = int(checkpoint.get("skipped", 0))
@@ -684,18 +690,6 @@ def train_field(
     }
     write_json(out / REPORT_NAME, report)
     return report
-
-
-def _match_state_layouts(optimizer: torch.optim.Optimizer) -> None:
-    """Give each moment its parameter's memory layout. Fused Adam walks a parameter and its
-    moments as flat memory, so their strides must agree; a checkpoint may hold moments laid out
-    otherwise (one written before the TriPlane's planes were stored channels-last)."""
-    for group in optimizer.param_groups:
-        for p in group["params"]:
-            state = optimizer.state.get(p, {})
-            for key, value in state.items():
-                if torch.is_tensor(value) and value.shape == p.shape and value.stride() != p.stride():
-                    state[key] = torch.empty_like(p).copy_(value)
 
 
 def _stopped(step: int, which: str) -> NonFiniteError:
