@@ -339,7 +339,8 @@ def run_dir(tmp_path_factory):
 def engine(run_dir):
     from n2f2.query import QueryConfig, QueryEngine
 
-    return QueryEngine.from_run(run_dir, encoder=HashEncoder(E_TEST), config=QueryConfig(selection="max"))
+    # The paper's test-time rendering (MLP per Gaussian), which the slow paths below rebuild.
+    return QueryEngine.from_run(run_dir, encoder=HashEncoder(E_TEST), config=QueryConfig(selection="max", render="gaussians"))
 
 
 def test_engine_composite_fast_path_equals_rendered_composite_embedding(engine):
@@ -534,6 +535,43 @@ def test_cli(run_dir, tmp_path, monkeypatch, capsys):
         assert msg in err and "Traceback" not in err
 
 
+def test_deferred_render_equals_the_mlp_of_the_blended_backbone_per_pixel(run_dir, engine):
+    """Deferred test views (the default): each pixel's feature is the MLP of the rasterized
+    backbone features, and composite applies Eq. 6-7 to that pixel's own prefix features. Slow
+    path: the literal formulas per pixel, from a plain rasterization of the backbone."""
+    from n2f2.query import QueryConfig, QueryEngine
+    from n2f2.render import rasterize
+
+    deferred = QueryEngine.from_run(run_dir, encoder=HashEncoder(E_TEST), config=QueryConfig(selection="max"))
+    assert deferred.config.render == "deferred"
+    texts = ["lid of the teapot", "red mug", "bag of cookies"]
+    view = deferred.render_view(0, modes=["composite", "explicit"], rgb=False)
+    g, field = deferred.gaussians, deferred.field
+    with torch.no_grad():
+        f = field.encode(field.normalize(g.means))  # [N, F] backbone at the centres
+        blended = rasterize(g.means, g.normalized_quats, g.scales, g.opacities, f, view.camera).features
+        theta = field.decode(blended.reshape(-1, f.shape[1])).double()  # [P, D]
+    W = field.W.detach().double()
+    D = W.shape[1]
+    t, negs = deferred.encode(texts).double(), deferred.encode(list(deferred.config.negatives)).double()
+    canon = deferred.encode(list(deferred.config.canonical)).double()
+    phi = torch.stack([theta[:, :d] @ W[:, :d].T for d in range(1, D + 1)])  # [D, P, E] prefix features
+    gamma = torch.softmax((phi @ canon.T).amax(-1) / deferred.config.temperature, dim=0)  # [D, P] Eq. 6
+    composite = (gamma[..., None] * phi).sum(0)  # [P, E]
+    want = relevancy(composite, t, negs).T.reshape(3, view.height, view.width)
+    got = deferred.query(view, texts, "composite").relevancy
+    torch.testing.assert_close(got.double(), want, rtol=0, atol=1e-5)
+    # explicit: the chosen scale's relevancy is the relevancy of that prefix feature
+    res = deferred.query(view, texts, "explicit")
+    for q in range(3):
+        d = deferred.scale_dims[res.chosen[q]]
+        ref = relevancy(phi[d - 1], t[q : q + 1], negs)[:, 0].reshape(view.height, view.width)
+        torch.testing.assert_close(res.relevancy[q].double(), ref, rtol=0, atol=1e-5)
+    # and it is not the paper's per-Gaussian rendering (the MLP is not linear)
+    paper = engine.query(engine.render_view(0, modes=["composite"], rgb=False), texts, "composite").relevancy
+    assert float((paper - got).abs().max()) > 1e-3
+
+
 def test_levels_mode_on_a_levels_field(engine):
     from n2f2.field import FieldConfig, NestedField
     from n2f2.query import QueryConfig, QueryEngine
@@ -545,7 +583,7 @@ def test_levels_mode_on_a_levels_field(engine):
     with torch.no_grad():
         field.W.copy_(torch.randn(E_TEST, 12) / 3.0)
     lv = QueryEngine(field, engine.gaussians, HashEncoder(E_TEST), {"config": field.config.to_dict()},
-                     QueryConfig(selection="max"), scene=engine.scene)
+                     QueryConfig(selection="max", render="gaussians"), scene=engine.scene)
     assert lv.modes() == ("levels", "oracle")
     texts = ["teapot", "lid"]
     view = lv.render_view(0, modes=["levels"], rgb=False)

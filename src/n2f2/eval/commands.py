@@ -15,7 +15,7 @@ PROTOCOLS = ("2d", "3d", "both", "3d-ovs")  # --protocol
 
 
 def register(subparsers) -> None:
-    from ..query.engine import MODES
+    from ..query.engine import MODES, RENDERS
 
     p = subparsers.add_parser(
         "eval",
@@ -94,6 +94,13 @@ def register(subparsers) -> None:
         type=positive_float,
         default=1.0,
         help="composite gamma = softmax(score / T); 1 = paper (default)",
+    )
+    p.add_argument(
+        "--render",
+        choices=RENDERS,
+        default="deferred",
+        help="2D views: deferred = rasterize the backbone's features and run the MLP per pixel, as the field was "
+        "trained (default); gaussians = the MLP per Gaussian, the paper's test-time form",
     )
     p.add_argument("--no-relevancy", action="store_true", help="do not write the relevancy .npy files")
     p.add_argument(
@@ -200,7 +207,7 @@ def run(args: argparse.Namespace) -> int:
     config3d = Protocol3dConfig(
         missing_frames=config.missing_frames, rescale_labels=config.rescale_labels, progress=config.progress
     )
-    query_config = QueryConfig(temperature=args.temperature)
+    query_config = QueryConfig(temperature=args.temperature, render=args.render)
     engine = None
     if args.budget or protocol != "2d":  # one engine (and text encoder) for every protocol and the budget
         engine = QueryEngine.from_run(args.run_dir, device=args.device, scene=args.scene, config=query_config)

@@ -781,6 +781,8 @@ def evaluate_run(
             "step": engine.step,
             "num_scales": len(labels_of_scales),
             "scale_labels": labels_of_scales,
+            # 2D views rendered deferred (the MLP per pixel) or per Gaussian (QueryConfig.render)
+            "render": "deferred" if getattr(engine, "renders_deferred", False) else "gaussians",
         },
         modes=modes,
         boxes=boxes,

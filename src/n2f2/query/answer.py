@@ -64,6 +64,7 @@ def answer_queries(
     mask_threshold: float,
     box_size: BoxSize,
     temperature: float = 1.0,
+    render: str = "deferred",
     canonical: Optional[tuple[str, ...]] = None,
     selection: str = "smoothed",
     force: bool = False,
@@ -85,7 +86,7 @@ def answer_queries(
     # once the scene is (they hold its image names).
     claim_out_dir(out, ["query.json"], force=force, resume_flag=None)
     overrides: dict[str, Any] = {"canonical": tuple(canonical)} if canonical else {}  # QueryConfig keywords
-    config = QueryConfig(temperature=temperature, selection=selection, box_size=box_size, **overrides)
+    config = QueryConfig(temperature=temperature, selection=selection, box_size=box_size, render=render, **overrides)
     engine = QueryEngine.from_run(run_dir, device=device, scene=scene, config=config)
     view_names = [engine.camera(i)[2] for i in views]  # fail before any work on a bad index
     results = list(dict.fromkeys(query_results(texts, view_names, three_d) + listed_results(out)))
@@ -143,6 +144,7 @@ def answer_queries(
             "num_scales": len(engine.scale_labels),
         },
         "composite": {"canonical": list(config.canonical), "temperature": config.temperature},
+        "render": config.render,
         "relevancy": {"negatives": list(config.negatives), "feature_normalisation": "L2 (cosine)"},
         "segmentation": {"threshold": mask_threshold, "box_size": box_size, "selection": config.selection},
         "views": views_out,

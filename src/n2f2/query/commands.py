@@ -21,7 +21,7 @@ def _box_size(value: str):
 
 
 def register(subparsers) -> None:
-    from .engine import MODES
+    from .engine import MODES, RENDERS
     from .soft import SOFT_TEMPERATURE
 
     p = subparsers.add_parser(
@@ -88,6 +88,13 @@ def register(subparsers) -> None:
         help="composite gamma = softmax(score / T); 1 = paper (default)",
     )
     p.add_argument(
+        "--render",
+        choices=RENDERS,
+        default="deferred",
+        help="2D views: deferred = rasterize the backbone's features and run the MLP per pixel, as the field was "
+        "trained (default); gaussians = the MLP per Gaussian, the paper's test-time form",
+    )
+    p.add_argument(
         "--canonical",
         nargs="+",
         default=None,
@@ -139,6 +146,7 @@ def run(args: argparse.Namespace) -> int:
         mask_threshold=mask_threshold,
         box_size=box,
         temperature=args.temperature,
+        render=args.render,
         canonical=tuple(args.canonical) if args.canonical else None,
         selection=args.selection,
         force=args.force,

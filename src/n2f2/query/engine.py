@@ -29,6 +29,17 @@ relevancy is computed once, at the chosen scale (:func:`select_scale`), with the
 mode takes its peaks from the same maxima and sums the weighted relevancy over windows of
 Gaussians (:func:`soft_scales`).
 
+Rendering a 2D view (``QueryConfig.render``). The field is trained with deferred rendering
+(paper Sec. 3.2): a pixel's feature is the MLP of the blended backbone features,
+``theta(p) = MLP(sum_i w_{p,i} f_i)``. The paper renders test views the other way, blending the
+per-Gaussian ``Theta_i = MLP(f_i)`` (and, for composite, ``Theta~_i`` of Eq. 7 with gamma per
+Gaussian). ``"deferred"`` (the default) renders test views as the field was trained: the
+backbone's features are rasterized, the MLP runs per pixel, and composite's Eq. 6-7 are applied
+per pixel (gamma from the pixel's own prefix features); ``"gaussians"`` is the paper's form. The
+two differ where a pixel blends Gaussians with different backbone features (edges, thin parts).
+Measured in ``docs/measurements.md`` ("Test views rendered as the field was trained"). 3D queries
+on the Gaussians use ``Theta_i`` either way.
+
 Selection score of explicit / levels in 2D (``QueryConfig.selection``): ``"smoothed"`` (default)
 is the maximum of LangSplat's ``R' = 0.5 (box(R) + R)`` from :mod:`n2f2.query.maps`, the rule
 the evaluation protocol uses to pick the reported segmentation level; ``"max"`` is the maximum of
@@ -82,6 +93,7 @@ if TYPE_CHECKING:
 
 MODES = ("composite", "explicit", "levels", "soft", "oracle")
 SELECTIONS = ("smoothed", "max")
+RENDERS = ("deferred", "gaussians")  # how a 2D view gets its pixels' features (QueryConfig.render)
 
 # (view index, relevancy at every scale [S, H, W] for one query, query index) -> scores [S]
 OracleScorer = Callable[[Tensor, int], Union[Tensor, np.ndarray, Sequence[float]]]
@@ -96,6 +108,10 @@ class QueryConfig:
     temperature: float = 1.0  # gamma = softmax(score / T); 1 = paper (near-uniform gamma)
     selection: str = "smoothed"  # explicit/levels 2D scale choice: "smoothed" (LangSplat) | "max"
     box_size: Optional[BoxSize] = None  # protocol mean filter (px) or "scaled"; None = protocol's
+    # 2D views (see the module docstring): "deferred" rasterizes the backbone's features and runs
+    # the MLP per pixel, the form the field was trained in; "gaussians" (the paper's test time)
+    # runs it per Gaussian and rasterizes Theta (and composite's Theta~ of Eq. 7 per Gaussian).
+    render: str = "deferred"
     chunk: int = 65536  # points per block when building caches (bounds [chunk, E] memory)
 
     def __post_init__(self) -> None:
@@ -107,6 +123,8 @@ class QueryConfig:
             raise ValueError(f"composite temperature must be positive, got {self.temperature}")
         if self.selection not in SELECTIONS:
             raise ValueError(f"selection must be one of {SELECTIONS}, got {self.selection!r}")
+        if self.render not in RENDERS:
+            raise ValueError(f"render must be one of {RENDERS}, got {self.render!r}")
         self.canonical = tuple(self.canonical)
         self.negatives = tuple(self.negatives)
 
@@ -194,6 +212,7 @@ class QueryEngine:
         self._text_cache: dict[str, Tensor] = {}
         self._theta: Optional[Tensor] = None
         self._theta_tilde: Optional[Tensor] = None
+        self._backbone: Optional[Tensor] = None
         self._gaussian_caches: dict[str, ScoreCache] = {}
 
     # ------------------------------------------------------------------ construction
@@ -363,20 +382,25 @@ class QueryEngine:
         parts = (["tilde"] if "composite" in kinds else []) + (
             ["theta"] if any(k != "composite" for k in kinds) else []
         )
-        tensors = [self.theta_tilde if p == "tilde" else self.theta for p in parts]
-        stacked = tensors[0] if len(tensors) == 1 else torch.cat(tensors, dim=1)
         self.encode(self.config.negatives)  # loads the encoder on first use: not render time
+        if "tilde" in parts:
+            self.encode(self.config.canonical)
         g = self.gaussians
         H, W_ = cam.height, cam.width
-        t0 = time.perf_counter()
-        # Rendered in bands straight into the buffer the score cache keeps (one kind: no copy),
-        # so a view's transient memory is a band's, not a few copies of the whole [H, W, C].
-        flat = stacked.new_empty(H * W_, stacked.shape[1])
-        out = rasterize_in_bands(
-            g.means, g.normalized_quats, g.scales, g.opacities, stacked, cam, out=flat.view(H, W_, -1)
-        )
-        t1 = time.perf_counter()
         D = self.dim
+        t0 = time.perf_counter()
+        if self.renders_deferred:
+            flat, out = self._render_deferred(cam, parts)
+        else:
+            tensors = [self.theta_tilde if p == "tilde" else self.theta for p in parts]
+            stacked = tensors[0] if len(tensors) == 1 else torch.cat(tensors, dim=1)
+            # Rendered in bands straight into the buffer the score cache keeps (one kind: no copy),
+            # so a view's transient memory is a band's, not a few copies of the whole [H, W, C].
+            flat = stacked.new_empty(H * W_, stacked.shape[1])
+            out = rasterize_in_bands(
+                g.means, g.normalized_quats, g.scales, g.opacities, stacked, cam, out=flat.view(H, W_, -1)
+            )
+        t1 = time.perf_counter()
         caches = {}
         for k in kinds:
             j = parts.index("tilde" if k == "composite" else "theta")
@@ -390,6 +414,45 @@ class QueryEngine:
         return ViewCache(
             cam, index, name, caches, out.alpha.reshape(H, W_), image, {"render": t1 - t0, "cache": t2 - t1}
         )
+
+    @property
+    def renders_deferred(self) -> bool:
+        """Whether 2D views are rendered deferred: asked for, and the field has a backbone and an
+        MLP (the lift's level blocks have neither)."""
+        return self.config.render == "deferred" and hasattr(self.field, "encode") and hasattr(self.field, "decode")
+
+    @property
+    def backbone_features(self) -> Tensor:  # [N, F] the backbone at the Gaussian centres
+        if self._backbone is None:
+            with torch.no_grad():
+                means = self.gaussians.means.detach().float()
+                self._backbone = self.field.encode(self.field.normalize(means)).float().contiguous()
+        assert self._backbone is not None  # set above
+        return self._backbone
+
+    def _render_deferred(self, cam: Any, parts: list[str]) -> tuple[Tensor, Any]:
+        """``[H W, len(parts) D]`` pixel features rendered deferred (module docstring): the
+        backbone's features rasterized, the MLP per pixel, composite's ``Theta~`` per pixel."""
+        from ..render import rasterize_in_bands
+
+        g = self.gaussians
+        f = self.backbone_features
+        H, W_, D = cam.height, cam.width, self.dim
+        out = rasterize_in_bands(g.means, g.normalized_quats, g.scales, g.opacities, f, cam)
+        blended = out.features.reshape(H * W_, -1)  # [H W, F]
+        flat = blended.new_empty(H * W_, len(parts) * D)
+        canon = self.encode(self.config.canonical) if "tilde" in parts else None
+        with torch.no_grad():
+            for a in range(0, H * W_, self.config.chunk):  # bounds the MLP's [chunk, hidden] memory
+                theta = self.field.decode(blended[a : a + self.config.chunk]).float()  # [c, D]
+                for j, p in enumerate(parts):
+                    block = flat[a : a + len(theta), j * D : (j + 1) * D]
+                    if p == "tilde":
+                        assert canon is not None  # encoded above when composite is asked for
+                        block.copy_(premultiply(theta, self.W, canon, self.step, self.config.temperature))
+                    else:
+                        block.copy_(theta)
+        return flat, out
 
     def view_cache_bytes(self, view: Any, modes: Sequence[str] = ("composite",), rgb: bool = True) -> int:
         """Bytes of what :meth:`render_view` keeps for ``view`` (an index or a Camera): per cache
