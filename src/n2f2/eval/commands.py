@@ -15,7 +15,8 @@ PROTOCOLS = ("2d", "3d", "both", "3d-ovs")  # --protocol
 
 
 def register(subparsers) -> None:
-    from ..query.engine import MODES, RENDERS
+    from ..query.commands import add_render_option
+    from ..query.engine import MODES
 
     p = subparsers.add_parser(
         "eval",
@@ -95,13 +96,7 @@ def register(subparsers) -> None:
         default=1.0,
         help="composite gamma = softmax(score / T); 1 = paper (default)",
     )
-    p.add_argument(
-        "--render",
-        choices=RENDERS,
-        default="deferred",
-        help="2D views: deferred = rasterize the backbone's features and run the MLP per pixel, as the field was "
-        "trained (default); gaussians = the MLP per Gaussian, the paper's test-time form",
-    )
+    add_render_option(p)
     p.add_argument("--no-relevancy", action="store_true", help="do not write the relevancy .npy files")
     p.add_argument(
         "--budget",

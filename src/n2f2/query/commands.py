@@ -8,6 +8,19 @@ import argparse
 from ..validate import add_device_option, finite_float, nonneg_int, positive_float, unit_interval
 
 
+def add_render_option(p: argparse.ArgumentParser) -> None:
+    """``--render``: how 2D views get their features (``QueryConfig.render``)."""
+    from .engine import RENDERS
+
+    p.add_argument(
+        "--render",
+        choices=RENDERS,
+        default="deferred",
+        help="2D views: deferred = rasterize the backbone's features and run the MLP per pixel, as the field was "
+        "trained (default); gaussians = the MLP per Gaussian, the paper's test-time form",
+    )
+
+
 def _box_size(value: str):
     if value == "scaled":
         return value
@@ -21,7 +34,7 @@ def _box_size(value: str):
 
 
 def register(subparsers) -> None:
-    from .engine import MODES, RENDERS
+    from .engine import MODES
     from .soft import SOFT_TEMPERATURE
 
     p = subparsers.add_parser(
@@ -87,13 +100,7 @@ def register(subparsers) -> None:
         default=1.0,
         help="composite gamma = softmax(score / T); 1 = paper (default)",
     )
-    p.add_argument(
-        "--render",
-        choices=RENDERS,
-        default="deferred",
-        help="2D views: deferred = rasterize the backbone's features and run the MLP per pixel, as the field was "
-        "trained (default); gaussians = the MLP per Gaussian, the paper's test-time form",
-    )
+    add_render_option(p)
     p.add_argument(
         "--canonical",
         nargs="+",
