@@ -18,6 +18,11 @@ def tag(T: float) -> str:
     return f"T{T:g}"
 
 
+# The evaluation name of the nested run scored with the paper's per-Gaussian rendering of test
+# views (QueryConfig.render = "gaussians"; the others are rendered deferred).
+PAPER_RENDER = "gaussians"
+
+
 def signed_pts(d: float, se: float = math.nan) -> str:
     """A difference of scores in points (x100, signed), with its standard error when known."""
     if d is None or not np.isfinite(d):

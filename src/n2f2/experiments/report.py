@@ -14,7 +14,7 @@ import numpy as np
 
 from ..eval.reports import box_title, pct
 from ..eval.runner import BOXES
-from .claims import convergence, score, signed_pts, tag
+from .claims import PAPER_RENDER, convergence, score, signed_pts, tag
 from .variants import PAPER_STEPS, VARIANTS
 
 
@@ -53,11 +53,14 @@ def write_plots(out: Path, result: Mapping, runs: Mapping[str, dict], variant_ru
     return plots
 
 
-# (variant, mode, label) of the per-method plot and table, in this order
-METHODS = (
+# (variant, mode, label[, evaluation]) of the per-method plot and table, in this order; the
+# evaluation is "T1" (T = 1, test views rendered deferred) unless named
+METHODS: tuple[tuple[str, ...], ...] = (
     ("nested", "composite", "N2F2 composite"),
+    ("nested", "composite", "N2F2 composite, per-Gaussian render (paper)", PAPER_RENDER),
     ("nested", "soft", "N2F2 soft"),
     ("nested", "explicit", "N2F2 explicit"),
+    ("nested", "explicit", "N2F2 explicit, per-Gaussian render (paper)", PAPER_RENDER),
     ("nested", "oracle", "N2F2 oracle"),
     ("flat", "composite", "flat composite"),
     ("levels", "levels", "3-level"),
@@ -71,10 +74,11 @@ METHODS = (
 def _methods(runs: Mapping[str, dict], variant_runs: Mapping[str, str]) -> list[tuple[str, str, str, Mapping, str]]:
     """(label, variant, run, evaluation, mode) of each of :data:`METHODS` the bench ran."""
     rows = []
-    for variant, mode, label in METHODS:
+    for variant, mode, label, *which in METHODS:
         name = variant_runs.get(variant)
-        if name and mode in runs[name]["evals"]["T1"]["scores"]:
-            rows.append((label, variant, name, runs[name]["evals"]["T1"], mode))
+        e = runs[name]["evals"].get(which[0] if which else "T1") if name else None
+        if e is not None and mode in e["scores"]:
+            rows.append((label, variant, name, e, mode))
     return rows
 
 
