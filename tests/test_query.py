@@ -570,6 +570,16 @@ def test_deferred_render_equals_the_mlp_of_the_blended_backbone_per_pixel(run_di
     # and it is not the paper's per-Gaussian rendering (the MLP is not linear)
     paper = engine.query(engine.render_view(0, modes=["composite"], rgb=False), texts, "composite").relevancy
     assert float((paper - got).abs().max()) > 1e-3
+    # A view of empty space: no pixel is covered, so no feature and relevancy exactly 0.5, as in
+    # the per-Gaussian rendering (not the MLP's output for a zero input).
+    from dataclasses import replace as dc_replace
+
+    away = dc_replace(view.camera, t=view.camera.t - np.array([0.0, 0.0, 1e4]))  # everything behind the camera
+    for eng in (deferred, engine):
+        empty = eng.render_view(away, modes=["composite", "explicit"], rgb=False)
+        assert float(empty.alpha.abs().max()) == 0.0
+        for mode in ("composite", "explicit"):
+            assert torch.equal(eng.query(empty, texts, mode).relevancy, torch.full((3, 24, 32), 0.5))
 
 
 def test_levels_mode_on_a_levels_field(engine):

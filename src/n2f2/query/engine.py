@@ -37,6 +37,7 @@ Gaussian). ``"deferred"`` (the default) renders test views as the field was trai
 backbone's features are rasterized, the MLP runs per pixel, and composite's Eq. 6-7 are applied
 per pixel (gamma from the pixel's own prefix features); ``"gaussians"`` is the paper's form. The
 two differ where a pixel blends Gaussians with different backbone features (edges, thin parts).
+A pixel no Gaussian covers has the zero feature in both (relevancy 0.5).
 Measured in ``docs/measurements.md`` ("Test views rendered as the field was trained"). 3D queries
 on the Gaussians use ``Theta_i`` either way.
 
@@ -442,11 +443,15 @@ class QueryEngine:
         H, W_, D = cam.height, cam.width, self.dim
         out = rasterize_in_bands(g.means, g.normalized_quats, g.scales, g.opacities, f, cam)
         blended = out.features.reshape(H * W_, -1)  # [H W, F]
+        # A pixel no Gaussian covers has no feature (relevancy 0.5, as the per-Gaussian rendering
+        # gives it), not the MLP's output for a zero input.
+        covered = (out.alpha.reshape(H * W_, 1) > 0).to(blended.dtype)  # [H W, 1]
         flat = blended.new_empty(H * W_, len(parts) * D)
         canon = self.encode(self.config.canonical) if "tilde" in parts else None
         with torch.no_grad():
             for a in range(0, H * W_, self.config.chunk):  # bounds the MLP's [chunk, hidden] memory
-                theta = self.field.decode(blended[a : a + self.config.chunk]).float()  # [c, D]
+                b = a + self.config.chunk
+                theta = self.field.decode(blended[a:b]).float() * covered[a:b]  # [c, D]
                 for j, p in enumerate(parts):
                     block = flat[a : a + len(theta), j * D : (j + 1) * D]
                     if p == "tilde":
