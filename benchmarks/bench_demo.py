@@ -74,6 +74,7 @@ def train_floor(run: Path) -> float:
     the loss as the trainer computes it, in the D field dims (``G = W^T W`` and ``u = W^T t`` per
     distinct target; a step's pixels sample a few hundred segments). With every covering segment
     per pixel (``every_segment``), the loss runs on the run's mean rows per step."""
+    from n2f2.field.model import prefix_mask
     from n2f2.train.trainer import prefix_projected_loss, projected_loss
 
     report = json.loads((run / "train_report.json").read_text())
@@ -100,7 +101,7 @@ def train_floor(run: Path) -> float:
         if every:
             loss = prefix_projected_loss(theta, row, keep, W, targets, index, 0.001, weight)[0]
         else:
-            loss = projected_loss(theta * (torch.arange(D) < keep[:, None]), W, targets, index, 0.001)[0]
+            loss = projected_loss(theta * prefix_mask(keep, D), W, targets, index, 0.001)[0]
         loss.backward()
 
     return median_time(step)

@@ -64,7 +64,7 @@ def evaluate_variant(
         bank=file_digest(data.bank_dir / "bank.json"),
         modes=list(modes),
         temperature=temperature,
-        **({} if render == "deferred" else {"render": render}),  # the keys of earlier deferred runs hold
+        render=render,  # evaluations cached before deferred views (no key) are redone
     )
     cache = StageCache.open(run_dir)
     cache.run(

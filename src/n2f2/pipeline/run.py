@@ -240,11 +240,18 @@ def run_pipeline(opt: RunOptions, log: Callable[[str], None] = print) -> dict:
     labels = Path(opt.labels) if opt.labels else (data / "label" if (data / "label").is_dir() else None)
     eval_json = None
     if labels is not None:
+        from ..query.engine import DEFAULT_RENDER
+
         eval_dir = out / "eval"
         eval_json = eval_dir / "eval.json"
         cache.run(
             "eval",
-            stage_key(field=file_digest(out / "field.pt"), labels=tree_digest(labels), modes=list(opt.modes)),
+            stage_key(
+                field=file_digest(out / "field.pt"),
+                labels=tree_digest(labels),
+                modes=list(opt.modes),
+                render=DEFAULT_RENDER,  # an evaluation cached with per-Gaussian views is redone
+            ),
             [eval_json],
             lambda: stages.evaluate(
                 out,

@@ -95,6 +95,7 @@ if TYPE_CHECKING:
 MODES = ("composite", "explicit", "levels", "soft", "oracle")
 SELECTIONS = ("smoothed", "max")
 RENDERS = ("deferred", "gaussians")  # how a 2D view gets its pixels' features (QueryConfig.render)
+DEFAULT_RENDER = "deferred"  # since n2f2 rendered test views per Gaussian: part of cached stage keys
 
 # (view index, relevancy at every scale [S, H, W] for one query, query index) -> scores [S]
 OracleScorer = Callable[[Tensor, int], Union[Tensor, np.ndarray, Sequence[float]]]
@@ -112,7 +113,7 @@ class QueryConfig:
     # 2D views (see the module docstring): "deferred" rasterizes the backbone's features and runs
     # the MLP per pixel, the form the field was trained in; "gaussians" (the paper's test time)
     # runs it per Gaussian and rasterizes Theta (and composite's Theta~ of Eq. 7 per Gaussian).
-    render: str = "deferred"
+    render: str = DEFAULT_RENDER
     chunk: int = 65536  # points per block when building caches (bounds [chunk, E] memory)
 
     def __post_init__(self) -> None:
