@@ -10,7 +10,7 @@ from pathlib import Path
 import n2f2
 
 # Importable by every stage.
-BOTTOM = ("cameras", "errors", "io", "config", "sparse", "validate", "distributed", "_lazy")
+BOTTOM = ("cameras", "errors", "io", "config", "sparse", "validate", "distributed", "heap", "_lazy")
 # The stages, in data-flow order: each may import from itself, the bottom, and earlier stages.
 STAGES = ("data", "render", "gaussians", "segments", "field", "train", "query", "eval", "pipeline",
           "experiments", "viewer", "cli")

@@ -21,6 +21,7 @@ BATCH_SPIN_COUNT = "100000"
 
 from . import __version__  # noqa: E402 (after the wait-policy notes above; imports no torch)
 from .errors import N2F2Error  # noqa: E402
+from .heap import keep_freed_blocks  # noqa: E402
 from .validate import OneLineArgumentParser  # noqa: E402
 
 
@@ -63,16 +64,19 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _choose_omp_wait_policy(argv: list[str]) -> None:
+def _choose_process_kind(argv: list[str]) -> None:
+    """The OpenMP wait policy (above) and glibc's large-block thresholds (:mod:`n2f2.heap`) of a
+    batch command or of the viewer (which sets its own when its server starts)."""
     command = next((a for a in argv if not a.startswith("-")), None)
     if command in PASSIVE_WAIT_COMMANDS:
         os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     else:
         os.environ.setdefault("GOMP_SPINCOUNT", BATCH_SPIN_COUNT)
+        keep_freed_blocks()
 
 
 def main(argv: list[str] | None = None) -> int:
-    _choose_omp_wait_policy(sys.argv[1:] if argv is None else [str(a) for a in argv])
+    _choose_process_kind(sys.argv[1:] if argv is None else [str(a) for a in argv])
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 from typing import Any, Callable, Hashable, Iterator, Optional, Sequence
 
 from .errors import InputError, N2F2Error
+from .heap import keep_freed_blocks
 from .validate import positive_float
 
 EXECUTORS = ("serial", "ray")
@@ -49,7 +50,9 @@ class TaskFailure:
 
 def _run_task(fn: Callable[[Any], Any], item: Any) -> Any:
     """Body of every task (serial or Ray): bad input becomes a :class:`TaskFailure` value, so
-    it crosses process boundaries as data and Ray does not retry it."""
+    it crosses process boundaries as data and Ray does not retry it. A Ray worker is a batch
+    process, as the command line that starts a serial run is (:func:`n2f2.heap.keep_freed_blocks`)."""
+    keep_freed_blocks()
     try:
         return fn(item)
     except N2F2Error as e:

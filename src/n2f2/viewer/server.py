@@ -45,6 +45,7 @@ from fastapi import Request  # module level: FastAPI resolves the handlers' stri
 
 from ..cameras import Camera, look_at
 from ..errors import InputError, N2F2Error
+from ..heap import return_freed_blocks
 from .cache import ByteLRU, compact_tensors, tensor_bytes
 
 STATIC_DIR = Path(__file__).parent / "static"
@@ -480,30 +481,14 @@ def json_error_protocol() -> type:
     return JsonErrorH11Protocol
 
 
-def return_freed_buffers(threshold: int = 1 << 20) -> bool:
-    """Ask glibc to serve every allocation of ``threshold`` bytes or more with its own mapping,
-    returned to the system when freed, and to trim free heap above ``threshold``. By default
-    glibc raises both thresholds up to 32 / 64 MB as large blocks are freed, and a render's
-    freed bands and blocks then stayed in the heap: the server's resident memory settled ~66 MB
-    above its cache (~15 MB with this). False where glibc is not the C library."""
-    import ctypes
-    import ctypes.util
-
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        # -1: M_TRIM_THRESHOLD (free memory kept at the heap's top), -3: M_MMAP_THRESHOLD. Both
-        # fixed, as the loading of a run has already raised glibc's dynamic values.
-        return bool(libc.mallopt(-1, int(threshold))) and bool(libc.mallopt(-3, int(threshold)))
-    except (OSError, AttributeError):
-        return False
-
-
 def api_server(viewer: Viewer, host: str = "127.0.0.1", port: int = 7008) -> Any:
     """A ``uvicorn.Server`` for the JSON API (and the 2D page) of ``viewer``; ``server.run()``
     blocks, so callers run it in a thread beside the 3D viewer."""
     import uvicorn
 
-    return_freed_buffers()
+    # Resident memory follows the view cache: glibc's dynamic thresholds, raised by loading a
+    # run, kept a render's freed bands in the heap (~66 MB above the cache; ~15 MB with this).
+    return_freed_blocks()
 
     config = uvicorn.Config(create_app(viewer), host=host, port=port, log_level="warning", http=json_error_protocol())
     return uvicorn.Server(config)
