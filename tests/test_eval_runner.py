@@ -81,6 +81,30 @@ def test_oracle_is_the_best_scale_per_pair(evaluated):
         assert orc.miou >= result.scores["composite"][b].miou
 
 
+def test_overlapped_scoring_equals_one_loop(tiny, evaluated, monkeypatch):
+    """Scoring each query's scale maps on worker threads (while the engine computes the next
+    query) gives exactly what scoring them in the calling thread, one after another, gives."""
+    from concurrent.futures import Future
+
+    import n2f2.eval.runner as runner
+
+    class InThread:  # runs each job at once, in the caller's thread: the plain loop
+        def submit(self, fn, *args):
+            done: Future = Future()
+            done.set_result(fn(*args))
+            return done
+
+    monkeypatch.setattr(runner, "_scoring_executor", lambda: InThread())
+    serial = evaluate_run(tiny.run_dir, tiny.scene_dir / "label", config=EvalConfig(progress=False))
+    result, _, _ = evaluated
+    for m in ("explicit", "soft", "oracle"):
+        for b in ("exact", "scaled"):
+            got = [(p.frame, p.category, p.iou, p.hit, p.seg_level, p.loc_level) for p in result.scores[m][b].pairs]
+            ref = [(p.frame, p.category, p.iou, p.hit, p.seg_level, p.loc_level) for p in serial.scores[m][b].pairs]
+            assert got == ref
+            assert result.ap[m][b]["map"] == serial.ap[m][b]["map"]
+
+
 def test_composite_equals_protocol_on_written_maps(tiny, evaluated):
     """The protocol run directly on the .npy files reproduces the runner's composite numbers."""
     result, out, _ = evaluated

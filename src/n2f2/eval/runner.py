@@ -76,8 +76,10 @@ from __future__ import annotations
 import json
 import math
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, replace
 from dataclasses import field as dc_field
+from functools import lru_cache
 from pathlib import Path
 from typing import Any, Callable, Literal, Mapping, Optional, Sequence, Union
 
@@ -328,6 +330,14 @@ class _ViewMaps:
     all_scales: Optional[np.ndarray] = None  # [K, S, H, W] for a levels field's npy output
 
 
+MAX_SCORING_IN_FLIGHT = 4  # (query, box) stacks of [S, H, W] maps queued for scoring at once
+
+
+@lru_cache(maxsize=None)
+def _scoring_executor() -> ThreadPoolExecutor:
+    return ThreadPoolExecutor(max_workers=2, thread_name_prefix="n2f2-scoring")
+
+
 def _scale_maps(
     engine: Any,
     view: Any,
@@ -355,33 +365,48 @@ def _scale_maps(
     if soft is not None:
         maps["soft"] = {b: {"seg": soft, "loc": soft} for b in protocols}  # one map, as composite's
 
+    def score(r: np.ndarray, qi: int, b: str) -> None:  # one query's [S, H, W] maps under box setting b
+        target = targets[categories[qi]]
+        cfg = protocols[b]
+        size = resolve_box_size(cfg.box_size, W, cfg.box_ref_width)
+        radius = resolve_majority_radius(cfg.majority_radius, W, cfg.box_ref_width)
+        res = evaluate_frame_category(r, target.mask, target.boxes, size, cfg.threshold, radius)
+        hits = res.hit_per_level
+        picks = {
+            "explicit": (res.seg_level, res.loc_level),
+            "levels": (res.seg_level, res.loc_level),
+            "oracle": (int(np.argmax(res.iou_per_level)), hits.index(True) if any(hits) else res.loc_level),
+        }
+        for m in wanted:
+            seg, loc = picks[m]
+            maps[m][b]["seg"][qi] = r[seg]
+            maps[m][b]["loc"][qi] = r[loc]
+            choices[m][b][categories[qi]] = (seg, loc, res.iou_per_level)
+
+    # The protocol's filters (OpenCV, NumPy: they release the GIL) of one query run on worker
+    # threads while the engine computes the next query's maps; each (query, box) writes its own
+    # slots, so the results are those of one loop. At most MAX_SCORING_IN_FLIGHT stacks wait.
+    pending: list = []
+
     def scorer(rel: Any, qi: int) -> np.ndarray:  # rel [S, H, W] -> [S] (the engine's choice is unused)
         if soft is not None:
             soft[qi] = soft_relevancy(rel.reshape(len(rel), 1, -1))[0].reshape(H, W).float().cpu().numpy()
         r = rel.detach().float().cpu().numpy()
         if keep_all:
             stacks[qi] = r.copy()
-        target = targets.get(categories[qi])
-        if target is None or not wanted:  # not scored (objects all outside the image), or no choice
+        if targets.get(categories[qi]) is None or not wanted:  # not scored (objects outside the image), or no choice
             return np.zeros(len(r))
-        for b, cfg in protocols.items():
-            size = resolve_box_size(cfg.box_size, W, cfg.box_ref_width)
-            radius = resolve_majority_radius(cfg.majority_radius, W, cfg.box_ref_width)
-            res = evaluate_frame_category(r, target.mask, target.boxes, size, cfg.threshold, radius)
-            hits = res.hit_per_level
-            picks = {
-                "explicit": (res.seg_level, res.loc_level),
-                "levels": (res.seg_level, res.loc_level),
-                "oracle": (int(np.argmax(res.iou_per_level)), hits.index(True) if any(hits) else res.loc_level),
-            }
-            for m in wanted:
-                seg, loc = picks[m]
-                maps[m][b]["seg"][qi] = r[seg]
-                maps[m][b]["loc"][qi] = r[loc]
-                choices[m][b][categories[qi]] = (seg, loc, res.iou_per_level)
+        r = r.copy()  # the engine may reuse its buffer for the next query
+        while len(pending) >= MAX_SCORING_IN_FLIGHT:
+            pending.pop(0).result()
+        pending.extend(_scoring_executor().submit(score, r, qi, b) for b in protocols)
         return np.zeros(len(r))
 
-    engine.query(view, categories, mode="oracle", scorer=scorer)
+    try:
+        engine.query(view, categories, mode="oracle", scorer=scorer)
+    finally:
+        for job in pending:
+            job.result()  # re-raises a worker's error here
     all_scales = np.stack(stacks, axis=0) if keep_all else None  # [K, S, H, W]
     return maps, choices, all_scales
 
