@@ -455,6 +455,36 @@ def test_blend_cache_equals_rasterizer_with_gradients(setup):
         build_blend_cache(geometry, cams, max_bytes=100)
 
 
+def test_blend_gradient_of_a_batch_with_repeated_pixels_equals_dense_reference(setup):
+    """A training batch draws pixels with repeats and from both views in any order: the
+    features' gradient (the backward's transposed entries, sorted by Gaussian) equals the dense
+    product with the requested rows of the cached weights."""
+    from n2f2.train.blend import build_blend_cache
+
+    scene = setup["scene"]
+    geometry = frozen_geometry(setup["gaussians"], "cpu")
+    cams = [scene.cameras[1], scene.cameras[2]]
+    cache = build_blend_cache(geometry, cams)
+    N = geometry["means"].shape[0]
+    HW = cams[0].width * cams[0].height
+    g = torch.Generator().manual_seed(3)
+    slot = torch.randint(0, 2, (300,), generator=g)
+    pixel = torch.randint(0, HW, (300,), generator=g)
+    pixel[150:] = pixel[:150]  # every pixel of the second half repeats one of the first
+    slot[150:] = slot[:150]
+    f = torch.randn(N, 4, generator=g, requires_grad=True)
+    upstream = torch.randn(300, 4, generator=g)
+    (cache.blend(f, slot, pixel) * upstream).sum().backward()
+    dense = torch.zeros(300, N, dtype=torch.float64)  # the requested rows of the cache, written out
+    for i, (k, p) in enumerate(zip(slot.tolist(), pixel.tolist())):
+        r = cache.offsets[k] + p
+        for e in range(int(cache.crow[r]), int(cache.crow[r + 1])):
+            dense[i, int(cache.gid[e])] += float(cache.weight[e])
+    assert dense.abs().sum() > 0
+    expected = dense.t() @ upstream.double()
+    torch.testing.assert_close(f.grad.double(), expected, rtol=1e-5, atol=1e-6)
+
+
 def test_blend_cache_training_matches_rasterized_training(setup, tmp_path):
     """Same sampled pixels (one view per step, so both paths sample alike) -> same losses."""
     bank = setup["banks"][16]

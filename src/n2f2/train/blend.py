@@ -59,8 +59,22 @@ class BlendCache:
         entry = start[owner] + torch.arange(owner.shape[0], device=rows.device) - crow[:-1][owner]  # [E]
         # The requested rows as a CSR matrix [P, N]: one sparse-dense product forward, its
         # transpose backward (~1.3x faster than embedding_bag, ~3x than index_select + index_add).
-        matrix = csr_matrix(crow, self.gid[entry].long(), self.weight[entry], (rows.shape[0], features.shape[0]))
-        return constant_sparse_matmul(matrix, features)
+        gid, weight = self.gid.index_select(0, entry).long(), self.weight.index_select(0, entry)
+        shape = (rows.shape[0], features.shape[0])
+        matrix = csr_matrix(crow, gid, weight, shape)
+        transposed = None
+        if features.requires_grad:
+            # The transpose as CSR for the backward, from the entries stably sorted by Gaussian
+            # (each row then lists its pixels in ascending order, as torch's conversion does):
+            # the product with the transposed (CSC) view converted it on every step, at a cost
+            # several times that of this sort.
+            order = torch.argsort(gid, stable=True)
+            crow_t = torch.zeros(shape[1] + 1, dtype=torch.long, device=gid.device)
+            torch.cumsum(torch.bincount(gid, minlength=shape[1]), 0, out=crow_t[1:])
+            transposed = csr_matrix(
+                crow_t, owner.index_select(0, order), weight.index_select(0, order), (shape[1], shape[0])
+            )
+        return constant_sparse_matmul(matrix, features, transposed)
 
 
 @torch.no_grad()
