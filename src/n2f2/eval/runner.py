@@ -391,12 +391,11 @@ def _scale_maps(
     def scorer(rel: Any, qi: int) -> np.ndarray:  # rel [S, H, W] -> [S] (the engine's choice is unused)
         if soft is not None:
             soft[qi] = soft_relevancy(rel.reshape(len(rel), 1, -1))[0].reshape(H, W).float().cpu().numpy()
-        r = rel.detach().float().cpu().numpy()
+        r = rel.detach().float().cpu().numpy().copy()  # the engine may reuse its buffer for the next query
         if keep_all:
-            stacks[qi] = r.copy()
+            stacks[qi] = r
         if targets.get(categories[qi]) is None or not wanted:  # not scored (objects outside the image), or no choice
             return np.zeros(len(r))
-        r = r.copy()  # the engine may reuse its buffer for the next query
         while len(pending) >= MAX_SCORING_IN_FLIGHT:
             pending.pop(0).result()
         pending.extend(_scoring_executor().submit(score, r, qi, b) for b in protocols)

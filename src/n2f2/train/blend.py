@@ -66,8 +66,8 @@ class BlendCache:
         if features.requires_grad:
             # The transpose as CSR for the backward, from the entries stably sorted by Gaussian
             # (each row then lists its pixels in ascending order, as torch's conversion does):
-            # the product with the transposed (CSC) view converted it on every step, at a cost
-            # several times that of this sort.
+            # the product with the transposed (CSC) view converted it on every step, at about
+            # twice the cost of this sort.
             order = torch.argsort(gid, stable=True)
             crow_t = torch.zeros(shape[1] + 1, dtype=torch.long, device=gid.device)
             torch.cumsum(torch.bincount(gid, minlength=shape[1]), 0, out=crow_t[1:])
