@@ -63,7 +63,7 @@ class BlendCache:
         shape = (rows.shape[0], features.shape[0])
         matrix = csr_matrix(crow, gid, weight, shape)
         transposed = None
-        if features.requires_grad:
+        if features.requires_grad and torch.is_grad_enabled():  # only a backward needs it
             # The transpose as CSR for the backward, from the entries stably sorted by Gaussian
             # (each row then lists its pixels in ascending order, as torch's conversion does):
             # the product with the transposed (CSC) view converted it on every step, at about
