@@ -13,7 +13,7 @@ from __future__ import annotations
 import json
 from dataclasses import asdict
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Mapping, Optional, Sequence
 
 if TYPE_CHECKING:
     from .bench import BenchConfig, BenchData
@@ -49,13 +49,16 @@ def evaluate_variant(
     temperature: float = 1.0,
     log: Callable[[str], None] = print,
     encoder: Any = None,
-    render: str = "deferred",  # QueryConfig.render: "gaussians" is the paper's test-time form
+    render: Optional[str] = None,  # QueryConfig.render ("gaussians": the paper's test-time form); None: its default
 ) -> dict:
     """``evaluate_run`` of one run (both box sizes), written to ``out_dir`` (eval.json and eval.md;
     the bench draws its own plots); reused while the field, the labels, the modes, T and the
     rendering are unchanged."""
     from ..eval.runner import load_eval
     from ..pipeline.cache import StageCache, file_digest, stage_key, tree_digest
+    from ..query.engine import DEFAULT_RENDER
+
+    render = render or DEFAULT_RENDER
 
     eval_json = out_dir / "eval.json"
     key = stage_key(
@@ -85,7 +88,7 @@ def _evaluate(
     config: "BenchConfig",
     temperature: float,
     encoder: Any,
-    render: str = "deferred",
+    render: str,
 ) -> None:
     from ..eval.reports import markdown_report
     from ..eval.runner import EvalConfig, evaluate_run

@@ -64,7 +64,7 @@ def answer_queries(
     mask_threshold: float,
     box_size: BoxSize,
     temperature: float = 1.0,
-    render: str = "deferred",
+    render: Optional[str] = None,  # QueryConfig.render; None: its default
     canonical: Optional[tuple[str, ...]] = None,
     selection: str = "smoothed",
     force: bool = False,
@@ -86,7 +86,9 @@ def answer_queries(
     # once the scene is (they hold its image names).
     claim_out_dir(out, ["query.json"], force=force, resume_flag=None)
     overrides: dict[str, Any] = {"canonical": tuple(canonical)} if canonical else {}  # QueryConfig keywords
-    config = QueryConfig(temperature=temperature, selection=selection, box_size=box_size, render=render, **overrides)
+    if render is not None:
+        overrides["render"] = render
+    config = QueryConfig(temperature=temperature, selection=selection, box_size=box_size, **overrides)
     engine = QueryEngine.from_run(run_dir, device=device, scene=scene, config=config)
     view_names = [engine.camera(i)[2] for i in views]  # fail before any work on a bad index
     results = list(dict.fromkeys(query_results(texts, view_names, three_d) + listed_results(out)))

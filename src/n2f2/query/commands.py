@@ -10,12 +10,12 @@ from ..validate import add_device_option, finite_float, nonneg_int, positive_flo
 
 def add_render_option(p: argparse.ArgumentParser) -> None:
     """``--render``: how 2D views get their features (``QueryConfig.render``)."""
-    from .engine import RENDERS
+    from .engine import DEFAULT_RENDER, RENDERS
 
     p.add_argument(
         "--render",
         choices=RENDERS,
-        default="deferred",
+        default=DEFAULT_RENDER,
         help="2D views: deferred = rasterize the backbone's features and run the MLP per pixel, as the field was "
         "trained (default); gaussians = the MLP per Gaussian, the paper's test-time form",
     )
