@@ -152,8 +152,8 @@ def test_fit_and_run_help_show_each_presets_value(capsys):
     from n2f2.pipeline.presets import get_preset
 
     text = command_help(capsys, "fit-gaussians")
-    assert FitConfig.cpu().depth_spread_weight == 1.0 and FitConfig.paper().depth_spread_weight == 0.0
-    assert "(0 = off, as 3DGS)" not in text and "0 = off, as 3DGS (cpu 1, paper 0)" in text
+    assert FitConfig.cpu().steps == 1500 and FitConfig.paper().steps == 30_000
+    assert "as 3DGS (default 0)" in text and "here (cpu 1500, paper 30000)" in text
     assert f"(cpu {FitConfig.cpu().checkpoint_every}, paper {FitConfig.paper().checkpoint_every})" in text
 
     text = command_help(capsys, "run")
