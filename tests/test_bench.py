@@ -53,6 +53,7 @@ def test_report_has_the_tables_and_finite_numbers(tiny):
         assert heading in md, heading
     assert "exact 30 px" in md and "scaled 1 px" in md  # both boxes, named with their sizes
     assert "segment scales: extent measure, training scale jitter 0.03 (paper: eigenvalue, 0)" in md
+    assert "with every covering segment, pixel balance 0.5 (paper 0: uniform pixels)" in md
     data = json.loads((out / "bench.json").read_text())
     bank = json.loads((out / "data" / "bank" / "bank.json").read_text())
     assert bank["lifting"]["scale_measure"] == data["data"]["scale_measure"] == "extent"
@@ -60,6 +61,7 @@ def test_report_has_the_tables_and_finite_numbers(tiny):
     for name in fields:
         report = json.loads((out / "runs" / name / "train_report.json").read_text())
         assert report["train_config"]["scale_jitter"] == 0.03
+        assert report["train_config"]["pixel_balance"] == 0.5
     assert set(data["runs"]) == {"nested-k1", "flat", "levels", "lift"}
     assert set(fields) == {"nested-k1", "flat", "levels"}
     for name in data["runs"]:

@@ -170,6 +170,35 @@ def test_every_segment_rows_are_each_covering_segment_with_its_draw_probability(
     assert torch.equal(batch.pooled, batch.segment)  # one view: pooled ids are its own
 
 
+def test_balanced_pixels_follow_the_smallest_covering_area():
+    """The view of the test above: pixels 0-4 are covered, their smallest covering segments have
+    areas 2, 4, 9, 9, 16 (pixel 5 is uncovered). With balance b a pixel is drawn with probability
+    area^-b / sum; b = 0 keeps the uniform draw and its random stream."""
+    from n2f2.train.sampling import pixel_probabilities
+
+    layers = np.stack([np.array([[0, 0, 1], [1, 1, -1]], np.int32), np.array([[2, -1, 3], [3, -1, -1]], np.int32)])
+    view = ViewSegments.from_record(0, _Record(layers, [4, 16, 2, 9], [True] * 4))
+    assert view.covered.tolist() == [0, 1, 2, 3, 4]
+    finest = np.array([2.0, 4.0, 9.0, 9.0, 16.0])
+    for b in (0.5, 1.0):
+        ref = finest**-b / (finest**-b).sum()
+        pool = SegmentPool.from_views([view], balance=b)
+        np.testing.assert_allclose(pixel_probabilities(pool.candidates, view.areas, b).numpy(), ref, rtol=1e-12)
+    n = 40000
+    batch = SegmentPool.from_views([view], balance=1.0).sample(n, torch.Generator().manual_seed(2))
+    freq = np.bincount(batch.pixel.numpy(), minlength=6) / n
+    ref = finest**-1.0 / (finest**-1.0).sum()
+    assert freq[5] == 0 and np.all(np.abs(freq[:5] - ref) < 4 * np.sqrt(ref * (1 - ref) / n))
+    # b = 0: the paper's uniform draw, the same pixels as torch.randint from the same seed.
+    uniform = SegmentPool.from_views([view], balance=0.0).sample(300, torch.Generator().manual_seed(4))
+    assert uniform.pixel.tolist() == torch.randint(5, (300,), generator=torch.Generator().manual_seed(4)).tolist()
+    balanced = SegmentPool.from_views([view], balance=1.0)
+    every = balanced.sample_every_segment(300, torch.Generator().manual_seed(4))
+    assert torch.equal(every.pixel, balanced.sample(300, torch.Generator().manual_seed(4)).pixel)
+    with pytest.raises(ValueError, match="balance"):
+        SegmentPool.from_views([view], balance=-1.0)
+
+
 def test_weighted_projected_loss_is_the_expected_one_segment_loss():
     """Pixel 0 is covered by segments a, b (draw probabilities 0.3, 0.7), pixel 1 by c, d, e
     (0.2, 0.5, 0.3). The weighted loss over all five rows equals the probability-weighted sum of

@@ -407,7 +407,17 @@ def test_render_view_of_a_browser_camera(running, trained_run):
     view, result = running.viewer.query_view("check", s.render_camera(fake), [trained_run.part_query], "composite")
     heat = heatmap_overlay(view.rgb.numpy(), result.relevancy[0].numpy())
     want = (np.clip(heat, 0, 1) * 255 + 0.5).astype(np.uint8)
-    assert np.abs(image[: cam.height, : cam.width].astype(int) - want.astype(int)).max() <= 1
+    diff = np.abs(image[: cam.height, : cam.width].astype(int) - want.astype(int))
+    # Float rounding between the two paths may put a value on the other side of a boundary of
+    # turbo's 256-entry colour table: at most one table step (times the overlay's opacity) plus
+    # 1 for rounding to uint8, at a few pixels; everywhere else at most the rounding.
+    from matplotlib import colormaps
+
+    from n2f2.query.outputs import HEATMAP_ALPHA
+
+    table = colormaps["turbo"](np.linspace(0.0, 1.0, 256))[:, :3]
+    one_step = np.abs(np.diff(table, axis=0)).max() * 255 * HEATMAP_ALPHA + 1
+    assert diff.max() <= one_step and (diff.max(axis=-1) > 1).mean() < 0.01
 
 
 # ----------------------------------------------------------------------------- browser

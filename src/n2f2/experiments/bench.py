@@ -466,6 +466,7 @@ def _run_summary(entry: Mapping) -> dict:
         "variant": entry["variant"],
         "backbone": entry["backbone"],
         "field_config": t.get("field_config"),
+        "train_config": t.get("train_config"),
         "steps": t.get("steps"),
         "final_loss": t.get("final_loss"),
         "train_time_s": t.get("train_time_s"),

@@ -215,6 +215,7 @@ def markdown_bench(result: Mapping, runs: Mapping[str, dict], variant_runs: Mapp
             f"{first['field_config']['plane_channels']}, MLP hidden {first['field_config']['hidden']}, "
             f"{cfg['iterations']} steps of {cfg['pixels_per_step']} pixels"
             f"{' with every covering segment' if first.get('train_config', {}).get('every_segment') else ''}, "
+            f"pixel balance {first.get('train_config', {}).get('pixel_balance', 0.0)} (paper 0: uniform pixels), "
             f"seed {cfg['seed']}, one seed per variant\n"
             if first is not None
             else "- no field trained (the training-free lift only)\n"

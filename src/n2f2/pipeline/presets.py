@@ -5,7 +5,8 @@ training (:class:`TrainConfig`).
 
 * ``cpu``: small scenes (the built-in demo) on a few CPU cores: the fit schedule is sized to
   the scene (:meth:`FitConfig.sized_for`), segments are measured by their robust extent, and
-  training jitters the sampled scales (both not in the paper);
+  training jitters the sampled scales, supervises every covering segment of a pixel and draws
+  pixels balanced towards small segments (none of them in the paper; :meth:`TrainConfig.cpu`);
 * ``paper``: the paper's settings (3DGS's 30k-step fit, eigenvalue scales, D = 512 with
   TriPlane 512^2 x 64, 30k training steps).
 

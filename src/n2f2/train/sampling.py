@@ -1,7 +1,11 @@
 """Training-sample selection (paper Sec. 3.2, "Hierarchical Loss Supervision"):
 
 * pixels ``u`` are sampled uniformly across the training images (among pixels that at least
-  one valid segment covers: the others carry no supervision);
+  one valid segment covers: the others carry no supervision), or, with ``balance = b > 0`` (not
+  in the paper), with probability proportional to ``a^-b`` for ``a`` the area of the smallest
+  valid segment covering the pixel (:func:`pixel_probabilities`). ``b = 1`` gives every finest
+  segment the same share of the samples whatever its size, ``b = 0`` is the paper's uniform draw;
+  a thin part's few pixels are otherwise drawn so rarely that its fine-scale feature barely trains;
 * for each pixel, one of the segments covering it is sampled with probability proportional to
   ``1 / log(area)`` (small segments are preferred, so fine parts are not drowned by the large
   segments that cover every pixel).
@@ -59,6 +63,7 @@ class ViewSegments:
     covered: Tensor  # [K] long flat pixel indices with at least one valid segment
     quantized: Tensor  # [S] float32 quantized scale s in [0, 1)
     embeddings: Tensor  # [S, E] float32 teacher embeddings
+    areas: Tensor  # [S] float64 pixel areas (the bank's)
 
     @staticmethod
     def from_record(view: int, record, size: Optional[tuple[int, int]] = None) -> "ViewSegments":
@@ -79,7 +84,8 @@ class ViewSegments:
             if record.valid is not None
             else torch.ones(S, dtype=torch.bool)
         )
-        weights = segment_weights(torch.from_numpy(np.array(record.areas, dtype=np.int64)), valid)
+        areas = torch.from_numpy(np.array(record.areas, dtype=np.float64))
+        weights = segment_weights(areas, valid)
         # Drop ids of invalid segments so every remaining candidate has a positive weight.
         if S:
             keep = layers >= 0
@@ -93,7 +99,21 @@ class ViewSegments:
             covered=covered,
             quantized=torch.as_tensor(np.asarray(record.quantized, dtype=np.float32)),
             embeddings=torch.as_tensor(np.asarray(record.embeddings, dtype=np.float32)),
+            areas=areas,
         )
+
+
+def pixel_probabilities(
+    candidates: Tensor,  # [K, L] segment ids covering each pixel, -1 = none (each row has one)
+    areas: Tensor,  # [S] pixel areas of the segments
+    balance: float,  # b >= 0
+) -> Tensor:  # [K] float64, sums to 1
+    """Probability of drawing each pixel: ``a_min^-b / sum``, ``a_min`` the smallest area among the
+    segments covering the pixel (clamped below at 1)."""
+    a = areas.double().clamp(min=1.0)[candidates.clamp(min=0)]  # [K, L]
+    finest = torch.where(candidates >= 0, a, torch.full_like(a, float("inf"))).amin(dim=1)  # [K]
+    w = finest.pow(-float(balance))
+    return w / w.sum()
 
 
 @dataclass
@@ -138,13 +158,18 @@ class SegmentPool:
     local: Tensor  # [S] long, the segment's id within its view
     quantized: Tensor  # [S] float32
     embeddings: Tensor  # [S, E] float32
+    cdf: Optional[Tensor] = None  # [K] float64 cumulative pixel probabilities; None: uniform pixels
 
     @staticmethod
-    def from_views(views: list[ViewSegments]) -> "SegmentPool":
+    def from_views(views: list[ViewSegments], balance: float = 0.0) -> "SegmentPool":
+        """Pool ``views``; ``balance = b > 0`` draws pixels by :func:`pixel_probabilities`, 0
+        uniformly (the paper)."""
         if not views:
             raise ValueError("no views to sample from")
+        if not (np.isfinite(balance) and balance >= 0):
+            raise ValueError(f"pixel balance must be a finite number >= 0, got {balance!r}")
         L = max(v.layers.shape[0] for v in views)
-        slot, pixel, cand, weights, local, quant, emb = [], [], [], [], [], [], []
+        slot, pixel, cand, weights, local, quant, emb, areas = [], [], [], [], [], [], [], []
         first = 0  # pooled id of the view's segment 0
         for k, v in enumerate(views):
             c = v.layers[:, v.covered].t()  # [K_v, L_v]
@@ -157,25 +182,34 @@ class SegmentPool:
             local.append(torch.arange(S))
             quant.append(v.quantized)
             emb.append(v.embeddings)
+            areas.append(v.areas)
             first += S
+        candidates = torch.cat(cand)
+        cdf = None
+        if balance > 0 and candidates.shape[0]:
+            cdf = pixel_probabilities(candidates, torch.cat(areas), balance).cumsum_(0)
         return SegmentPool(
             torch.cat(slot),
             torch.cat(pixel),
-            torch.cat(cand),
+            candidates,
             torch.cat(weights),
             torch.cat(local),
             torch.cat(quant),
             torch.cat(emb),
+            cdf,
         )
 
     def _pick(self, num_pixels: int, generator: torch.Generator) -> Tensor:  # [P] rows of the pool
         if self.pixel.numel() == 0:
             raise ValueError("no pixel of the selected views is covered by a valid segment")
-        return torch.randint(self.pixel.numel(), (num_pixels,), generator=generator)
+        if self.cdf is None:
+            return torch.randint(self.pixel.numel(), (num_pixels,), generator=generator)
+        u = torch.rand(num_pixels, generator=generator, dtype=torch.float64) * self.cdf[-1]
+        return torch.searchsorted(self.cdf, u, right=True).clamp_(max=self.pixel.numel() - 1)
 
     def sample(self, num_pixels: int, generator: torch.Generator) -> PixelBatch:
-        """``num_pixels`` covered pixels, uniform (with replacement), each with one covering
-        segment chosen ∝ 1 / log(area)."""
+        """``num_pixels`` covered pixels, uniform or balanced (with replacement), each with one
+        covering segment chosen ∝ 1 / log(area)."""
         pick = self._pick(num_pixels, generator)
         seg = sample_segments(self.candidates[pick], self.weights, generator)  # [P] pooled id
         ones = torch.ones(num_pixels, dtype=torch.float32)
