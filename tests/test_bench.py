@@ -38,7 +38,7 @@ def tiny(tmp_path_factory):
     scene = load_scene(scene_dir)
     write_ply(root / "gaussians.ply", init_from_points(scene.points, scene.point_colors, sh_degree=0))
     config = BenchConfig(iterations=4, dim=12, pixels_per_step=256, variants=("nested", "flat", "levels", "lift"),
-                         temperatures=(1.0, 0.1), timing_repeats=1, progress=False)
+                         temperatures=(1.0, math.inf, 0.1), timing_repeats=1, progress=False)
     out = root / "out"
     result = run_bench(out, config, scene=scene_dir, gaussians=root / "gaussians.ply", log=lambda s: None)
     return {"root": root, "scene": scene_dir, "out": out, "config": config, "result": result}
@@ -96,13 +96,19 @@ def test_the_lift_row_is_what_the_loss_budget_scores(tiny):
     md = (out / "bench.md").read_text()
     assert "## Every method, with the time to build it" in md
     methods = {r["method"]: r for r in data["methods"]}
-    assert list(methods) == ["N2F2 composite", "N2F2 composite, per-Gaussian render (paper)", "N2F2 soft",
+    assert list(methods) == ["N2F2 composite", "N2F2 composite, uniform weights (n2f2's default)",
+                             "N2F2 composite, per-Gaussian render (paper)", "N2F2 soft",
                              "N2F2 explicit", "N2F2 explicit, per-Gaussian render (paper)", "N2F2 oracle",
                              "flat composite", "3-level", "3-level oracle", "lift (training-free)", "lift oracle"]
     # the paper's rendering is its own evaluation of the same nested run
     paper = data["evals"][methods["N2F2 composite"]["run"]]["gaussians"]
     assert paper["field"]["render"] == "gaussians" and set(paper["modes"]) == {"composite", "explicit"}
     assert data["evals"][methods["N2F2 composite"]["run"]]["T1"]["field"]["render"] == "deferred"
+    # the composite rows name their weights: the paper's Eq. 6 at T = 1, and the uniform default
+    evals = data["evals"][methods["N2F2 composite"]["run"]]
+    assert evals["T1"]["field"]["composite_temperature"] == 1.0
+    assert evals["Tuniform"]["field"]["composite_temperature"] == "uniform"
+    assert data["config"]["temperatures"] == [1.0, "uniform", 0.1]  # JSON has no infinity
     for r in methods.values():
         assert r["build_time_s"] > 0
         assert f"| {r['method']} | {r['run']} |" in md
@@ -211,7 +217,10 @@ def test_the_lift_alone_builds_its_blending_weights(tiny, tmp_path, capsys):
 
 def test_gamma_sharpens_as_the_temperature_drops(tiny):
     gamma = {g["temperature"]: g for g in tiny["result"]["gamma"]}
-    assert set(gamma) == {1.0, 0.1}
+    assert set(gamma) == {1.0, "uniform", 0.1}
+    # T -> infinity: every Gaussian weighs its 12 scales equally
+    assert gamma["uniform"]["max_gamma_x_scales_mean"] == pytest.approx(1.0, abs=1e-6)
+    assert gamma["uniform"]["effective_scales_mean"] == pytest.approx(12.0, abs=1e-4)
     for g in gamma.values():
         assert g["scales"] == 12  # D = 12, k = 1
         assert g["max_gamma_mean"] >= 1.0 / g["scales"] - 1e-7  # a distribution's max is at least uniform
@@ -226,8 +235,9 @@ def test_rerun_reuses_runs_and_evaluations(tiny):
     out = tiny["out"]
     fields = {p: p.stat().st_mtime_ns for p in (out / "runs").glob("*/field.pt")}
     evals = {p: p.stat().st_mtime_ns for p in (out / "runs").glob("*/eval*/eval.json")}
-    # 2D: nested (T = 1 and 0.1, and the paper's per-Gaussian render), flat, levels and the lift; 3D: one per run
-    assert len(fields) == 3 and len(evals) == 6 + 4
+    # 2D: nested (T = 1, uniform and 0.1, and the paper's per-Gaussian render), flat, levels and the lift;
+    # 3D: one per run
+    assert len(fields) == 3 and len(evals) == 7 + 4
     assert len([p for p in evals if p.parent.name == "eval3d"]) == 4
     again = run_bench(out, tiny["config"], scene=tiny["scene"], gaussians=tiny["root"] / "gaussians.ply",
                       log=lambda s: None)

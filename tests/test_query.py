@@ -3,15 +3,19 @@ against slow references, 3D selection / PLY export, CLI bad input."""
 
 from __future__ import annotations
 
+import argparse
 import json
+import math
 
 import numpy as np
 import pytest
 import torch
 
-from n2f2.query.composite import (canonical_scores, composite_weights, prefix_dot, prefix_margin_at,
-                                  prefix_margin_max, prefix_sq_norms, prefix_terms, prefix_weights, premultiply,
-                                  to_blocks)
+from n2f2.query.composite import (DEFAULT_TEMPERATURE, PAPER_TEMPERATURE, canonical_scores, composite_weights,
+                                  prefix_dot, prefix_margin_at, prefix_margin_max, prefix_sq_norms, prefix_terms,
+                                  prefix_weights, premultiply, temperature_name, to_blocks)
+from n2f2.query.engine import QueryConfig
+from n2f2.validate import composite_temperature
 from n2f2.segments.bins import supervised_dims
 from n2f2.query.caches import build_composite_cache, build_linear_cache, build_prefix_cache, select_scale
 from n2f2.query.relevancy import normalize_features, relevancy
@@ -83,6 +87,28 @@ def test_uniform_gamma_gives_mean_of_scale_features():
     # A huge temperature makes gamma uniform: premultiply then gives the same mean.
     tilde = premultiply(theta, W, canon, 1, temperature=1e12)
     torch.testing.assert_close(tilde @ W.T, expected, rtol=0, atol=1e-9)
+    # T = infinity is that limit exactly, without the canonical phrases: NaN phrases change nothing.
+    nan_canon = torch.full_like(canon, float("nan"))
+    torch.testing.assert_close(premultiply(theta, W, nan_canon, 1, temperature=math.inf) @ W.T, expected,
+                               rtol=0, atol=1e-12)
+
+
+def test_uniform_gamma_with_a_step_weighs_each_scale_equally():
+    theta, W, canon = _random_field(D=10)
+    gamma = composite_weights(theta, W, canon, 3, math.inf)  # scales d = 3, 6, 9 of D = 10
+    torch.testing.assert_close(gamma, torch.full((theta.shape[0], 3), 1 / 3, dtype=DT), rtol=0, atol=1e-15)
+    expected = sum(_prefix_features_direct(theta, W, d) for d in (3, 6, 9)) / 3
+    torch.testing.assert_close(premultiply(theta, W, canon, 3, math.inf) @ W.T, expected, rtol=0, atol=1e-12)
+
+
+def test_composite_temperature_option_names_and_default():
+    assert composite_temperature("paper") == 1.0 == PAPER_TEMPERATURE
+    assert composite_temperature("uniform") == math.inf == QueryConfig().temperature == DEFAULT_TEMPERATURE
+    assert composite_temperature("0.5") == 0.5
+    for bad in ("0", "-2", "nan", "-inf", "warm"):
+        with pytest.raises(argparse.ArgumentTypeError):
+            composite_temperature(bad)
+    assert temperature_name(math.inf) == "uniform" and temperature_name(1.0) == 1.0
 
 
 def test_prefix_weights_with_step_zero_past_last_scale():

@@ -145,7 +145,27 @@ unit_interval = _option_type(
     "unit_interval", float, lambda v: 0.0 <= v <= 1.0, "a number in [0, 1]", ("-0.5", "1.5", "nan", "inf", "x")
 )
 
-OPTION_TYPES = (positive_int, nonneg_int, port_number, positive_float, nonneg_float, finite_float, unit_interval)
+# Composite temperature (n2f2.query.composite): a positive number, "paper" (T = 1, the paper's
+# Eq. 6) or "uniform" (T = infinity, the default).
+COMPOSITE_TEMPERATURE_NAMES = {"paper": 1.0, "uniform": math.inf}
+composite_temperature = _option_type(
+    "composite_temperature",
+    lambda text: COMPOSITE_TEMPERATURE_NAMES.get(text.strip().lower(), None) or float(text),
+    lambda v: v > 0,  # NaN fails; inf is "uniform"
+    "a number > 0, 'paper' (1) or 'uniform' (infinity)",
+    ("0", "-1", "nan", "-inf", "x"),
+)
+
+OPTION_TYPES = (
+    positive_int,
+    nonneg_int,
+    port_number,
+    positive_float,
+    nonneg_float,
+    finite_float,
+    unit_interval,
+    composite_temperature,
+)
 
 
 def add_device_option(parser: argparse.ArgumentParser, what: str = "") -> None:

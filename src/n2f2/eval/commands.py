@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import argparse
 
-from ..validate import add_device_option, nonneg_int, positive_float
+from ..validate import add_device_option, composite_temperature, nonneg_int
 
 PROTOCOLS = ("2d", "3d", "both", "3d-ovs")  # --protocol
 
@@ -92,9 +92,11 @@ def register(subparsers) -> None:
     )
     p.add_argument(
         "--temperature",
-        type=positive_float,
-        default=1.0,
-        help="composite gamma = softmax(score / T); 1 = paper (default)",
+        type=composite_temperature,
+        default="uniform",
+        metavar="T",
+        help="composite gamma = softmax(score / T): 'uniform' (T = infinity, default: the mean over the "
+        "field's scales) or 'paper' (T = 1, the paper's Eq. 6) or a number > 0",
     )
     add_render_option(p)
     p.add_argument("--no-relevancy", action="store_true", help="do not write the relevancy .npy files")

@@ -340,6 +340,15 @@ def box_title(result: Mapping, box: str) -> str:
     return f"{box} {','.join(str(s) for s in result['boxes'][box]['box_sizes'])} px"
 
 
+def _composite_weights(temperature: Union[str, float]) -> str:
+    """How composite weighs the scales, from ``field.composite_temperature`` of eval.json."""
+    if temperature == "uniform":
+        return "scales weighted uniformly (T = infinity, n2f2's default)"
+    if temperature == 1.0:
+        return "scales weighted by the paper's Eq. 6 (T = 1)"
+    return f"scales weighted by Eq. 6 at T = {float(temperature):g}"
+
+
 def _radii(result: Mapping, box: str) -> str:
     return ",".join(str(s) for s in result["boxes"][box]["majority_radii"])
 
@@ -368,7 +377,8 @@ def markdown_report(result: Mapping, deltas: Optional[Mapping] = None, reference
     ]
     n_scales = result["field"]["num_scales"]
     about = {
-        "composite": "one composite-embedding map per query (paper Sec. 3.3)",
+        "composite": "one composite-embedding map per query (paper Sec. 3.3), "
+        + _composite_weights(result["field"].get("composite_temperature", 1.0)),
         "explicit": f"LangSplat's level choice over the {n_scales} scales (max R' for segmentation, "
         "max box(R) for localization)",
         "levels": "LangSplat's level choice over the 3 levels of the baseline field",

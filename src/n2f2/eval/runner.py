@@ -555,6 +555,7 @@ def evaluate_run(
 
     from ..data.labels import read_label_dir
     from ..io import write_npy
+    from ..query.composite import temperature_name
     from ..query.engine import QueryEngine
     from ..query.outputs import unique_slugs
 
@@ -807,6 +808,8 @@ def evaluate_run(
             "scale_labels": labels_of_scales,
             # 2D views rendered deferred (the MLP per pixel) or per Gaussian (QueryConfig.render)
             "render": "deferred" if getattr(engine, "renders_deferred", False) else "gaussians",
+            # composite's gamma temperature (query/composite.py): "uniform" or a number (1 = the paper)
+            "composite_temperature": temperature_name(engine.config.temperature),
         },
         modes=modes,
         boxes=boxes,

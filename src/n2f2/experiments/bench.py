@@ -35,6 +35,7 @@ Nothing here re-implements training, relevancy or the protocol; the claims' verd
 from __future__ import annotations
 
 import json
+import math
 import os
 import shutil
 import time
@@ -50,7 +51,8 @@ from ..segments.lifting import SCALE_MEASURES
 from .claims import PAPER_RENDER, tag
 from .variants import DEFAULT_VARIANTS, VARIANTS, run_name, scaled_step
 
-TEMPERATURES = (1.0, 0.1, 0.01)  # 1 = paper
+# Composite temperatures: 1 = the paper's Eq. 6 (the bench's main rows), inf = uniform (n2f2's default).
+TEMPERATURES = (1.0, math.inf, 0.1, 0.01)
 _CPU = get_preset("cpu")  # the defaults the bench shares with `n2f2 run`
 _SCENE = DemoScene()  # the default demo scene
 
@@ -252,6 +254,7 @@ def run_bench(
     """Run every requested variant (see the module docstring); writes ``OUT/bench.json``,
     ``OUT/bench.md`` and ``OUT/*.png`` and returns the bench.json content."""
     from ..io import write_json, write_text
+    from ..query.composite import temperature_name
     from .claims import evaluate_claims
     from .evaluate import (
         MemoEncoder,
@@ -383,7 +386,8 @@ def run_bench(
 
     result = {
         "format": "n2f2-bench-v1",
-        "config": asdict(config),
+        # JSON has no infinity: the uniform temperature is recorded by its name (query/composite.py).
+        "config": {**asdict(config), "temperatures": [temperature_name(T) for T in config.temperatures]},
         "data": {
             "scene": str(data.scene_dir),
             "gaussians": str(data.gaussians),

@@ -5,7 +5,7 @@ for convergence, memory and query speed."""
 from __future__ import annotations
 
 import math
-from typing import Any, Callable, Mapping, Optional
+from typing import Any, Callable, Mapping, Optional, Union
 
 import numpy as np
 
@@ -13,9 +13,16 @@ from ..eval.runner import BOXES
 from .variants import PAPER_STEPS
 
 
-def tag(T: float) -> str:
-    """The evaluation name of composite temperature ``T`` (``T1`` = the paper's)."""
-    return f"T{T:g}"
+def tag(T: Union[float, str]) -> str:
+    """The evaluation name of composite temperature ``T`` (``T1`` = the paper's, ``Tuniform`` =
+    infinity, n2f2's default)."""
+    return f"T{temperature_label(T)}"
+
+
+def temperature_label(T: Union[float, str]) -> str:
+    """``T`` as the bench prints it: a number, or "uniform" for infinity (JSON has no infinity,
+    so a bench result records it as "uniform")."""
+    return "uniform" if T == "uniform" or math.isinf(float(T)) else f"{float(T):g}"
 
 
 # The evaluation name of the nested run scored with the paper's per-Gaussian rendering of test
@@ -146,7 +153,7 @@ def evaluate_claims(result: Mapping, runs: Mapping[str, dict], variant_runs: Map
     for T in result["config"]["temperatures"]:
         if T != 1.0:
             compare(
-                f"composite T=1 (paper) >= T={T:g}",
+                f"composite T=1 (paper) >= T={temperature_label(T)}",
                 "T=1 is the paper's",
                 nested,
                 "composite",

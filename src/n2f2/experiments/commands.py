@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 from typing import Any
 
 from ..config import add_config_options, config_overrides
 from ..errors import InputError
 from ..segments.lifting import LiftSettings
-from ..validate import add_device_option, positive_float, positive_int
+from ..validate import add_device_option, composite_temperature, positive_int
 from .variants import PAPER_DIM, VARIANTS
 
 
@@ -70,11 +71,12 @@ def _add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--temperatures",
         nargs="+",
-        type=positive_float,
+        type=composite_temperature,
         default=None,
         metavar="T",
         help=f"composite temperatures evaluated on the N2F2 run (default "
-        f"{' '.join(f'{t:g}' for t in full.temperatures)}; 1 = paper)",
+        f"{' '.join('uniform' if math.isinf(t) else f'{t:g}' for t in full.temperatures)}; "
+        "1 = paper, uniform = n2f2's default)",
     )
     for cls, names in _stage_configs().items():  # values shown: the bench's (full and --quick)
         add_config_options(p, cls, names, presets={"full": full, "quick": quick})

@@ -336,7 +336,7 @@ def gamma_statistics(engine: Any, temperature: float) -> dict:
     prefix weights ``revcumsum(gamma)`` (paper Eq. 7) at a few dimensions."""
     import torch
 
-    from ..query.composite import composite_weights, prefix_weights
+    from ..query.composite import composite_weights, prefix_weights, temperature_name
 
     with torch.no_grad():
         canon = engine.encode(engine.config.canonical)
@@ -351,7 +351,7 @@ def gamma_statistics(engine: Any, temperature: float) -> dict:
         argmax = gamma.argmax(dim=1)
     q = lambda t, p: float(torch.quantile(t.double(), p))  # noqa: E731
     return {
-        "temperature": temperature,
+        "temperature": temperature_name(temperature),
         "scales": S,
         "gaussians": N,
         "uniform": 1.0 / S,

@@ -214,7 +214,7 @@ def evaluate(
     scene: Optional[Path] = None,
     bank: Optional[Path] = None,
     modes: Optional[Sequence[str]] = None,
-    temperature: float = 1.0,
+    temperature: Optional[float] = None,  # QueryConfig.temperature; None: its default
     device: str = "cpu",
     relevancy: bool = True,
     progress: bool = True,
@@ -228,7 +228,7 @@ def evaluate(
     from ..io import remove_results
     from ..query.engine import QueryConfig
 
-    if not temperature > 0:
+    if temperature is not None and not temperature > 0:
         raise InputError(None, f"temperature must be > 0, got {temperature}")
     present = _claim(out, eval_results(out))
     config = EvalConfig(
@@ -240,7 +240,7 @@ def evaluate(
         scene=scene,
         bank=bank,
         config=config,
-        query_config=QueryConfig(temperature=temperature),
+        query_config=QueryConfig() if temperature is None else QueryConfig(temperature=temperature),
         device=device,
         encoder=encoder,
         relevancy_dir=out / "relevancy" if relevancy else None,

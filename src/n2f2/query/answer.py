@@ -63,7 +63,7 @@ def answer_queries(
     threshold: Optional[float] = None,
     mask_threshold: float,
     box_size: BoxSize,
-    temperature: float = 1.0,
+    temperature: Optional[float] = None,  # QueryConfig.temperature; None: its default
     render: Optional[str] = None,  # QueryConfig.render; None: its default
     canonical: Optional[tuple[str, ...]] = None,
     selection: str = "smoothed",
@@ -77,6 +77,7 @@ def answer_queries(
     from tqdm import tqdm
 
     from ..io import claim_out_dir, remove_results, write_png
+    from .composite import temperature_name
     from .engine import QueryConfig, QueryEngine
     from .maps import LANGSPLAT_THRESHOLD, resolve_box_size
     from .outputs import mask_overlay, unique_slugs, write_summary, write_view_outputs
@@ -88,7 +89,9 @@ def answer_queries(
     overrides: dict[str, Any] = {"canonical": tuple(canonical)} if canonical else {}  # QueryConfig keywords
     if render is not None:
         overrides["render"] = render
-    config = QueryConfig(temperature=temperature, selection=selection, box_size=box_size, **overrides)
+    if temperature is not None:
+        overrides["temperature"] = temperature
+    config = QueryConfig(selection=selection, box_size=box_size, **overrides)
     engine = QueryEngine.from_run(run_dir, device=device, scene=scene, config=config)
     view_names = [engine.camera(i)[2] for i in views]  # fail before any work on a bad index
     results = list(dict.fromkeys(query_results(texts, view_names, three_d) + listed_results(out)))
@@ -145,7 +148,7 @@ def answer_queries(
             "step_size": engine.step,
             "num_scales": len(engine.scale_labels),
         },
-        "composite": {"canonical": list(config.canonical), "temperature": config.temperature},
+        "composite": {"canonical": list(config.canonical), "temperature": temperature_name(config.temperature)},
         "render": config.render,
         "relevancy": {"negatives": list(config.negatives), "feature_normalisation": "L2 (cosine)"},
         "segmentation": {"threshold": mask_threshold, "box_size": box_size, "selection": config.selection},

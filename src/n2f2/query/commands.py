@@ -5,7 +5,13 @@ from __future__ import annotations
 
 import argparse
 
-from ..validate import add_device_option, finite_float, nonneg_int, positive_float, unit_interval
+from ..validate import (
+    add_device_option,
+    composite_temperature,
+    finite_float,
+    nonneg_int,
+    unit_interval,
+)
 
 
 def add_render_option(p: argparse.ArgumentParser) -> None:
@@ -96,9 +102,11 @@ def register(subparsers) -> None:
     )
     p.add_argument(
         "--temperature",
-        type=positive_float,
-        default=1.0,
-        help="composite gamma = softmax(score / T); 1 = paper (default)",
+        type=composite_temperature,
+        default="uniform",
+        metavar="T",
+        help="composite gamma = softmax(score / T): 'uniform' (T = infinity, default: the mean over the "
+        "field's scales) or 'paper' (T = 1, the paper's Eq. 6) or a number > 0",
     )
     add_render_option(p)
     p.add_argument(

@@ -15,12 +15,21 @@ Composite embedding (paper Eq. 6-7). Per Gaussian,
     Theta~_i = revcumsum(gamma_i) (.) Theta_i,  revcumsum_j = sum_{d >= j} gamma_d  (Eq. 7)
 
 so that ``W @ Theta~_i = sum_d gamma_{i,d} phi_{i,d}``. The canonical-phrase scores use the
-*unnormalised* ``phi_d`` exactly as Eq. 6 is written. ``T = 1`` is the paper. With
-unit-scale embeddings the scores are small (|score| <~ 1), so at ``T = 1`` gamma is nearly
-uniform and composite applies an almost fixed ramp ``(D - j + 1) / D`` over dimensions; ``T`` is
-exposed as a documented option and is *not* tuned here. The softmax runs over the field's
-scales (all ``d`` when ``k = 1``; the supervised prefix lengths when ``k > 1``, because only
-those are scale-aware features; dimensions past ``k * floor(D / k)`` then get weight 0).
+*unnormalised* ``phi_d`` exactly as Eq. 6 is written. The softmax runs over the field's scales
+(all ``d`` when ``k = 1``; the supervised prefix lengths when ``k > 1``, because only those are
+scale-aware features; dimensions past ``k * floor(D / k)`` then get weight 0).
+
+Temperature. ``T = 1`` (:data:`PAPER_TEMPERATURE`, option value ``paper``) is the paper. With
+unit-scale embeddings the scores are small (|score| <~ 1), so at ``T = 1`` gamma is near uniform
+on average, but not per Gaussian: the unnormalised ``phi_d``'s norms and the canonical phrases
+give one Gaussian's scales weights up to about 2-3x uniform, and neighbouring Gaussians
+different ones. n2f2's default is the limit ``T -> infinity`` (:data:`DEFAULT_TEMPERATURE`,
+option value ``uniform``): ``gamma = 1 / S`` for every Gaussian, so the composite embedding is
+the mean of the scale-aware features over the field's scales (the quantile-transformed segment
+scales, :mod:`n2f2.segments.bins`, are uniform, so this is their mean over the scales the field
+was trained on), and Theta~ applies the fixed ramp ``(S - s + 1) / S`` to the dimensions of
+scale block ``s``. On both generated layouts, four trainings each, the uniform weights ranked
+better than ``T = 1`` on every field (``docs/measurements.md``, "Uniform composite weights").
 
 Every prefix quantity is computed for all scales at once with block sums followed by a
 cumulative sum over blocks: ``N x D x C`` work for ``C`` directions, never ``N x D x E x D``.
@@ -29,6 +38,7 @@ cumulative sum over blocks: ``N x D x C`` work for ``C`` directions, never ``N x
 from __future__ import annotations
 
 import itertools
+import math
 from typing import Callable, Optional
 
 import numpy as np
@@ -37,6 +47,8 @@ from torch import Tensor
 
 # Canonical phrases of paper Eq. 6 ("object", "stuff", "thing", "part", "texture").
 DEFAULT_CANONICAL: tuple[str, ...] = ("object", "stuff", "thing", "part", "texture")
+PAPER_TEMPERATURE = 1.0  # T of Eq. 6 in the paper
+DEFAULT_TEMPERATURE = math.inf  # n2f2's default: uniform gamma (see the module docstring)
 
 
 def to_blocks(
@@ -101,12 +113,21 @@ def composite_weights(
     W: Tensor,  # [E, D]
     canonical: Tensor,  # [K, E]
     step: int = 1,
-    temperature: float = 1.0,  # gamma = softmax(score / T); T = 1 is the paper
+    temperature: float = PAPER_TEMPERATURE,  # gamma = softmax(score / T); inf: uniform
 ) -> Tensor:  # [N, S] gamma, sums to 1 over the scales
-    """``gamma^3D`` of paper Eq. 6 over the field's scales."""
+    """``gamma^3D`` of paper Eq. 6 over the field's scales; at ``T = inf`` its limit ``1 / S``
+    (the softmax of zeros), without computing the scores."""
     if not temperature > 0:
         raise ValueError(f"composite temperature must be positive, got {temperature}")
+    if math.isinf(temperature):
+        S = theta.shape[1] // step
+        return torch.softmax(theta.new_zeros(theta.shape[0], S), dim=-1)
     return torch.softmax(canonical_scores(theta, W, canonical, step) / temperature, dim=-1)
+
+
+def temperature_name(temperature: float) -> str | float:
+    """How a composite temperature is recorded (JSON has no infinity): "uniform" for ``inf``."""
+    return "uniform" if math.isinf(temperature) else float(temperature)
 
 
 def prefix_weights(
@@ -129,7 +150,7 @@ def premultiply(
     W: Tensor,  # [E, D]
     canonical: Tensor,  # [K, E]
     step: int = 1,
-    temperature: float = 1.0,
+    temperature: float = PAPER_TEMPERATURE,
     chunk: int = 65536,  # Gaussians per block: bounds the [chunk, D, K] intermediate
 ) -> Tensor:  # [N, D] Theta~_i, with W @ Theta~_i = the composite embedding of Gaussian i
     """``Theta~ = revcumsum(gamma^3D) (.) Theta`` (paper Eq. 7), computed once per trained field."""

@@ -72,10 +72,7 @@ from .caches import (
     select_scale,
     soft_scales,
 )
-from .composite import (
-    DEFAULT_CANONICAL,
-    premultiply,
-)
+from .composite import DEFAULT_CANONICAL, DEFAULT_TEMPERATURE, premultiply
 from .maps import (
     LANGSPLAT_BOX_SIZE,
     LANGSPLAT_THRESHOLD,
@@ -107,7 +104,8 @@ class QueryConfig:
 
     canonical: tuple[str, ...] = DEFAULT_CANONICAL  # phrases of gamma^3D (paper Eq. 6)
     negatives: tuple[str, ...] = DEFAULT_NEGATIVES  # negatives of the relevancy (LERF)
-    temperature: float = 1.0  # gamma = softmax(score / T); 1 = paper (near-uniform gamma)
+    # gamma = softmax(score / T); inf (default) = uniform, 1 = the paper's Eq. 6 (query/composite.py)
+    temperature: float = DEFAULT_TEMPERATURE
     selection: str = "smoothed"  # explicit/levels 2D scale choice: "smoothed" (LangSplat) | "max"
     box_size: Optional[BoxSize] = None  # protocol mean filter (px) or "scaled"; None = protocol's
     # 2D views (see the module docstring): "deferred" rasterizes the backbone's features and runs
