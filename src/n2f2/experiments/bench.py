@@ -14,7 +14,8 @@ What is reproduced (paper section in brackets), all on one scene, one seed:
 * TriPlane+MLP vs MLP backbone: convergence and memory (appendix, same section);
 * the query-time breakdown (Table 4);
 * the temperature ``T`` of the composite weights ``gamma = softmax(score / T)`` (``T = 1`` is
-  the paper; at ``T = 1`` gamma is close to uniform, so its statistics are reported).
+  the paper and the bench's composite rows; ``T = inf``, uniform weights, is n2f2's default and
+  gets a row of its own; gamma's statistics are reported at each ``T``).
 
 Flow. The scene, fitted Gaussians and segment bank are built once under ``OUT/data/`` (or
 given) by the pipeline's stages under its stage cache; every variant is trained into
