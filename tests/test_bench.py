@@ -96,7 +96,8 @@ def test_the_lift_row_is_what_the_loss_budget_scores(tiny):
     md = (out / "bench.md").read_text()
     assert "## Every method, with the time to build it" in md
     methods = {r["method"]: r for r in data["methods"]}
-    assert list(methods) == ["N2F2 composite", "N2F2 composite, uniform weights (n2f2's default)",
+    assert list(methods) == ["N2F2 composite", "N2F2 composite, mean of normalised scale features (n2f2's default)",
+                             "N2F2 composite, plain mean of scale features (T = infinity)",
                              "N2F2 composite, per-Gaussian render (paper)", "N2F2 soft",
                              "N2F2 explicit", "N2F2 explicit, per-Gaussian render (paper)", "N2F2 oracle",
                              "flat composite", "3-level", "3-level oracle", "lift (training-free)", "lift oracle"]
@@ -106,8 +107,9 @@ def test_the_lift_row_is_what_the_loss_budget_scores(tiny):
     assert data["evals"][methods["N2F2 composite"]["run"]]["T1"]["field"]["render"] == "deferred"
     # the composite rows name their weights: the paper's Eq. 6 at T = 1, and the uniform default
     evals = data["evals"][methods["N2F2 composite"]["run"]]
-    assert evals["T1"]["field"]["composite_temperature"] == 1.0
+    assert evals["T1"]["field"]["composite_weights"] == "eq6" and evals["T1"]["field"]["composite_temperature"] == 1.0
     assert evals["Tuniform"]["field"]["composite_temperature"] == "uniform"
+    assert evals["unit"]["field"]["composite_weights"] == "unit"
     assert data["config"]["temperatures"] == [1.0, "uniform", 0.1]  # JSON has no infinity
     for r in methods.values():
         assert r["build_time_s"] > 0
@@ -235,9 +237,9 @@ def test_rerun_reuses_runs_and_evaluations(tiny):
     out = tiny["out"]
     fields = {p: p.stat().st_mtime_ns for p in (out / "runs").glob("*/field.pt")}
     evals = {p: p.stat().st_mtime_ns for p in (out / "runs").glob("*/eval*/eval.json")}
-    # 2D: nested (T = 1, uniform and 0.1, and the paper's per-Gaussian render), flat, levels and the lift;
-    # 3D: one per run
-    assert len(fields) == 3 and len(evals) == 7 + 4
+    # 2D: nested (T = 1, uniform and 0.1, unit weights, and the paper's per-Gaussian render), flat, levels
+    # and the lift; 3D: one per run
+    assert len(fields) == 3 and len(evals) == 8 + 4
     assert len([p for p in evals if p.parent.name == "eval3d"]) == 4
     again = run_bench(out, tiny["config"], scene=tiny["scene"], gaussians=tiny["root"] / "gaussians.ply",
                       log=lambda s: None)

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 import torch
 
-from n2f2.query.composite import (DEFAULT_TEMPERATURE, PAPER_TEMPERATURE, canonical_scores, composite_weights,
-                                  prefix_dot, prefix_margin_at, prefix_margin_max, prefix_sq_norms, prefix_terms,
-                                  prefix_weights, premultiply, temperature_name, to_blocks)
+from n2f2.query.composite import (PAPER_TEMPERATURE, canonical_scores, composite_weights, prefix_dot,
+                                  prefix_margin_at, prefix_margin_max, prefix_sq_norms, prefix_terms, prefix_weights,
+                                  premultiply, temperature_name, to_blocks, unit_weights)
 from n2f2.query.engine import QueryConfig
 from n2f2.validate import composite_temperature
 from n2f2.segments.bins import supervised_dims
@@ -101,9 +101,29 @@ def test_uniform_gamma_with_a_step_weighs_each_scale_equally():
     torch.testing.assert_close(premultiply(theta, W, canon, 3, math.inf) @ W.T, expected, rtol=0, atol=1e-12)
 
 
+@pytest.mark.parametrize("step", [1, 3])
+def test_unit_weights_give_the_mean_of_normalised_scale_features(step):
+    theta, W, canon = _random_field(D=10)
+    theta[0] = 0.0  # a point whose features are all zero: it adds nothing and stays finite
+    dims = supervised_dims(10, step)
+    unit = [_prefix_features_direct(theta, W, d) for d in dims]
+    unit = [f / f.norm(dim=-1, keepdim=True).clamp_min(1e-12) for f in unit]
+    expected = sum(unit) / len(dims)
+    gamma = unit_weights(theta, W, step)
+    assert gamma.shape == (theta.shape[0], len(dims))
+    tilde = premultiply(theta, W, torch.full_like(canon, float("nan")), step, weights="unit", chunk=3)
+    torch.testing.assert_close(tilde @ W.T, expected, rtol=0, atol=1e-12)
+    assert torch.equal(tilde[0], torch.zeros_like(tilde[0]))
+    with pytest.raises(ValueError, match="composite weights"):
+        premultiply(theta, W, canon, step, weights="mean")
+    with pytest.raises(ValueError, match="composite weights"):
+        QueryConfig(composite_weights="mean")
+
+
 def test_composite_temperature_option_names_and_default():
-    assert composite_temperature("paper") == 1.0 == PAPER_TEMPERATURE
-    assert composite_temperature("uniform") == math.inf == QueryConfig().temperature == DEFAULT_TEMPERATURE
+    assert QueryConfig().composite_weights == "unit"  # n2f2's default; Eq. 6 by name
+    assert composite_temperature("paper") == 1.0 == PAPER_TEMPERATURE == QueryConfig().temperature
+    assert composite_temperature("uniform") == math.inf
     assert composite_temperature("0.5") == 0.5
     for bad in ("0", "-2", "nan", "-inf", "warm"):
         with pytest.raises(argparse.ArgumentTypeError):
@@ -568,7 +588,8 @@ def test_deferred_render_equals_the_mlp_of_the_blended_backbone_per_pixel(run_di
     from n2f2.query import QueryConfig, QueryEngine
     from n2f2.render import rasterize
 
-    deferred = QueryEngine.from_run(run_dir, encoder=HashEncoder(E_TEST), config=QueryConfig(selection="max"))
+    deferred = QueryEngine.from_run(run_dir, encoder=HashEncoder(E_TEST),
+                                    config=QueryConfig(selection="max", composite_weights="eq6"))
     assert deferred.config.render == "deferred"
     texts = ["lid of the teapot", "red mug", "bag of cookies"]
     view = deferred.render_view(0, modes=["composite", "explicit"], rgb=False)
@@ -587,6 +608,12 @@ def test_deferred_render_equals_the_mlp_of_the_blended_backbone_per_pixel(run_di
     want = relevancy(composite, t, negs).T.reshape(3, view.height, view.width)
     got = deferred.query(view, texts, "composite").relevancy
     torch.testing.assert_close(got.double(), want, rtol=0, atol=1e-5)
+    # n2f2's default weights: the mean of each pixel's normalised prefix features
+    unit = QueryEngine.from_run(run_dir, encoder=HashEncoder(E_TEST), config=QueryConfig(selection="max"))
+    mean_unit = (phi / phi.norm(dim=-1, keepdim=True).clamp_min(1e-12)).mean(0)  # [P, E]
+    want_unit = relevancy(mean_unit, t, negs).T.reshape(3, view.height, view.width)
+    got_unit = unit.query(unit.render_view(0, modes=["composite"], rgb=False), texts, "composite").relevancy
+    torch.testing.assert_close(got_unit.double(), want_unit, rtol=0, atol=1e-5)
     # explicit: the chosen scale's relevancy is the relevancy of that prefix feature
     res = deferred.query(view, texts, "explicit")
     for q in range(3):

@@ -93,10 +93,17 @@ def register(subparsers) -> None:
     p.add_argument(
         "--temperature",
         type=composite_temperature,
-        default="uniform",
+        default="paper",
         metavar="T",
-        help="composite gamma = softmax(score / T): 'uniform' (T = infinity, default: the mean over the "
-        "field's scales) or 'paper' (T = 1, the paper's Eq. 6) or a number > 0",
+        help="T of --composite-weights eq6, gamma = softmax(score / T): 'paper' (T = 1, default), "
+        "'uniform' (T = infinity: the plain mean of the scale features) or a number > 0",
+    )
+    p.add_argument(
+        "--composite-weights",
+        choices=("unit", "eq6"),
+        default="unit",
+        help="composite's weights over the scales: unit = the mean of the normalised scale features "
+        "(default); eq6 = the paper's Eq. 6 at --temperature",
     )
     add_render_option(p)
     p.add_argument("--no-relevancy", action="store_true", help="do not write the relevancy .npy files")
@@ -204,7 +211,9 @@ def run(args: argparse.Namespace) -> int:
     config3d = Protocol3dConfig(
         missing_frames=config.missing_frames, rescale_labels=config.rescale_labels, progress=config.progress
     )
-    query_config = QueryConfig(temperature=args.temperature, render=args.render)
+    query_config = QueryConfig(
+        temperature=args.temperature, composite_weights=args.composite_weights, render=args.render
+    )
     engine = None
     if args.budget or protocol != "2d":  # one engine (and text encoder) for every protocol and the budget
         engine = QueryEngine.from_run(args.run_dir, device=args.device, scene=args.scene, config=query_config)

@@ -340,10 +340,14 @@ def box_title(result: Mapping, box: str) -> str:
     return f"{box} {','.join(str(s) for s in result['boxes'][box]['box_sizes'])} px"
 
 
-def _composite_weights(temperature: Union[str, float]) -> str:
-    """How composite weighs the scales, from ``field.composite_temperature`` of eval.json."""
+def _composite_weights(field: Mapping) -> str:
+    """How composite weighs the scales, from ``field`` of eval.json (written before the weights
+    were recorded: the paper's Eq. 6 at T = 1)."""
+    if field.get("composite_weights") == "unit":
+        return "the mean of the normalised scale features (n2f2's default)"
+    temperature = field.get("composite_temperature", 1.0)
     if temperature == "uniform":
-        return "scales weighted uniformly (T = infinity, n2f2's default)"
+        return "the plain mean of the scale features (Eq. 6 at T = infinity)"
     if temperature == 1.0:
         return "scales weighted by the paper's Eq. 6 (T = 1)"
     return f"scales weighted by Eq. 6 at T = {float(temperature):g}"
@@ -377,8 +381,7 @@ def markdown_report(result: Mapping, deltas: Optional[Mapping] = None, reference
     ]
     n_scales = result["field"]["num_scales"]
     about = {
-        "composite": "one composite-embedding map per query (paper Sec. 3.3), "
-        + _composite_weights(result["field"].get("composite_temperature", 1.0)),
+        "composite": "one composite-embedding map per query (paper Sec. 3.3), " + _composite_weights(result["field"]),
         "explicit": f"LangSplat's level choice over the {n_scales} scales (max R' for segmentation, "
         "max box(R) for localization)",
         "levels": "LangSplat's level choice over the 3 levels of the baseline field",

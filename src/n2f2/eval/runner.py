@@ -808,7 +808,9 @@ def evaluate_run(
             "scale_labels": labels_of_scales,
             # 2D views rendered deferred (the MLP per pixel) or per Gaussian (QueryConfig.render)
             "render": "deferred" if getattr(engine, "renders_deferred", False) else "gaussians",
-            # composite's gamma temperature (query/composite.py): "uniform" or a number (1 = the paper)
+            # composite's weights (query/composite.py): "unit", or "eq6" at a temperature ("uniform"
+            # = infinity, 1 = the paper)
+            "composite_weights": engine.config.composite_weights,
             "composite_temperature": temperature_name(engine.config.temperature),
         },
         modes=modes,

@@ -25,6 +25,10 @@ def temperature_label(T: Union[float, str]) -> str:
     return "uniform" if T == "uniform" or math.isinf(float(T)) else f"{float(T):g}"
 
 
+# The evaluation name of the nested run's composite with n2f2's default weights (the mean of the
+# normalised scale features, query/composite.py); the bench's other rows use the paper's Eq. 6.
+UNIT = "unit"
+
 # The evaluation name of the nested run scored with the paper's per-Gaussian rendering of test
 # views (QueryConfig.render = "gaussians"; the others are rendered deferred).
 PAPER_RENDER = "gaussians"

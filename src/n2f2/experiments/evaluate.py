@@ -50,10 +50,11 @@ def evaluate_variant(
     log: Callable[[str], None] = print,
     encoder: Any = None,
     render: Optional[str] = None,  # QueryConfig.render ("gaussians": the paper's test-time form); None: its default
+    weights: str = "eq6",  # QueryConfig.composite_weights: the bench's rows are the paper's Eq. 6 unless named
 ) -> dict:
     """``evaluate_run`` of one run (both box sizes), written to ``out_dir`` (eval.json and eval.md;
-    the bench draws its own plots); reused while the field, the labels, the modes, T and the
-    rendering are unchanged."""
+    the bench draws its own plots); reused while the field, the labels, the modes, the composite
+    weights and T and the rendering are unchanged."""
     from ..eval.runner import load_eval
     from ..pipeline.cache import StageCache, file_digest, stage_key, tree_digest
     from ..query.engine import DEFAULT_RENDER
@@ -68,13 +69,14 @@ def evaluate_variant(
         modes=list(modes),
         temperature=temperature,
         render=render,  # evaluations cached before deferred views (no key) are redone
+        weights=weights,
     )
     cache = StageCache.open(run_dir)
     cache.run(
         out_dir.name,
         key,
         [eval_json],
-        lambda: _evaluate(run_dir, data, modes, out_dir, config, temperature, encoder, render),
+        lambda: _evaluate(run_dir, data, modes, out_dir, config, temperature, encoder, render, weights),
         log=lambda s: log(f"[bench] {run_dir.name}: {s}"),
     )
     return load_eval(eval_json)
@@ -89,6 +91,7 @@ def _evaluate(
     temperature: float,
     encoder: Any,
     render: str,
+    weights: str,
 ) -> None:
     from ..eval.reports import markdown_report
     from ..eval.runner import EvalConfig, evaluate_run
@@ -101,11 +104,13 @@ def _evaluate(
         scene=data.scene_dir,
         bank=data.bank_dir,
         config=EvalConfig(modes=tuple(modes), progress=config.progress),
-        query_config=QueryConfig(temperature=temperature, render=render),
+        query_config=QueryConfig(temperature=temperature, render=render, composite_weights=weights),
         device=config.device,
         encoder=encoder,
     )
-    result.notes.append(f"bench: composite temperature T = {temperature:g}, 2D views rendered {render}")
+    result.notes.append(
+        f"bench: composite weights {weights} (temperature T = {temperature:g} for eq6), 2D views rendered {render}"
+    )
     # eval.md and eval.json as `n2f2 eval` writes them; the JSON round trip gives the same dict a
     # reused evaluation has.
     d = result.to_dict()

@@ -14,7 +14,7 @@ import numpy as np
 
 from ..eval.reports import box_title, pct
 from ..eval.runner import BOXES
-from .claims import PAPER_RENDER, convergence, score, signed_pts, tag, temperature_label
+from .claims import PAPER_RENDER, UNIT, convergence, score, signed_pts, tag, temperature_label
 from .variants import PAPER_STEPS, VARIANTS
 
 
@@ -57,7 +57,8 @@ def write_plots(out: Path, result: Mapping, runs: Mapping[str, dict], variant_ru
 # evaluation is "T1" (T = 1, test views rendered deferred) unless named
 METHODS: tuple[tuple[str, ...], ...] = (
     ("nested", "composite", "N2F2 composite"),
-    ("nested", "composite", "N2F2 composite, uniform weights (n2f2's default)", tag(math.inf)),
+    ("nested", "composite", "N2F2 composite, mean of normalised scale features (n2f2's default)", UNIT),
+    ("nested", "composite", "N2F2 composite, plain mean of scale features (T = infinity)", tag(math.inf)),
     ("nested", "composite", "N2F2 composite, per-Gaussian render (paper)", PAPER_RENDER),
     ("nested", "soft", "N2F2 soft"),
     ("nested", "explicit", "N2F2 explicit"),
@@ -339,7 +340,7 @@ def markdown_bench(result: Mapping, runs: Mapping[str, dict], variant_runs: Mapp
     if result["gamma"]:
         out.append(
             "\n## Composite temperature T: gamma = softmax(score / T) (T = 1 is the paper's Eq. 6 and the "
-            "bench's composite rows; uniform = T -> infinity, n2f2's default composite)\n\n"
+            "bench's composite rows; uniform = T -> infinity, the plain mean of the scale features)\n\n"
         )
         out.append(
             "max gamma x scales = 1 means uniform weights; effective scales = exp(entropy of gamma); "

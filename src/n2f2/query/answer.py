@@ -64,6 +64,7 @@ def answer_queries(
     mask_threshold: float,
     box_size: BoxSize,
     temperature: Optional[float] = None,  # QueryConfig.temperature; None: its default
+    composite_weights: Optional[str] = None,  # QueryConfig.composite_weights; None: its default
     render: Optional[str] = None,  # QueryConfig.render; None: its default
     canonical: Optional[tuple[str, ...]] = None,
     selection: str = "smoothed",
@@ -91,6 +92,8 @@ def answer_queries(
         overrides["render"] = render
     if temperature is not None:
         overrides["temperature"] = temperature
+    if composite_weights is not None:
+        overrides["composite_weights"] = composite_weights
     config = QueryConfig(selection=selection, box_size=box_size, **overrides)
     engine = QueryEngine.from_run(run_dir, device=device, scene=scene, config=config)
     view_names = [engine.camera(i)[2] for i in views]  # fail before any work on a bad index
@@ -148,7 +151,11 @@ def answer_queries(
             "step_size": engine.step,
             "num_scales": len(engine.scale_labels),
         },
-        "composite": {"canonical": list(config.canonical), "temperature": temperature_name(config.temperature)},
+        "composite": {
+            "weights": config.composite_weights,
+            "canonical": list(config.canonical),
+            "temperature": temperature_name(config.temperature),
+        },
         "render": config.render,
         "relevancy": {"negatives": list(config.negatives), "feature_normalisation": "L2 (cosine)"},
         "segmentation": {"threshold": mask_threshold, "box_size": box_size, "selection": config.selection},

@@ -103,10 +103,17 @@ def register(subparsers) -> None:
     p.add_argument(
         "--temperature",
         type=composite_temperature,
-        default="uniform",
+        default="paper",
         metavar="T",
-        help="composite gamma = softmax(score / T): 'uniform' (T = infinity, default: the mean over the "
-        "field's scales) or 'paper' (T = 1, the paper's Eq. 6) or a number > 0",
+        help="T of --composite-weights eq6, gamma = softmax(score / T): 'paper' (T = 1, default), "
+        "'uniform' (T = infinity: the plain mean of the scale features) or a number > 0",
+    )
+    p.add_argument(
+        "--composite-weights",
+        choices=("unit", "eq6"),
+        default="unit",
+        help="composite's weights over the scales: unit = the mean of the normalised scale features "
+        "(default); eq6 = the paper's Eq. 6 at --temperature",
     )
     add_render_option(p)
     p.add_argument(
@@ -161,6 +168,7 @@ def run(args: argparse.Namespace) -> int:
         mask_threshold=mask_threshold,
         box_size=box,
         temperature=args.temperature,
+        composite_weights=args.composite_weights,
         render=args.render,
         canonical=tuple(args.canonical) if args.canonical else None,
         selection=args.selection,

@@ -19,16 +19,19 @@ so that ``W @ Theta~_i = sum_d gamma_{i,d} phi_{i,d}``. The canonical-phrase sco
 (all ``d`` when ``k = 1``; the supervised prefix lengths when ``k > 1``, because only those are
 scale-aware features; dimensions past ``k * floor(D / k)`` then get weight 0).
 
-Temperature. ``T = 1`` (:data:`PAPER_TEMPERATURE`, option value ``paper``) is the paper. With
-unit-scale embeddings the scores are small (|score| <~ 1), so at ``T = 1`` gamma is near uniform
-on average, but not per Gaussian: through the unnormalised ``phi_d``'s norms and the canonical
-phrases, a Gaussian's largest weight averages 1.8-2.7x uniform on the demo layouts. n2f2's
-default is the limit ``T -> infinity`` (:data:`DEFAULT_TEMPERATURE`, option value ``uniform``): ``gamma = 1 / S`` for every Gaussian, so the composite embedding is
-the mean of the scale-aware features over the field's scales (the quantile-transformed segment
-scales, :mod:`n2f2.segments.bins`, are uniform, so this is their mean over the scales the field
-was trained on), and Theta~ applies the fixed ramp ``(S - s + 1) / S`` to the dimensions of
-scale block ``s``. On both generated layouts (six trainings each) the uniform weights ranked
-better than ``T = 1`` on every field (``docs/measurements.md``, "Uniform composite weights").
+Weights. ``"eq6"`` is Eq. 6 at temperature ``T``: ``T = 1`` (:data:`PAPER_TEMPERATURE`, option
+value ``paper``) is the paper; ``T -> infinity`` (option value ``uniform``) gives ``gamma = 1 / S``,
+the plain mean of the scale features. With unit-scale embeddings the scores are small (|score|
+<~ 1), so at ``T = 1`` gamma is near uniform on average, but not per Gaussian: through the
+unnormalised ``phi_d``'s norms and the canonical phrases a Gaussian's largest weight averages
+1.8-2.7x uniform on the demo layouts. n2f2's default, ``"unit"`` (:data:`DEFAULT_WEIGHTS`), is
+the mean of the *normalised* scale features, ``(1 / S) sum_d phi_d / max(|phi_d|, eps)``, i.e.
+``gamma_d = 1 / (S max(|phi_d|, eps))`` (the relevancy's own normalisation,
+:mod:`n2f2.query.relevancy`): every scale's direction counts the same whatever its feature's
+norm, and relevancy reads only directions. On both generated layouts (six trainings each) the
+plain mean ranked better than ``T = 1`` on every field, and the normalised mean better again on
+most (``docs/measurements.md``, "Uniform composite weights" and "The mean of the normalised
+scale features").
 
 Every prefix quantity is computed for all scales at once with block sums followed by a
 cumulative sum over blocks: ``N x D x C`` work for ``C`` directions, never ``N x D x E x D``.
@@ -47,7 +50,10 @@ from torch import Tensor
 # Canonical phrases of paper Eq. 6 ("object", "stuff", "thing", "part", "texture").
 DEFAULT_CANONICAL: tuple[str, ...] = ("object", "stuff", "thing", "part", "texture")
 PAPER_TEMPERATURE = 1.0  # T of Eq. 6 in the paper
-DEFAULT_TEMPERATURE = math.inf  # n2f2's default: uniform gamma (see the module docstring)
+# Composite weightings (see the module docstring): "unit", n2f2's default, and Eq. 6 ("eq6").
+COMPOSITE_WEIGHTS: tuple[str, ...] = ("unit", "eq6")
+DEFAULT_WEIGHTS = "unit"
+NORM_EPS = 1e-12  # the relevancy's norm floor (n2f2.query.relevancy.NORM_EPS)
 
 
 def to_blocks(
@@ -124,6 +130,18 @@ def composite_weights(
     return torch.softmax(canonical_scores(theta, W, canonical, step) / temperature, dim=-1)
 
 
+def unit_weights(
+    theta: Tensor,  # [N, D]
+    W: Tensor,  # [E, D]
+    step: int = 1,
+) -> Tensor:  # [N, S] gamma_d = 1 / (S max(|phi_d|, eps))
+    """Weights that make ``sum_d gamma_d phi_d`` the mean of the normalised scale features
+    ``phi_d / max(|phi_d|, eps)`` (``"unit"``, n2f2's default). They do not sum to 1: a zero
+    scale feature (an untrained field) adds nothing instead of taking all the weight."""
+    norms = prefix_sq_norms(to_blocks(theta, step), W.T @ W).sqrt_().clamp_(min=NORM_EPS)  # [S, N]
+    return norms.reciprocal_().T.div_(norms.shape[0]).contiguous()
+
+
 def temperature_name(temperature: float) -> str | float:
     """How a composite temperature is recorded (JSON has no infinity): "uniform" for ``inf``."""
     return "uniform" if math.isinf(temperature) else float(temperature)
@@ -151,13 +169,19 @@ def premultiply(
     step: int = 1,
     temperature: float = PAPER_TEMPERATURE,
     chunk: int = 65536,  # Gaussians per block: bounds the [chunk, D, K] intermediate
+    weights: str = "eq6",  # "eq6" (paper Eq. 6 at ``temperature``) or "unit" (unit_weights)
 ) -> Tensor:  # [N, D] Theta~_i, with W @ Theta~_i = the composite embedding of Gaussian i
     """``Theta~ = revcumsum(gamma^3D) (.) Theta`` (paper Eq. 7), computed once per trained field."""
+    if weights not in COMPOSITE_WEIGHTS:
+        raise ValueError(f"composite weights must be one of {COMPOSITE_WEIGHTS}, got {weights!r}")
     out = torch.empty_like(theta)
     D = theta.shape[1]
     for start in range(0, theta.shape[0], chunk):
         block = theta[start : start + chunk]
-        gamma = composite_weights(block, W, canonical, step, temperature)
+        if weights == "unit":
+            gamma = unit_weights(block, W, step)
+        else:
+            gamma = composite_weights(block, W, canonical, step, temperature)
         out[start : start + chunk] = prefix_weights(gamma, D, step) * block
     return out
 

@@ -72,7 +72,7 @@ from .caches import (
     select_scale,
     soft_scales,
 )
-from .composite import DEFAULT_CANONICAL, DEFAULT_TEMPERATURE, premultiply
+from .composite import COMPOSITE_WEIGHTS, DEFAULT_CANONICAL, DEFAULT_WEIGHTS, PAPER_TEMPERATURE, premultiply
 from .maps import (
     LANGSPLAT_BOX_SIZE,
     LANGSPLAT_THRESHOLD,
@@ -104,8 +104,10 @@ class QueryConfig:
 
     canonical: tuple[str, ...] = DEFAULT_CANONICAL  # phrases of gamma^3D (paper Eq. 6)
     negatives: tuple[str, ...] = DEFAULT_NEGATIVES  # negatives of the relevancy (LERF)
-    # gamma = softmax(score / T); inf (default) = uniform, 1 = the paper's Eq. 6 (query/composite.py)
-    temperature: float = DEFAULT_TEMPERATURE
+    # composite's weights over the scales (query/composite.py): "unit" = the mean of the normalised
+    # scale features (n2f2's default); "eq6" = paper Eq. 6, gamma = softmax(score / T)
+    composite_weights: str = DEFAULT_WEIGHTS
+    temperature: float = PAPER_TEMPERATURE  # T of "eq6": 1 = the paper, inf = the plain mean
     selection: str = "smoothed"  # explicit/levels 2D scale choice: "smoothed" (LangSplat) | "max"
     box_size: Optional[BoxSize] = None  # protocol mean filter (px) or "scaled"; None = protocol's
     # 2D views (see the module docstring): "deferred" rasterizes the backbone's features and runs
@@ -121,6 +123,8 @@ class QueryConfig:
             raise ValueError("need at least one negative phrase")
         if not self.temperature > 0:
             raise ValueError(f"composite temperature must be positive, got {self.temperature}")
+        if self.composite_weights not in COMPOSITE_WEIGHTS:
+            raise ValueError(f"composite weights must be one of {COMPOSITE_WEIGHTS}, got {self.composite_weights!r}")
         if self.selection not in SELECTIONS:
             raise ValueError(f"selection must be one of {SELECTIONS}, got {self.selection!r}")
         if self.render not in RENDERS:
@@ -324,7 +328,13 @@ class QueryEngine:
             canon = self.encode(self.config.canonical)
             with torch.no_grad():
                 self._theta_tilde = premultiply(
-                    self.theta, self.W, canon, self.step, self.config.temperature, self.config.chunk
+                    self.theta,
+                    self.W,
+                    canon,
+                    self.step,
+                    self.config.temperature,
+                    self.config.chunk,
+                    weights=self.config.composite_weights,
                 )
         return self._theta_tilde
 
@@ -455,7 +465,16 @@ class QueryEngine:
                     block = flat[a : a + len(theta), j * D : (j + 1) * D]
                     if p == "tilde":
                         assert canon is not None  # encoded above when composite is asked for
-                        block.copy_(premultiply(theta, self.W, canon, self.step, self.config.temperature))
+                        block.copy_(
+                            premultiply(
+                                theta,
+                                self.W,
+                                canon,
+                                self.step,
+                                self.config.temperature,
+                                weights=self.config.composite_weights,
+                            )
+                        )
                     else:
                         block.copy_(theta)
         return flat, out
