@@ -47,13 +47,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .relevancy import NORM_EPS
+
 # Canonical phrases of paper Eq. 6 ("object", "stuff", "thing", "part", "texture").
 DEFAULT_CANONICAL: tuple[str, ...] = ("object", "stuff", "thing", "part", "texture")
 PAPER_TEMPERATURE = 1.0  # T of Eq. 6 in the paper
 # Composite weightings (see the module docstring): "unit", n2f2's default, and Eq. 6 ("eq6").
 COMPOSITE_WEIGHTS: tuple[str, ...] = ("unit", "eq6")
 DEFAULT_WEIGHTS = "unit"
-NORM_EPS = 1e-12  # the relevancy's norm floor (n2f2.query.relevancy.NORM_EPS)
 
 
 def to_blocks(
