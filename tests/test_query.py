@@ -564,6 +564,7 @@ def test_cli(run_dir, tmp_path, monkeypatch, capsys):
     assert rc == 0
     summary = json.loads((out / "query.json").read_text())
     assert summary["encoder"] == HashEncoder.description and summary["mode"] == "composite"
+    assert summary["composite"]["weights"] == "unit"  # the default weights, recorded
     rec = summary["views"][1]["queries"][0]
     rel = np.load(out / rec["files"]["relevancy"])
     assert rel.dtype == np.float32 and rel.shape == (24, 32)
@@ -574,11 +575,18 @@ def test_cli(run_dir, tmp_path, monkeypatch, capsys):
     # Bad input: one clear line, exit code 2, no traceback.
     for argv, msg in [([str(run_dir), "teapot", "--views", "5"], "out of range"),
                       ([str(run_dir), "", "--views", "0"], "empty query"),
-                      ([str(tmp_path), "teapot"], "no field.pt")]:
+                      ([str(tmp_path), "teapot"], "no field.pt"),
+                      # a temperature means Eq. 6: alone it would be silently ignored
+                      ([str(run_dir), "teapot", "--views", "0", "--temperature", "0.5"], "--composite-weights eq6")]:
         capsys.readouterr()
         assert main(["query", *argv, "--out", str(tmp_path / "x")]) == 2
         err = capsys.readouterr().err
         assert msg in err and "Traceback" not in err
+    eq6 = tmp_path / "eq6"
+    assert main(["query", str(run_dir), "teapot", "--views", "0", "--out", str(eq6), "--quiet",
+                 "--composite-weights", "eq6", "--temperature", "uniform"]) == 0
+    composite = json.loads((eq6 / "query.json").read_text())["composite"]
+    assert composite["weights"] == "eq6" and composite["temperature"] == "uniform"
 
 
 def test_deferred_render_equals_the_mlp_of_the_blended_backbone_per_pixel(run_dir, engine):

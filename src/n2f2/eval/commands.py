@@ -93,7 +93,7 @@ def register(subparsers) -> None:
     p.add_argument(
         "--temperature",
         type=composite_temperature,
-        default="paper",
+        default=None,
         metavar="T",
         help="T of --composite-weights eq6, gamma = softmax(score / T): 'paper' (T = 1, default), "
         "'uniform' (T = infinity: the plain mean of the scale features) or a number > 0",
@@ -173,8 +173,8 @@ def run(args: argparse.Namespace) -> int:
     from .reports import eval_results, mode_summary_lines, protocol3d_summary_lines, write_eval_outputs
     from .runner import EvalConfig, evaluate_run, load_eval
 
-    if not args.temperature > 0:
-        raise InputError(None, f"--temperature must be > 0, got {args.temperature}")
+    if args.temperature is not None and args.composite_weights != "eq6":
+        raise InputError(None, "--temperature is the T of Eq. 6: give it with --composite-weights eq6")
     ovs_labels = ovs3d_labels_path(args.labels)
     protocol = args.protocol or ("3d-ovs" if ovs_labels is not None else "2d")
     if ovs_labels is not None and protocol != "3d-ovs":
@@ -211,9 +211,8 @@ def run(args: argparse.Namespace) -> int:
     config3d = Protocol3dConfig(
         missing_frames=config.missing_frames, rescale_labels=config.rescale_labels, progress=config.progress
     )
-    query_config = QueryConfig(
-        temperature=args.temperature, composite_weights=args.composite_weights, render=args.render
-    )
+    eq6 = {} if args.temperature is None else {"temperature": args.temperature}  # None: QueryConfig's (the paper's)
+    query_config = QueryConfig(composite_weights=args.composite_weights, render=args.render, **eq6)
     engine = None
     if args.budget or protocol != "2d":  # one engine (and text encoder) for every protocol and the budget
         engine = QueryEngine.from_run(args.run_dir, device=args.device, scene=args.scene, config=query_config)

@@ -103,7 +103,7 @@ def register(subparsers) -> None:
     p.add_argument(
         "--temperature",
         type=composite_temperature,
-        default="paper",
+        default=None,
         metavar="T",
         help="T of --composite-weights eq6, gamma = softmax(score / T): 'paper' (T = 1, default), "
         "'uniform' (T = infinity: the plain mean of the scale features) or a number > 0",
@@ -149,8 +149,8 @@ def run(args: argparse.Namespace) -> int:
     from .relevancy import check_texts
 
     texts = check_texts(args.texts)
-    if args.temperature <= 0:
-        raise InputError(None, f"--temperature must be > 0, got {args.temperature}")
+    if args.temperature is not None and args.composite_weights != "eq6":
+        raise InputError(None, "--temperature is the T of Eq. 6: give it with --composite-weights eq6")
     mask_threshold = LANGSPLAT_THRESHOLD if args.mask_threshold is None else args.mask_threshold
     if not 0.0 <= mask_threshold < 1.0:
         raise InputError(None, f"--mask-threshold must be in [0, 1), got {mask_threshold}")
