@@ -9,13 +9,13 @@ from __future__ import annotations
 
 import argparse
 
-from ..validate import add_device_option, composite_temperature, nonneg_int
+from ..validate import add_device_option, nonneg_int
 
 PROTOCOLS = ("2d", "3d", "both", "3d-ovs")  # --protocol
 
 
 def register(subparsers) -> None:
-    from ..query.commands import add_render_option
+    from ..query.commands import add_composite_options, add_render_option
     from ..query.engine import MODES
 
     p = subparsers.add_parser(
@@ -90,21 +90,7 @@ def register(subparsers) -> None:
         action="store_true",
         help="scale labels drawn at another resolution to the render size (not LangSplat)",
     )
-    p.add_argument(
-        "--temperature",
-        type=composite_temperature,
-        default=None,
-        metavar="T",
-        help="T of --composite-weights eq6, gamma = softmax(score / T): 'paper' (T = 1, default), "
-        "'uniform' (T = infinity: the plain mean of the scale features) or a number > 0",
-    )
-    p.add_argument(
-        "--composite-weights",
-        choices=("unit", "eq6"),
-        default="unit",
-        help="composite's weights over the scales: unit = the mean of the normalised scale features "
-        "(default); eq6 = the paper's Eq. 6 at --temperature",
-    )
+    add_composite_options(p)
     add_render_option(p)
     p.add_argument("--no-relevancy", action="store_true", help="do not write the relevancy .npy files")
     p.add_argument(
@@ -167,14 +153,14 @@ def run(args: argparse.Namespace) -> int:
 
     from ..errors import InputError
     from ..io import claim_out_dir, remove_results
+    from ..query.commands import composite_config
     from ..query.engine import QueryConfig, QueryEngine
     from .ovs3d import ovs3d_labels_path
     from .protocol3d import Protocol3dConfig, evaluate_protocol3d, modes_3d
     from .reports import eval_results, mode_summary_lines, protocol3d_summary_lines, write_eval_outputs
     from .runner import EvalConfig, evaluate_run, load_eval
 
-    if args.temperature is not None and args.composite_weights != "eq6":
-        raise InputError(None, "--temperature is the T of Eq. 6: give it with --composite-weights eq6")
+    composite = composite_config(args)
     ovs_labels = ovs3d_labels_path(args.labels)
     protocol = args.protocol or ("3d-ovs" if ovs_labels is not None else "2d")
     if ovs_labels is not None and protocol != "3d-ovs":
@@ -211,8 +197,7 @@ def run(args: argparse.Namespace) -> int:
     config3d = Protocol3dConfig(
         missing_frames=config.missing_frames, rescale_labels=config.rescale_labels, progress=config.progress
     )
-    eq6 = {} if args.temperature is None else {"temperature": args.temperature}  # None: QueryConfig's (the paper's)
-    query_config = QueryConfig(composite_weights=args.composite_weights, render=args.render, **eq6)
+    query_config = QueryConfig(render=args.render, **composite)
     engine = None
     if args.budget or protocol != "2d":  # one engine (and text encoder) for every protocol and the budget
         engine = QueryEngine.from_run(args.run_dir, device=args.device, scene=args.scene, config=query_config)

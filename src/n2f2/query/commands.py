@@ -27,6 +27,41 @@ def add_render_option(p: argparse.ArgumentParser) -> None:
     )
 
 
+def add_composite_options(p: argparse.ArgumentParser) -> None:
+    """``--composite-weights`` and ``--temperature``: composite's weights over the scales
+    (``QueryConfig.composite_weights`` and ``.temperature``; read back by :func:`composite_config`)."""
+    from .composite import COMPOSITE_WEIGHTS, DEFAULT_WEIGHTS
+
+    p.add_argument(
+        "--composite-weights",
+        choices=COMPOSITE_WEIGHTS,
+        default=DEFAULT_WEIGHTS,
+        help="composite's weights over the scales: unit = the mean of the normalised scale features "
+        "(default); eq6 = the paper's Eq. 6 at --temperature",
+    )
+    p.add_argument(
+        "--temperature",
+        type=composite_temperature,
+        default=None,
+        metavar="T",
+        help="T of --composite-weights eq6, gamma = softmax(score / T): 'paper' (T = 1, default), "
+        "'uniform' (T = infinity: the plain mean of the scale features) or a number > 0",
+    )
+
+
+def composite_config(args: argparse.Namespace) -> dict:
+    """The ``QueryConfig`` keywords of :func:`add_composite_options`' flags (an unset temperature
+    keeps QueryConfig's, the paper's). A temperature without ``eq6`` would be ignored: refused."""
+    from ..errors import InputError
+
+    if args.temperature is not None and args.composite_weights != "eq6":
+        raise InputError(None, "--temperature is the T of Eq. 6: give it with --composite-weights eq6")
+    config = {"composite_weights": args.composite_weights}
+    if args.temperature is not None:
+        config["temperature"] = args.temperature
+    return config
+
+
 def _box_size(value: str):
     if value == "scaled":
         return value
@@ -100,21 +135,7 @@ def register(subparsers) -> None:
         help="protocol mean-filter size in pixels, or 'scaled' = round(30 W / 986) "
         "(default 30, LangSplat's; use 'scaled' on small renders)",
     )
-    p.add_argument(
-        "--temperature",
-        type=composite_temperature,
-        default=None,
-        metavar="T",
-        help="T of --composite-weights eq6, gamma = softmax(score / T): 'paper' (T = 1, default), "
-        "'uniform' (T = infinity: the plain mean of the scale features) or a number > 0",
-    )
-    p.add_argument(
-        "--composite-weights",
-        choices=("unit", "eq6"),
-        default="unit",
-        help="composite's weights over the scales: unit = the mean of the normalised scale features "
-        "(default); eq6 = the paper's Eq. 6 at --temperature",
-    )
+    add_composite_options(p)
     add_render_option(p)
     p.add_argument(
         "--canonical",
@@ -149,8 +170,7 @@ def run(args: argparse.Namespace) -> int:
     from .relevancy import check_texts
 
     texts = check_texts(args.texts)
-    if args.temperature is not None and args.composite_weights != "eq6":
-        raise InputError(None, "--temperature is the T of Eq. 6: give it with --composite-weights eq6")
+    composite = composite_config(args)
     mask_threshold = LANGSPLAT_THRESHOLD if args.mask_threshold is None else args.mask_threshold
     if not 0.0 <= mask_threshold < 1.0:
         raise InputError(None, f"--mask-threshold must be in [0, 1), got {mask_threshold}")
@@ -167,8 +187,7 @@ def run(args: argparse.Namespace) -> int:
         threshold=args.threshold,
         mask_threshold=mask_threshold,
         box_size=box,
-        temperature=args.temperature,
-        composite_weights=args.composite_weights,
+        **composite,
         render=args.render,
         canonical=tuple(args.canonical) if args.canonical else None,
         selection=args.selection,
