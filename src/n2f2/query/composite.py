@@ -22,15 +22,13 @@ scale-aware features; dimensions past ``k * floor(D / k)`` then get weight 0).
 Weights. ``"eq6"`` is Eq. 6 at temperature ``T``: ``T = 1`` (:data:`PAPER_TEMPERATURE`, option
 value ``paper``) is the paper; ``T -> infinity`` (option value ``uniform``) gives ``gamma = 1 / S``,
 the plain mean of the scale features. With unit-scale embeddings the scores are small (|score|
-<~ 1), so at ``T = 1`` gamma is near uniform on average, but not per Gaussian: through the
-unnormalised ``phi_d``'s norms and the canonical phrases a Gaussian's largest weight averages
-1.8-2.7x uniform on the demo layouts. n2f2's default, ``"unit"`` (:data:`DEFAULT_WEIGHTS`), is
+<~ 1), so at ``T = 1`` gamma is near uniform on average, but not per Gaussian: it follows the
+unnormalised ``phi_d``'s norms and the canonical phrases. n2f2's default, ``"unit"`` (:data:`DEFAULT_WEIGHTS`), is
 the mean of the *normalised* scale features, ``(1 / S) sum_d phi_d / max(|phi_d|, eps)``, i.e.
 ``gamma_d = 1 / (S max(|phi_d|, eps))`` (the relevancy's own normalisation,
 :mod:`n2f2.query.relevancy`): every scale's direction counts the same whatever its feature's
-norm, and relevancy reads only directions. On both generated layouts (six trainings each) the
-plain mean ranked better than ``T = 1`` on every field, and the normalised mean better again on
-most (``docs/measurements.md``, "Uniform composite weights" and "The mean of the normalised
+norm, and relevancy reads only directions. It ranked better than ``T = 1`` on both generated
+layouts (``docs/measurements.md``, "Uniform composite weights" and "The mean of the normalised
 scale features").
 
 Every prefix quantity is computed for all scales at once with block sums followed by a

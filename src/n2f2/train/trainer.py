@@ -189,8 +189,7 @@ class TrainConfig(ConfigDict):
         * ``pixel_balance = 0.5``: pixels drawn with probability ∝ (area of their smallest
           covering segment)^-1/2, halfway in the exponent between the paper's uniform pixels and
           every smallest segment equally often. Thin parts (a teapot's handle and spout) rank far
-          better; composite, explicit and soft mAP rise on both generated layouts and so does
-          every mode's mIoU but the tabletop's composite (-0.6), 4-6 runs per setting
+          better, and the mean average precision rises on both generated layouts
           (``docs/measurements.md``, "Balanced pixel sampling").
 
         Use ``--iterations`` (and ``--dim``) when minutes matter less."""
