@@ -16,6 +16,8 @@ from typing import Optional
 import torch
 from torch import Tensor
 
+_INT32_LIMIT = 2**31 - 1  # indices and entry counts below this fit int32
+
 
 def csr_matrix(
     crow: Tensor,  # [R + 1] long row pointers
@@ -23,7 +25,12 @@ def csr_matrix(
     value: Tensor,  # [nnz] float
     shape: tuple[int, int],
 ) -> Tensor:  # sparse CSR [R, K]
-    """A CSR tensor, without the beta-feature warning torch prints for every new layout."""
+    """A CSR tensor, without the beta-feature warning torch prints for every new layout.
+
+    Its indices are int32 where they fit: the CPU sparse-dense product converts int64 indices
+    to int32 on every call (two copies of the index arrays per product)."""
+    if max(shape[0], shape[1], col.numel()) < _INT32_LIMIT:
+        crow, col = crow.to(torch.int32), col.to(torch.int32)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
         return torch.sparse_csr_tensor(crow, col, value, shape)
