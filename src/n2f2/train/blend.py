@@ -59,7 +59,8 @@ class BlendCache:
         entry = start[owner] + torch.arange(owner.shape[0], device=rows.device) - crow[:-1][owner]  # [E]
         # The requested rows as a CSR matrix [P, N]: one sparse-dense product forward, its
         # transpose backward (~1.3x faster than embedding_bag, ~3x than index_select + index_add).
-        gid, weight = self.gid.index_select(0, entry), self.weight.index_select(0, entry)  # int32 gid, as csr_matrix keeps it
+        # gid stays int32: csr_matrix keeps int32 indices.
+        gid, weight = self.gid.index_select(0, entry), self.weight.index_select(0, entry)
         shape = (rows.shape[0], features.shape[0])
         matrix = csr_matrix(crow, gid, weight, shape)
         transposed = None
