@@ -52,11 +52,11 @@ def test_report_has_the_tables_and_finite_numbers(tiny):
                     "## Nested vs non-nested", "## Composite temperature T", "## Query time breakdown (paper Table 4"):
         assert heading in md, heading
     assert "exact 30 px" in md and "scaled 1 px" in md  # both boxes, named with their sizes
-    assert "segment scales: extent measure, training scale jitter 0.03 (paper: eigenvalue, 0)" in md
+    assert "segment scales: area measure, training scale jitter 0.03 (paper: eigenvalue, 0)" in md
     assert "with every covering segment, pixel balance 0.5 (paper 0: uniform pixels)" in md
     data = json.loads((out / "bench.json").read_text())
     bank = json.loads((out / "data" / "bank" / "bank.json").read_text())
-    assert bank["lifting"]["scale_measure"] == data["data"]["scale_measure"] == "extent"
+    assert bank["lifting"]["scale_measure"] == data["data"]["scale_measure"] == "area"
     fields = [name for name, r in data["runs"].items() if not r["training_free"]]
     for name in fields:
         report = json.loads((out / "runs" / name / "train_report.json").read_text())

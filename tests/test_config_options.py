@@ -161,7 +161,7 @@ def test_fit_and_run_help_show_each_presets_value(capsys):
     assert f"--train-steps TRAIN_STEPS optimisation steps of the field (cpu {cpu.train.iterations}, " \
            f"paper {paper.train.iterations})" in text
     assert f"(cpu {cpu.lift.scale_measure}, paper {paper.lift.scale_measure})" in text
-    assert cpu.lift.scale_measure == "extent" and paper.lift.scale_measure == "eigenvalue"
+    assert cpu.lift.scale_measure == "area" and paper.lift.scale_measure == "eigenvalue"
 
 
 def test_train_flags_reach_the_configs():

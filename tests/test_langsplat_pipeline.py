@@ -168,7 +168,7 @@ def test_run_on_nerfstudio_scene_with_langsplat_features(demo, tmp_path, capsys)
     bank = SegmentBank.open(run / "bank")
     assert bank.encoder_spec["name"] == "captions" and bank.segmenter_spec["name"] == "langsplat"
     assert bank.meta["lifting"]["depth_source"] == "render"  # no ground-truth depth in this scene
-    assert bank.meta["lifting"]["scale_measure"] == "extent"  # the cpu preset's
+    assert bank.meta["lifting"]["scale_measure"] == "area"  # the cpu preset's
     result = json.loads((run / "eval" / "eval.json").read_text())
     for mode in ("composite", "explicit", "oracle"):
         score = result["scores"][mode]["exact"]
@@ -191,7 +191,7 @@ def test_scale_measure_follows_the_preset(tmp_path):
     def measure(**kw):
         return resolve_defaults(RunOptions(data=tmp_path, out=tmp_path / "run", **kw)).scale_measure
 
-    assert measure() == "extent"
+    assert measure() == "area"
     assert measure(preset="paper") == "eigenvalue"
     assert measure(preset="paper", scale_measure="extent") == "extent"
     assert measure(scale_measure="eigenvalue") == "eigenvalue"

@@ -317,6 +317,28 @@ def test_extent_scale_known_plane():
     assert scales[0] == pytest.approx(width ** 2 + height ** 2, rel=1e-5)
 
 
+def test_area_scale_known_plane():
+    """scale_measure="area": a 3 x 32 pixel strip on a fronto-parallel plane at depth 2 covers
+    96 pixels of (2 / f)^2 each (by hand); a strip at depth 4 covers four times that; with
+    erosion, its 30 inner pixels. A part inside its parent's mask never measures more."""
+    H, W, f = 20, 40, 20.0
+    cam = Camera(f, f, W / 2, H / 2, W, H)
+    layers = np.full((2, H, W), -1, np.int32)
+    layers[0, 5:8, 4:36] = 0
+    layers[1, 6:8, 4:10] = 1  # a part: 2 x 6 pixels inside segment 0
+    settings = LiftSettings(erode=False, scale_measure="area")
+    scales, _ = lift_view(layers, np.full((H, W), 2.0), np.ones((H, W), bool), cam, 2, settings)
+    assert scales[0] == pytest.approx(96 * (2.0 / f) ** 2, rel=1e-6)
+    assert scales[1] == pytest.approx(12 * (2.0 / f) ** 2, rel=1e-6) and scales[1] < scales[0]
+    far, _ = lift_view(layers[:1], np.full((H, W), 4.0), np.ones((H, W), bool), cam, 1, settings)
+    assert far[0] == pytest.approx(4 * scales[0], rel=1e-6)
+    eroded, _ = lift_view(layers[:1], np.full((H, W), 2.0), np.ones((H, W), bool), cam, 1,
+                          LiftSettings(scale_measure="area"))
+    assert eroded[0] == pytest.approx(30 * (2.0 / f) ** 2, rel=1e-6)
+    with pytest.raises(ValueError, match="footprint"):
+        segment_scales(layers, np.zeros((H, W, 3)), np.ones((H, W), bool), 2, settings)
+
+
 def test_lift_settings_reject_unknown_measure():
     with pytest.raises(ValueError, match="scale_measure"):
         LiftSettings(scale_measure="diameter")

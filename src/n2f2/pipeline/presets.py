@@ -4,7 +4,7 @@ lifting (:class:`LiftSettings`, the scale measure), the field (:class:`FieldConf
 training (:class:`TrainConfig`).
 
 * ``cpu``: small scenes (the built-in demo) on a few CPU cores: the fit schedule is sized to
-  the scene (:meth:`FitConfig.sized_for`), segments are measured by their robust extent, and
+  the scene (:meth:`FitConfig.sized_for`), segments are measured by their visible area, and
   training jitters the sampled scales, supervises every covering segment of a pixel and draws
   pixels balanced towards small segments (none of them in the paper; :meth:`TrainConfig.cpu`);
 * ``paper``: the paper's settings (3DGS's 30k-step fit, eigenvalue scales, D = 512 with
@@ -59,7 +59,7 @@ def cpu() -> Preset:
         name="cpu",
         fit=FitConfig.cpu(),
         sized_fit=True,
-        lift=LiftSettings(scale_measure="extent"),
+        lift=LiftSettings(scale_measure="area"),
         field=FieldConfig.cpu(),
         train=TrainConfig.cpu(),
     )

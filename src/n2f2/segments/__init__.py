@@ -4,7 +4,7 @@ scales and the quantile scale bins (paper Sec. 3.2 "Extracting Training Data").
 * :mod:`.segmenters`: ``sam`` (:mod:`.sam`) / ``classical`` / ``ground-truth`` -> :class:`SegmentSet`
 * :mod:`.encoders`: ``clip`` / ``captions`` (offline stand-in for CLIP) -> embeddings
 * :mod:`.langsplat`: LangSplat ``language_features`` import
-* :mod:`.lifting`: depth -> 3D points -> scale (largest covariance eigenvalue, or robust extent)
+* :mod:`.lifting`: depth -> 3D points -> scale (largest covariance eigenvalue, robust extent or visible area)
 * :mod:`.bins`: quantile transform, ``M(s)`` with step size k
 * :mod:`.bank`: the on-disk bank, :class:`SegmentBank` reader, :func:`build_bank`
 

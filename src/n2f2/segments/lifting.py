@@ -2,10 +2,11 @@
 
 Each segment's pixels are unprojected with the view's depth (the fitted 3DGS's expected depth,
 or the demo scene's exact depth with ``--depth-source gt``); its scale is the largest
-eigenvalue of the covariance of those 3D points (the paper), or with ``scale_measure="extent"``
-the squared diagonal of their robust oriented box (units: scene length squared). The mask is
-eroded once with a 3 x 3 kernel first, so pixels on depth discontinuities at the segment's
-boundary (which belong to the background as often as to the segment) do not inflate it.
+eigenvalue of the covariance of those 3D points (the paper), with ``scale_measure="extent"``
+the squared diagonal of their robust oriented box, or with ``scale_measure="area"`` the surface
+the pixels cover at their depth (units: scene length squared). The mask is eroded once with a
+3 x 3 kernel first, so pixels on depth discontinuities at the segment's boundary (which belong
+to the background as often as to the segment) do not inflate it.
 
 Everything works on the bank's non-overlapping id layers: per layer, one ``np.bincount`` per
 moment gives the point count, sums and second moments of every segment at once.
@@ -25,6 +26,7 @@ from ..errors import InputError
 SCALE_DESCRIPTIONS = {  # LiftSettings.scale_measure -> what bank.json records
     "eigenvalue": "largest eigenvalue of the covariance of the lifted points (length^2)",
     "extent": "squared diagonal of the robust oriented box of the lifted points (length^2)",
+    "area": "visible surface of the lifted pixels, each pixel's footprint z^2 / (fx fy) summed (length^2)",
 }
 SCALE_MEASURES = tuple(SCALE_DESCRIPTIONS)
 
@@ -47,15 +49,19 @@ class LiftSettings:
     # How a segment's lifted points become one scale (only their order matters: scales are
     # quantile-binned). "eigenvalue" (paper): largest eigenvalue of their covariance.
     # "extent" (not in the paper): squared diagonal of their robust oriented box, the
-    # [p, 100 - p] percentile range (p = extent_percentile) along each principal axis. The
-    # eigenvalue of a segment can be smaller than that of one of its parts (on the demo scene
-    # in ~14 % of (view, parent, part) triples, often the room below its own wall); the
-    # extent in ~4 %.
+    # [p, 100 - p] percentile range (p = extent_percentile) along each principal axis. "area"
+    # (not in the paper): the sum of the lifted pixels' footprints z^2 / (fx fy), the surface
+    # the segment shows in that view. A part's mask lies inside its parent's, so by area it is
+    # never the larger (erosion and outlier rejection aside); the eigenvalue and the extent put
+    # a segment below one of its parts in some (view, parent, part) triples, and give a thin
+    # part (a frame, a wheel) its parent's scale (docs/measurements.md, "Segment scale by
+    # visible area").
     scale_measure: str = option(
         "eigenvalue",
         help="segment scale from its lifted 3D points: eigenvalue = largest eigenvalue of their covariance "
         "(paper); extent = squared diagonal of their robust oriented box, a percentile range along each "
-        "principal axis, not in the paper: fewer segments come out smaller than their own parts",
+        "principal axis; area = the surface its pixels cover at their depth, never more than its parent's "
+        "(extent and area: not in the paper)",
         choices=SCALE_MEASURES,
     )
     extent_percentile: float = 2.0
@@ -190,6 +196,7 @@ def segment_scales(
     num_segments: int,
     settings: Optional[LiftSettings] = None,
     depth: Optional[np.ndarray] = None,  # [H, W] z-depth for outlier rejection
+    footprint: Optional[np.ndarray] = None,  # [H, W] area each pixel covers at its depth ("area")
 ) -> tuple[np.ndarray, np.ndarray]:
     """Physical scale of every segment from its lifted pixels (see :func:`select_pixels`): the
     largest eigenvalue of their covariance, or with ``scale_measure="extent"`` the squared
@@ -212,6 +219,14 @@ def segment_scales(
     cov = 0.5 * (cov + cov.transpose(0, 2, 1))
     if st.scale_measure == "extent":
         measure = robust_extent(sel, pts, mean, cov, st.extent_percentile)
+    elif st.scale_measure == "area":
+        if footprint is None:
+            raise ValueError('scale_measure "area" needs the pixels\' footprints')
+        fp = np.asarray(footprint, dtype=np.float64)
+        measure = np.zeros(S)
+        for layer in sel:
+            pix = layer >= 0
+            measure += np.bincount(layer[pix], weights=fp[pix], minlength=S)[:S]
     else:
         measure = np.linalg.eigvalsh(cov)[:, -1]
     scales = np.where(ok, np.maximum(measure, 0.0), np.nan).astype(np.float32)
@@ -263,7 +278,8 @@ def lift_view(
         )
     valid = np.asarray(valid, dtype=bool) & np.isfinite(depth) & (depth > 0)
     points = camera.depth_to_points(np.where(valid, depth, 0.0))
-    return segment_scales(layers, points, valid, num_segments, settings, depth=depth)
+    footprint = np.where(valid, depth, 0.0) ** 2 / (camera.fx * camera.fy)  # [H, W] a pixel's area at its depth
+    return segment_scales(layers, points, valid, num_segments, settings, depth=depth, footprint=footprint)
 
 
 # ----------------------------------------------------------------------------- depth sources
