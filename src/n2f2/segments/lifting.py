@@ -199,10 +199,10 @@ def segment_scales(
     footprint: Optional[np.ndarray] = None,  # [H, W] area each pixel covers at its depth ("area")
 ) -> tuple[np.ndarray, np.ndarray]:
     """Physical scale of every segment from its lifted pixels (see :func:`select_pixels`): the
-    largest eigenvalue of their covariance, or with ``scale_measure="extent"`` the squared
-    diagonal of their robust oriented box (:func:`robust_extent`). Returns ``(scales [S]
-    float32, NaN for degenerate segments, num_points [S] int64)``. A segment with fewer than
-    ``min_points`` usable pixels is degenerate."""
+    largest eigenvalue of their covariance, with ``scale_measure="extent"`` the squared diagonal
+    of their robust oriented box (:func:`robust_extent`), with ``"area"`` the sum of their
+    ``footprint``. Returns ``(scales [S] float32, NaN for degenerate segments, num_points [S]
+    int64)``. A segment with fewer than ``min_points`` usable pixels is degenerate."""
     st = settings or LiftSettings()
     S = int(num_segments)
     if S == 0:
