@@ -325,18 +325,22 @@ class QueryEngine:
     @property
     def theta_tilde(self) -> Tensor:  # [N, D] revcumsum(gamma^3D) * Theta, computed once
         if self._theta_tilde is None:
-            canon = self.encode(self.config.canonical)
-            with torch.no_grad():
-                self._theta_tilde = premultiply(
-                    self.theta,
-                    self.W,
-                    canon,
-                    self.step,
-                    self.config.temperature,
-                    self.config.chunk,
-                    weights=self.config.composite_weights,
-                )
+            self._theta_tilde = self._premultiply(self.theta)
         return self._theta_tilde
+
+    @torch.no_grad()
+    def _premultiply(self, theta: Tensor) -> Tensor:  # theta [n, D] -> Theta~ [n, D]
+        """:func:`~n2f2.query.composite.premultiply` with this engine's composite settings."""
+        canon = self.encode(self.config.canonical)
+        return premultiply(
+            theta,
+            self.W,
+            canon,
+            self.step,
+            self.config.temperature,
+            self.config.chunk,
+            weights=self.config.composite_weights,
+        )
 
     def level_maps(self) -> Tensor:  # [3, E, D] the "levels" field's three linear projections
         """The level projections of a "levels" field, read off ``field.level_features`` applied to
@@ -456,7 +460,6 @@ class QueryEngine:
         # gives it), not the MLP's output for a zero input.
         covered = (out.alpha.reshape(H * W_, 1) > 0).to(blended.dtype)  # [H W, 1]
         flat = blended.new_empty(H * W_, len(parts) * D)
-        canon = self.encode(self.config.canonical) if "tilde" in parts else None
         with torch.no_grad():
             for a in range(0, H * W_, self.config.chunk):  # bounds the MLP's [chunk, hidden] memory
                 b = a + self.config.chunk
@@ -464,17 +467,7 @@ class QueryEngine:
                 for j, p in enumerate(parts):
                     block = flat[a : a + len(theta), j * D : (j + 1) * D]
                     if p == "tilde":
-                        assert canon is not None  # encoded above when composite is asked for
-                        block.copy_(
-                            premultiply(
-                                theta,
-                                self.W,
-                                canon,
-                                self.step,
-                                self.config.temperature,
-                                weights=self.config.composite_weights,
-                            )
-                        )
+                        block.copy_(self._premultiply(theta))
                     else:
                         block.copy_(theta)
         return flat, out
