@@ -43,16 +43,31 @@ def transpose_csr(a: Tensor) -> Tensor:  # sparse CSR [R, K] -> sparse CSR [K, R
         return a.t().to_sparse_csr()
 
 
+def sparse_dense(
+    a: Tensor,  # sparse [R, K]
+    x: Tensor,  # [K, C]
+) -> Tensor:  # [R, C] = a @ x
+    """``a @ x``. On CPU, ``a @ x`` with a sparse CSR ``a`` fills a zero tensor of the result's
+    size and copies it into the result before the product overwrites it: two passes over memory
+    that, in a training step, cost more than the product (the TriPlane's texel gradient is 6 MB).
+    ``addmm`` with ``beta = 0`` into its own ``out`` skips both; torch documents that ``beta = 0``
+    ignores the input's values (not even NaN propagates), so an uninitialised ``out`` is fine."""
+    if a.device.type != "cpu" or a.layout != torch.sparse_csr:
+        return a @ x
+    out = x.new_empty(a.shape[0], x.shape[1])
+    return torch.addmm(out, a, x, beta=0.0, alpha=1.0, out=out)
+
+
 class _ConstantSparseMatmul(torch.autograd.Function):
     @staticmethod
     def forward(ctx, x: Tensor, a: Tensor, a_t: Optional[Tensor]) -> Tensor:
         ctx.a, ctx.a_t = a, a_t
-        return a @ x
+        return sparse_dense(a, x)
 
     @staticmethod
     def backward(ctx, grad: Tensor):
         a_t = ctx.a_t if ctx.a_t is not None else ctx.a.t()  # a CSC view: no copy
-        return a_t @ grad, None, None
+        return sparse_dense(a_t, grad), None, None
 
 
 def constant_sparse_matmul(
