@@ -153,7 +153,9 @@ def average_precision(
 ) -> float:
     """Average precision of ranking ``scores`` against ``positives`` (see module docstring;
     equal to scikit-learn's ``average_precision_score``, ties as one threshold)."""
-    s = np.asarray(scores, dtype=np.float64).reshape(-1)
+    s = np.asarray(scores).reshape(-1)
+    if not np.issubdtype(s.dtype, np.floating):
+        s = s.astype(np.float64)
     y = np.asarray(positives).reshape(-1) != 0
     if np.shape(scores) != np.shape(positives):
         raise ValueError(f"scores {np.shape(scores)} and positives {np.shape(positives)} differ in shape")
@@ -162,13 +164,14 @@ def average_precision(
     total = int(y.sum())
     if total == 0:
         raise ValueError("average precision needs at least one positive")
-    order = np.argsort(-s, kind="stable")
-    s, y = s[order], y[order]
-    last = np.r_[np.flatnonzero(s[1:] != s[:-1]), s.size - 1]  # last index of each tie group
-    tp = np.cumsum(y)[last]
-    precision = tp / (last + 1.0)
-    recall = tp / float(total)
-    return float(np.sum(np.diff(recall, prepend=0.0) * precision))
+    # Recall changes only at thresholds equal to a positive's score: at each distinct positive
+    # score v (highest first), tp = positives scoring >= v and n = all scoring >= v, counted by
+    # binary search in the sorted scores (no argsort: a tie group's order does not matter).
+    positive = np.sort(s[y])
+    thresholds = np.unique(positive)[::-1]  # distinct positive scores, highest first
+    tp = (total - np.searchsorted(positive, thresholds, side="left")).astype(np.float64)
+    n = (s.size - np.searchsorted(np.sort(s), thresholds, side="left")).astype(np.float64)
+    return float(np.sum(np.diff(tp / total, prepend=0.0) * (tp / n)))
 
 
 # ------------------------------------------------------------------------------ deltas
