@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from n2f2.sparse import constant_sparse_matmul, csr_matrix, transpose_csr
+from n2f2.sparse import constant_sparse_matmul, csr_matrix, sparse_dense, transpose_csr
 
 
 def _random_csr(rows: int, cols: int, per_row: list[int], dtype=torch.float64, seed: int = 0):
@@ -41,3 +41,15 @@ def test_dtype_follows_the_dense_operand_and_layout_is_checked():
     torch.testing.assert_close(out, a.to_dense().double() @ x)
     with pytest.raises(ValueError, match="CSR"):
         constant_sparse_matmul(a.to_dense(), x)
+
+
+def test_sparse_dense_overwrites_its_output_rows_without_entries_included():
+    # The fast path writes the product into ``out`` with beta = 0, never reading it: rows of
+    # ``a`` without entries must come out 0, not the NaN that was there.
+    a = _random_csr(6, 9, [3, 0, 9, 1, 4, 0])
+    x = torch.randn(9, 5, dtype=torch.float64)
+    out = torch.full((6, 5), float("nan"), dtype=torch.float64)
+    result = sparse_dense(a, x, out=out)
+    assert result.data_ptr() == out.data_ptr()
+    torch.testing.assert_close(result, a.to_dense() @ x)
+    assert (result[1] == 0).all() and (result[5] == 0).all()

@@ -46,6 +46,7 @@ def transpose_csr(a: Tensor) -> Tensor:  # sparse CSR [R, K] -> sparse CSR [K, R
 def sparse_dense(
     a: Tensor,  # sparse [R, K]
     x: Tensor,  # [K, C]
+    out: Optional[Tensor] = None,  # [R, C] written (its values are never read); None: a new tensor
 ) -> Tensor:  # [R, C] = a @ x
     """``a @ x``. On CPU, ``a @ x`` with a sparse CSR ``a`` fills a zero tensor of the result's
     size and copies it into the result before the product overwrites it: two passes over memory
@@ -53,8 +54,9 @@ def sparse_dense(
     ``addmm`` with ``beta = 0`` into its own ``out`` skips both; torch documents that ``beta = 0``
     ignores the input's values (not even NaN propagates), so an uninitialised ``out`` is fine."""
     if a.device.type != "cpu" or a.layout != torch.sparse_csr:
-        return a @ x
-    out = x.new_empty(a.shape[0], x.shape[1])
+        return a @ x if out is None else out.copy_(a @ x)
+    if out is None:
+        out = x.new_empty(a.shape[0], x.shape[1])
     return torch.addmm(out, a, x, beta=0.0, alpha=1.0, out=out)
 
 
