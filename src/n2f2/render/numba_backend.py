@@ -1,7 +1,9 @@
 """Tile compositing compiled with numba: the CPU fast path of the rasterizer.
 
-Projection, binning and the per-pair ``log2 alpha`` polynomial are the torch backend's
-(:mod:`n2f2.render.torch_backend`, plain autograd); only the compositing, the loop over
+The per-Gaussian steps before it are compiled in their own modules, each equal to its torch
+reference (:mod:`n2f2.render.numba_project`: the projection and its gradients;
+:mod:`n2f2.render.numba_bins`: the tile binning, bit for bit); the per-pair ``log2 alpha``
+polynomial is the torch backend's (plain autograd). The compositing, the loop over
 pixel-Gaussian pairs, runs here, as two compiled kernels that follow 3DGS's CUDA ones:
 
 * forward: per pixel, walk the tile's depth-sorted list front to back, blend, stop at the
@@ -629,9 +631,24 @@ def rasterize_numba(
     same dict (``n_pairs`` counts the pairs the pixels walked, without padding)."""
     if means.device.type != "cpu":
         raise ValueError("the numba backend runs on CPU tensors only")
+    from n2f2.render.numba_bins import bin_gaussians_numba
+    from n2f2.render.numba_project import project_gaussians_numba
+
     wait_for_background_compile()
     return rasterize_torch(
-        means, quats, scales, opacities, features, viewmat, K, width, height, composite=_composite, **kw
+        means,
+        quats,
+        scales,
+        opacities,
+        features,
+        viewmat,
+        K,
+        width,
+        height,
+        composite=_composite,
+        binning=bin_gaussians_numba,
+        project=project_gaussians_numba,
+        **kw,
     )
 
 
@@ -677,7 +694,7 @@ def warm_up() -> None:
     """Compile (or load from the cache) every kernel a pipeline uses: a tiny render with
     gradients (the fit) and one without (the trainer's blend weights, queries, evaluation)."""
     from n2f2.cameras import Camera
-    from n2f2.render import rasterize, rasterize_in_bands
+    from n2f2.render import eval_sh, rasterize, rasterize_in_bands
 
     gen = torch.Generator().manual_seed(0)
     n = 32
@@ -687,6 +704,8 @@ def warm_up() -> None:
     features = torch.rand(n, 4, generator=gen, requires_grad=True)
     out = rasterize(means.requires_grad_(), quats, scales, opacities, features, camera, backend="numba")
     (out.features.sum() + out.depth.sum()).backward()
+    sh = torch.randn(n, 16, 3, generator=gen, requires_grad=True)  # the fit's colours (numba_sh)
+    eval_sh(sh, means - torch.tensor(camera.center, dtype=torch.float32), 3).sum().backward()
     with torch.no_grad():
         rasterize_in_bands(means.detach(), quats, scales, opacities, features.detach(), camera, backend="numba")
 

@@ -60,7 +60,26 @@ def eval_sh(
     dirs: Tensor,  # [N, 3] viewing directions (camera centre -> Gaussian), any length
     degree: int,
 ) -> Tensor:  # [N, 3]
-    """RGB colour = max(SH(dirs) + 0.5, 0), as 3DGS."""
+    """RGB colour = max(SH(dirs) + 0.5, 0), as 3DGS: compiled on CPU
+    (:mod:`n2f2.render.numba_sh`), else :func:`eval_sh_torch`."""
+    k = num_sh_bases(degree)
+    if not 0 <= degree <= 3:
+        raise ValueError(f"SH degree must be 0..3, got {degree}")
+    if sh.shape[-2] < k:
+        raise ValueError(f"SH degree {degree} needs {k} coefficients per channel, got {sh.shape[-2]}")
+    from . import numba_sh  # here: it imports this module's constants
+
+    if numba_sh.usable(sh, dirs):
+        return numba_sh.sh_colors(sh[:, :k], dirs)
+    return eval_sh_torch(sh, dirs, degree)
+
+
+def eval_sh_torch(
+    sh: Tensor,  # [N, K, 3] coefficients, K >= (degree + 1)^2 (extra bands are ignored)
+    dirs: Tensor,  # [N, 3] viewing directions (camera centre -> Gaussian), any length
+    degree: int,
+) -> Tensor:  # [N, 3]
+    """:func:`eval_sh` in PyTorch operations (any device; the reference of the compiled path)."""
     k = num_sh_bases(degree)
     if sh.shape[-2] < k:
         raise ValueError(f"SH degree {degree} needs {k} coefficients per channel, got {sh.shape[-2]}")

@@ -489,6 +489,8 @@ def rasterize_torch(
     chunk: int = 128,
     batch_elements: int = 1 << 17,
     composite=None,  # the compositing autograd Function's apply; default: this module's
+    binning=None,  # bin_gaussians or an equal compiled one; default: this module's
+    project=None,  # project_gaussians or an equal compiled one; default: this module's
     rows: tuple[int, int] | None = None,  # render only image rows [y0, y1) (y0 on a tile row)
 ) -> dict:
     """Rasterize with the pure-PyTorch backend.
@@ -505,14 +507,16 @@ def rasterize_torch(
     ``rows``: the features, alpha and depth of those rows only ([y1 - y0, W, ...]), exactly as
     in the whole image: the projection is the whole image's (3DGS's Jacobian clamp depends on
     the image bounds), and the tiles and their centres are the whole image's tiles."""
-    proj = project_gaussians(
+    proj = (project or project_gaussians)(
         means, quats, scales, opacities, viewmat, K, width, height, near=near, far=far, eps2d=eps2d, alpha_min=alpha_min
     )
     y0, y1 = rows if rows is not None else (0, height)
     if not 0 <= y0 < y1 <= height:
         raise ValueError(f"rows [{y0}, {y1}) are not inside an image of height {height}")
     height = y1 - y0
-    bins = bin_gaussians(proj.means2d, proj.half_extent, proj.depths, proj.valid, width, height, tile_size, row0=y0)
+    bins = (binning or bin_gaussians)(
+        proj.means2d, proj.half_extent, proj.depths, proj.valid, width, height, tile_size, row0=y0
+    )
     kp = pair_coefficients(proj.means2d, proj.conics, opacities, bins)
     cfg = CompositeConfig(
         alpha_clamp=alpha_clamp,
