@@ -84,16 +84,21 @@ def view_blend_weights(
     camera: Camera,
 ) -> tuple[Tensor, Tensor, Tensor]:  # pixel [nnz] long, gid [nnz] long, weight [nnz]
     """Every non-zero (pixel, Gaussian, weight) of one view, with the torch backend's defaults
-    (tile 8, alpha clamp 0.99, alpha_min 1/255, transmittance_min 1e-4, eps2d 0.3)."""
+    (tile 8, alpha clamp 0.99, alpha_min 1/255, transmittance_min 1e-4, eps2d 0.3). The
+    projection and binning are the CPU renderer's (compiled where numba runs, which fall back to
+    the torch ones elsewhere), so that the weights are those the renderer blends with: a
+    projection rounded differently moves pairs across the alpha and transmittance cut-offs."""
     from ..render import torch_backend as tb
+    from ..render.numba_bins import bin_gaussians_numba
+    from ..render.numba_project import project_gaussians_numba
 
     W, H = camera.width, camera.height
     cam = camera.to_torch(device=geometry["means"].device, dtype=geometry["means"].dtype)
-    proj = tb.project_gaussians(
+    proj = project_gaussians_numba(
         geometry["means"], geometry["quats"], geometry["scales"], geometry["opacities"], cam["viewmat"], cam["K"], W, H
     )
     ts = 8
-    bins = tb.bin_gaussians(proj.means2d, proj.half_extent, proj.depths, proj.valid, W, H, ts)
+    bins = bin_gaussians_numba(proj.means2d, proj.half_extent, proj.depths, proj.valid, W, H, ts)
     kp = tb.pair_coefficients(proj.means2d, proj.conics, geometry["opacities"], bins)
     cfg = tb.CompositeConfig()
     P = tb._pixel_basis(ts, kp.dtype, kp.device)
