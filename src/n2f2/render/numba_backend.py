@@ -631,25 +631,19 @@ def rasterize_numba(
     same dict (``n_pairs`` counts the pairs the pixels walked, without padding)."""
     if means.device.type != "cpu":
         raise ValueError("the numba backend runs on CPU tensors only")
+    wait_for_background_compile()
+    return rasterize_torch(
+        means, quats, scales, opacities, features, viewmat, K, width, height, composite=_composite, **_steps(), **kw
+    )
+
+
+def _steps() -> dict:
+    """The compiled projection and binning, as :func:`rasterize_torch` takes them (imported
+    here: those modules import this one)."""
     from n2f2.render.numba_bins import bin_gaussians_numba
     from n2f2.render.numba_project import project_gaussians_numba
 
-    wait_for_background_compile()
-    return rasterize_torch(
-        means,
-        quats,
-        scales,
-        opacities,
-        features,
-        viewmat,
-        K,
-        width,
-        height,
-        composite=_composite,
-        binning=bin_gaussians_numba,
-        project=project_gaussians_numba,
-        **kw,
-    )
+    return {"binning": bin_gaussians_numba, "project": project_gaussians_numba}
 
 
 @torch.no_grad()
@@ -677,7 +671,9 @@ def count_pairs(
 
     if means.device.type != "cpu":
         raise ValueError("the numba backend runs on CPU tensors only")
-    rasterize_torch(means, quats, scales, opacities, features, viewmat, K, width, height, composite=composite, **kw)
+    rasterize_torch(
+        means, quats, scales, opacities, features, viewmat, K, width, height, composite=composite, **_steps(), **kw
+    )
     return counts[0], counts[1]
 
 
