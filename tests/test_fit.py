@@ -148,6 +148,13 @@ def test_gaussian_adam_rejects_non_finite_update():
     assert not adam.step({"p": p}, {"p": 0.1})
     assert torch.equal(p.detach(), before[0]) and torch.equal(adam.exp_avg["p"], before[1])
     assert adam.step_count["p"] == before[2]
+    # Infinite, or finite but so large that its square overflows float32: refused as well.
+    for bad in (float("-inf"), 3e19):
+        p.grad = torch.tensor([1.0, bad, 0.0])
+        assert not adam.step({"p": p}, {"p": 0.1})
+        assert torch.equal(p.detach(), before[0]) and adam.step_count["p"] == before[2]
+    p.grad = torch.tensor([1.0, 1e18, 0.0])  # below the limit: taken
+    assert adam.step({"p": p}, {"p": 0.1}) and adam.step_count["p"] == before[2] + 1
 
 
 # ------------------------------------------------------------------------------------ densification
