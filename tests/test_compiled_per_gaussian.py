@@ -53,9 +53,7 @@ def _project(fn, dtype):
     weights = [torch.randn(t.shape, generator=g, dtype=dtype) for t in (proj.means2d, proj.conics, proj.depths)]
     v = proj.valid
     loss = (
-        (proj.means2d * weights[0])[v].sum()
-        + (proj.conics * weights[1])[:, v].sum()
-        + (proj.depths * weights[2]).sum()
+        (proj.means2d * weights[0])[v].sum() + (proj.conics * weights[1])[:, v].sum() + (proj.depths * weights[2]).sum()
     )
     return proj, torch.autograd.grad(loss, params)
 
