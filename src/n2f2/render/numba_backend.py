@@ -625,21 +625,23 @@ def rasterize_numba(
     K: Tensor,  # [3, 3]
     width: int,
     height: int,
-    **kw,  # near, far, eps2d, alpha_clamp, alpha_min, transmittance_min, tile_size, rows
+    **kw,  # near, far, eps2d, alpha_clamp, alpha_min, transmittance_min, tile_size, rows, composite
 ) -> dict:
     """:func:`~n2f2.render.torch_backend.rasterize_torch` with the compiled compositing; the
     same dict (``n_pairs`` counts the pairs the pixels walked, without padding)."""
     if means.device.type != "cpu":
         raise ValueError("the numba backend runs on CPU tensors only")
     wait_for_background_compile()
+    kw.setdefault("composite", _composite)  # count_pairs passes a counting one
     return rasterize_torch(
-        means, quats, scales, opacities, features, viewmat, K, width, height, composite=_composite, **_steps(), **kw
+        means, quats, scales, opacities, features, viewmat, K, width, height, **compiled_steps(), **kw
     )
 
 
-def _steps() -> dict:
-    """The compiled projection and binning, as :func:`rasterize_torch` takes them (imported
-    here: those modules import this one)."""
+def compiled_steps() -> dict:
+    """The CPU renderer's projection and binning, compiled (each falls back to its torch
+    reference for inputs it does not take), as :func:`rasterize_torch` takes them; whatever must
+    blend with the renderer's weights uses these too. Imported here: those modules import this one."""
     from n2f2.render.numba_bins import bin_gaussians_numba
     from n2f2.render.numba_project import project_gaussians_numba
 
@@ -669,11 +671,7 @@ def count_pairs(
         counts.extend([int(stop.sum()), int(np.unpackbits(blend.view(np.uint8)).sum())])
         return torch.from_numpy(out).transpose(1, 2)
 
-    if means.device.type != "cpu":
-        raise ValueError("the numba backend runs on CPU tensors only")
-    rasterize_torch(
-        means, quats, scales, opacities, features, viewmat, K, width, height, composite=composite, **_steps(), **kw
-    )
+    rasterize_numba(means, quats, scales, opacities, features, viewmat, K, width, height, composite=composite, **kw)
     return counts[0], counts[1]
 
 

@@ -89,16 +89,16 @@ def view_blend_weights(
     the torch ones elsewhere), so that the weights are those the renderer blends with: a
     projection rounded differently moves pairs across the alpha and transmittance cut-offs."""
     from ..render import torch_backend as tb
-    from ..render.numba_bins import bin_gaussians_numba
-    from ..render.numba_project import project_gaussians_numba
+    from ..render.numba_backend import compiled_steps
 
+    steps = compiled_steps()
     W, H = camera.width, camera.height
     cam = camera.to_torch(device=geometry["means"].device, dtype=geometry["means"].dtype)
-    proj = project_gaussians_numba(
+    proj = steps["project"](
         geometry["means"], geometry["quats"], geometry["scales"], geometry["opacities"], cam["viewmat"], cam["K"], W, H
     )
     ts = 8
-    bins = bin_gaussians_numba(proj.means2d, proj.half_extent, proj.depths, proj.valid, W, H, ts)
+    bins = steps["binning"](proj.means2d, proj.half_extent, proj.depths, proj.valid, W, H, ts)
     kp = tb.pair_coefficients(proj.means2d, proj.conics, geometry["opacities"], bins)
     cfg = tb.CompositeConfig()
     P = tb._pixel_basis(ts, kp.dtype, kp.device)
