@@ -696,3 +696,39 @@ def test_evaluate_cosine_matches_slow_reference(setup):
                 assert row[name] is None
             else:
                 assert row[name] == pytest.approx(acc[0] / acc[1], abs=1e-5)
+
+
+def test_compiled_blend_request_equals_the_torch_request():
+    """The compiled row request (and its transpose) is the torch one array for array: rows with
+    no entries, repeated rows, rows in any order, and a Gaussian no requested row reaches."""
+    from n2f2.train import numba_blend
+    from n2f2.train.blend import BlendCache
+
+    if not numba_blend.available():
+        pytest.skip("numba is not installed")
+    g = torch.Generator().manual_seed(5)
+    n, rows_total = 40, 60
+    counts = torch.randint(0, 6, (rows_total,), generator=g)
+    counts[[3, 17]] = 0
+    crow = torch.cat([torch.zeros(1, dtype=torch.long), torch.cumsum(counts, 0)])
+    nnz = int(crow[-1])
+    gid = torch.randint(0, n - 1, (nnz,), generator=g).to(torch.int32)  # Gaussian n - 1 never appears
+    cache = BlendCache(crow=crow, gid=gid, weight=torch.rand(nnz, generator=g), offsets=[0, 30], sizes=[(5, 6)] * 2)
+    slot = torch.tensor([1, 0, 0, 1, 0, 1, 0])
+    pixel = torch.tensor([4, 3, 17, 29, 3, 0, 12])  # row 3 twice, rows 3 and 17 empty
+    for transpose in (False, True):
+        got, got_t = cache.request(slot, pixel, n, transpose)
+        want, want_t = cache.request_torch(slot, pixel, n, transpose)
+        pairs = [(got, want)] + ([(got_t, want_t)] if transpose else [])
+        assert (got_t is None) is (not transpose)
+        for a, b in pairs:
+            assert a.shape == b.shape
+            for part in ("crow_indices", "col_indices", "values"):
+                x, y = getattr(a, part)(), getattr(b, part)()
+                assert x.dtype == y.dtype and torch.equal(x, y)
+    dense = torch.zeros(7, n)  # the request written out by hand from the cache
+    for i, r in enumerate((34, 3, 17, 59, 3, 30, 12)):
+        for e in range(int(crow[r]), int(crow[r + 1])):
+            dense[i, int(gid[e])] += float(cache.weight[e])
+    torch.testing.assert_close(got.to_dense(), dense)
+    torch.testing.assert_close(got_t.to_dense(), dense.t())

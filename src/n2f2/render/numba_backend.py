@@ -704,14 +704,16 @@ def warm_up() -> None:
         rasterize_in_bands(means.detach(), quats, scales, opacities, features.detach(), camera, backend="numba")
 
 
-def compile_in_background() -> None:
-    """Start :func:`warm_up` in a child process, once per process (nothing without numba). The
-    first compiled render after that waits for it (:func:`wait_for_background_compile`)."""
+def compile_in_background(*modules: str) -> None:
+    """Start :func:`warm_up`, and the ``warm_up()`` of each of ``modules`` (dotted names of
+    modules with compiled kernels of later stages), in a child process, once per process (nothing
+    without numba). The first compiled render after that waits for it
+    (:func:`wait_for_background_compile`); a later stage's first call finds its kernel cached."""
     global _BACKGROUND, _STARTED
     if _STARTED or numba is None:
         return
     _STARTED = True
-    code = "from n2f2.render.numba_backend import warm_up; warm_up()"
+    code = "; ".join(f"import {m}; {m}.warm_up()" for m in ("n2f2.render.numba_backend", *modules))
     try:
         _BACKGROUND = subprocess.Popen(
             [sys.executable, "-c", code], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
