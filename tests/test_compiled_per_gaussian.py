@@ -11,10 +11,11 @@ import torch
 
 from n2f2.cameras import Camera
 from n2f2.render.numba_bins import bin_gaussians_numba
+from n2f2.render.numba_pairs import pair_coefficients_numba
 from n2f2.render.numba_project import project_gaussians_numba
 from n2f2.render.numba_sh import sh_colors
 from n2f2.render.sh import eval_sh, eval_sh_torch, num_sh_bases
-from n2f2.render.torch_backend import bin_gaussians, project_gaussians
+from n2f2.render.torch_backend import bin_gaussians, pair_coefficients, project_gaussians
 
 pytest.importorskip("numba")
 
@@ -106,6 +107,50 @@ def test_compiled_binning_equals_the_reference(tile_size, rows):
         a, b = getattr(got, name), getattr(want, name)
         assert a.dtype == b.dtype and torch.equal(a, b), name
     assert (got.tiles_x, got.tiles_y, got.tile_size, got.row0) == (want.tiles_x, want.tiles_y, want.tile_size, y0)
+
+
+def _pairs(dtype: torch.dtype, rows=None):
+    """Projected Gaussians (as leaves) and their bins; one opacity underflows the log's clamp."""
+    means, quats, scales, opacities = _gaussians(400, dtype, seed=7)
+    K = CAMERA.to_torch(device="cpu", dtype=dtype)["K"]
+    with torch.no_grad():
+        p = project_gaussians(means, quats, scales, opacities, _viewmat(dtype), K, CAMERA.width, CAMERA.height)
+    y0, y1 = rows if rows is not None else (0, CAMERA.height)
+    bins = bin_gaussians(p.means2d, p.half_extent, p.depths, p.valid, CAMERA.width, y1 - y0, 8, row0=y0)
+    opacities = opacities.clone()
+    opacities[int(bins.pair_gid[0])] = 1e-35  # below the clamp: no gradient, as the reference
+    return p.means2d, p.conics, opacities, bins
+
+
+@pytest.mark.parametrize(("dtype", "rtol"), [(torch.float64, 1e-10), (torch.float32, 1e-4)])
+@pytest.mark.parametrize("rows", [None, (48, 88)])
+def test_compiled_pair_coefficients_match_the_reference_with_gradients(dtype, rtol, rows):
+    means2d, conics, opacities, bins = _pairs(dtype, rows)
+    assert bins.pair_gid.numel() > 1000
+    g = torch.Generator().manual_seed(2)
+    upstream = torch.randn(6, bins.pair_gid.numel(), generator=g, dtype=dtype)
+    results = []
+    for fn in (pair_coefficients, pair_coefficients_numba):
+        leaves = [t.clone().requires_grad_(True) for t in (means2d, conics, opacities)]
+        kp = fn(*leaves, bins)
+        results.append((kp.detach(), torch.autograd.grad((kp * upstream).sum(), leaves)))
+    (want, want_grads), (got, got_grads) = results
+    assert got.dtype == dtype and got.shape == want.shape
+    torch.testing.assert_close(got, want, rtol=rtol, atol=rtol * float(want.abs().max()))
+    for a, b in zip(got_grads, want_grads):
+        torch.testing.assert_close(a, b, rtol=rtol, atol=rtol * float(b.abs().max()))
+    assert float(got_grads[2][int(bins.pair_gid[0])]) == 0.0
+
+
+def test_compiled_pair_coefficients_gradcheck():
+    means2d, conics, opacities, bins = _pairs(torch.float64)
+    keep = bins.pair_gid < 60  # a few Gaussians' pairs, each with several tiles
+    small = type(bins)(**{**bins.__dict__, "pair_gid": bins.pair_gid[keep], "pair_tile": bins.pair_tile[keep]})
+    n = 60
+    inputs = tuple(t[..., :n].clone() if t is conics else t[:n].clone() for t in (means2d, conics, opacities))
+    inputs = tuple(t.requires_grad_(True) for t in inputs)
+    assert small.pair_gid.numel() > 20
+    assert torch.autograd.gradcheck(lambda m, c, o: pair_coefficients_numba(m, c, o, small), inputs)
 
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])

@@ -121,14 +121,15 @@ def test_ssim_matches_reference_and_identity():
 
 
 # ------------------------------------------------------------------------------------ optimiser
-def test_gaussian_adam_matches_torch_adam():
+@pytest.mark.parametrize("compiled", [False, True])
+def test_gaussian_adam_matches_torch_adam(compiled):
     torch.manual_seed(0)
     x0 = torch.randn(5, 3)
     target = torch.randn(5, 3)
     a = x0.clone().requires_grad_(True)
     b = x0.clone().requires_grad_(True)
     ref = torch.optim.Adam([a], lr=0.01, eps=1e-15)
-    ours = GaussianAdam(eps=1e-15)
+    ours = GaussianAdam(eps=1e-15, compiled=compiled)
     for _ in range(7):
         for p in (a, b):
             p.grad = None
@@ -136,6 +137,31 @@ def test_gaussian_adam_matches_torch_adam():
         ref.step()
         assert ours.step({"x": b}, {"x": 0.01})
     torch.testing.assert_close(b, a, rtol=1e-6, atol=1e-7)
+
+
+@pytest.mark.parametrize("compiled", [False, True])
+def test_gaussian_adam_with_a_rate_per_coefficient_matches_torch_adam_groups(compiled):
+    # The SH tensor's rates: one for the DC coefficient, one for the rest, as a [1, K, 1] tensor;
+    # torch.optim.Adam gets the two slices as separate parameters of two groups.
+    g = torch.Generator().manual_seed(4)
+    sh0 = torch.randn(300, 4, 3, generator=g)
+    target = torch.randn(300, 4, 3, generator=g)
+    dc, rest = sh0[:, :1].clone().requires_grad_(True), sh0[:, 1:].clone().requires_grad_(True)
+    ref = torch.optim.Adam([{"params": [dc], "lr": 0.02}, {"params": [rest], "lr": 0.001}], eps=1e-15)
+    sh = sh0.clone().requires_grad_(True)
+    ours = GaussianAdam(eps=1e-15, compiled=compiled)
+    rate = torch.tensor([0.02, 0.001, 0.001, 0.001]).reshape(1, 4, 1)
+    empty = torch.zeros(0, 3, requires_grad=True)  # a parameter with no rows (all pruned)
+    for _ in range(20):
+        for p in (dc, rest, sh):
+            p.grad = None
+        ((torch.cat([dc, rest], 1) - target) ** 3).abs().sum().backward()
+        ((sh - target) ** 3).abs().sum().backward()
+        empty.grad = torch.zeros(0, 3)
+        ref.step()
+        assert ours.step({"sh": sh, "empty": empty}, {"sh": rate, "empty": 0.1})
+    torch.testing.assert_close(sh.detach(), torch.cat([dc, rest], 1).detach(), rtol=1e-5, atol=1e-6)
+    assert not torch.equal(sh.detach(), sh0)
 
 
 def test_gaussian_adam_rejects_non_finite_update():

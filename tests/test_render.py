@@ -393,7 +393,7 @@ def test_numba_kernels_compile_in_a_child_process_and_the_first_render_waits(mon
 
     monkeypatch.setattr(nb, "_BACKGROUND", None)
     monkeypatch.setattr(nb, "_STARTED", False)
-    nb.compile_in_background("n2f2.train.numba_blend")  # and a later stage's kernel
+    nb.compile_in_background("n2f2.gaussians.numba_adam", "n2f2.train.numba_blend")  # and later stages' kernels
     child = nb._BACKGROUND
     assert child is not None
     nb.compile_in_background()

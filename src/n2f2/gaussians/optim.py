@@ -71,9 +71,12 @@ class GaussianAdam:
     for the DC coefficient and one for the rest). Matches ``torch.optim.Adam`` (no weight decay).
     A step is taken only when it keeps every value finite."""
 
-    def __init__(self, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-15) -> None:
+    def __init__(self, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-15, compiled: bool = True) -> None:
         self.betas = betas
         self.eps = eps
+        # CPU float32 parameters take the compiled update (n2f2.gaussians.numba_adam); the
+        # tensor operations below are its reference and every other device's update.
+        self.compiled = compiled
         self.exp_avg: dict[str, Tensor] = {}
         self.exp_avg_sq: dict[str, Tensor] = {}
         self.step_count: dict[str, int] = {}
@@ -83,6 +86,8 @@ class GaussianAdam:
         """One Adam step for every parameter that has a gradient. Returns False, changing
         nothing, when a gradient is not finite or so large that its square overflows (the only
         ways a step from a finite state can produce a non-finite one)."""
+        from . import numba_adam
+
         b1, b2 = self.betas
         live = {name: p for name, p in params.items() if p.grad is not None}
         grads = [p.grad for p in live.values() if p.grad is not None and p.grad.numel()]
@@ -100,6 +105,9 @@ class GaussianAdam:
             m, v = self.exp_avg[name], self.exp_avg_sq[name]
             t = self.step_count.get(name, 0) + 1
             self.step_count[name] = t
+            if self.compiled and numba_adam.usable([p, g, m, v]):
+                numba_adam.adam_update(p, g, m, v, lrs[name], self.betas, t, self.eps)
+                continue
             m.mul_(b1).add_(g, alpha=1 - b1)
             v.mul_(b2).addcmul_(g, g, value=1 - b2)
             bc1, bc2 = 1 - b1**t, 1 - b2**t

@@ -110,7 +110,7 @@ def run_pipeline(opt: RunOptions, log: Callable[[str], None] = print) -> dict:
     if opt.device == "cpu":  # compile the rasterizer while the scene is read; the first render waits
         from ..render.numba_backend import compile_in_background
 
-        compile_in_background("n2f2.train.numba_blend")
+        compile_in_background("n2f2.gaussians.numba_adam", "n2f2.train.numba_blend")
     cache = StageCache.open(out)
     progress = not opt.quiet
     common = _StageOptions(

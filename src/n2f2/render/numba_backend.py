@@ -639,13 +639,15 @@ def rasterize_numba(
 
 
 def compiled_steps() -> dict:
-    """The CPU renderer's projection and binning, compiled (each falls back to its torch
-    reference for inputs it does not take), as :func:`rasterize_torch` takes them; whatever must
-    blend with the renderer's weights uses these too. Imported here: those modules import this one."""
+    """The CPU renderer's projection, binning and pair coefficients, compiled (each falls back to
+    its torch reference for inputs it does not take), as :func:`rasterize_torch` takes them;
+    whatever must blend with the renderer's weights uses these too. Imported here: those modules
+    import this one."""
     from n2f2.render.numba_bins import bin_gaussians_numba
+    from n2f2.render.numba_pairs import pair_coefficients_numba
     from n2f2.render.numba_project import project_gaussians_numba
 
-    return {"binning": bin_gaussians_numba, "project": project_gaussians_numba}
+    return {"binning": bin_gaussians_numba, "project": project_gaussians_numba, "coefficients": pair_coefficients_numba}
 
 
 @torch.no_grad()

@@ -491,6 +491,7 @@ def rasterize_torch(
     composite=None,  # the compositing autograd Function's apply; default: this module's
     binning=None,  # bin_gaussians or an equal compiled one; default: this module's
     project=None,  # project_gaussians or an equal compiled one; default: this module's
+    coefficients=None,  # pair_coefficients or an equal compiled one; default: this module's
     rows: tuple[int, int] | None = None,  # render only image rows [y0, y1) (y0 on a tile row)
 ) -> dict:
     """Rasterize with the pure-PyTorch backend.
@@ -517,7 +518,7 @@ def rasterize_torch(
     bins = (binning or bin_gaussians)(
         proj.means2d, proj.half_extent, proj.depths, proj.valid, width, height, tile_size, row0=y0
     )
-    kp = pair_coefficients(proj.means2d, proj.conics, opacities, bins)
+    kp = (coefficients or pair_coefficients)(proj.means2d, proj.conics, opacities, bins)
     cfg = CompositeConfig(
         alpha_clamp=alpha_clamp,
         alpha_min=alpha_min,

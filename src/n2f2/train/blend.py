@@ -117,9 +117,10 @@ def view_blend_weights(
 ) -> tuple[Tensor, Tensor, Tensor]:  # pixel [nnz] long, gid [nnz] long, weight [nnz]
     """Every non-zero (pixel, Gaussian, weight) of one view, with the torch backend's defaults
     (tile 8, alpha clamp 0.99, alpha_min 1/255, transmittance_min 1e-4, eps2d 0.3). The
-    projection and binning are the CPU renderer's (compiled where numba runs, which fall back to
-    the torch ones elsewhere), so that the weights are those the renderer blends with: a
-    projection rounded differently moves pairs across the alpha and transmittance cut-offs."""
+    projection, binning and pair coefficients are the CPU renderer's (compiled where numba runs,
+    which fall back to the torch ones elsewhere), so that the weights are those the renderer
+    blends with: a projection rounded differently moves pairs across the alpha and transmittance
+    cut-offs."""
     from ..render import torch_backend as tb
     from ..render.numba_backend import compiled_steps
 
@@ -131,7 +132,7 @@ def view_blend_weights(
     )
     ts = 8
     bins = steps["binning"](proj.means2d, proj.half_extent, proj.depths, proj.valid, W, H, ts)
-    kp = tb.pair_coefficients(proj.means2d, proj.conics, geometry["opacities"], bins)
+    kp = steps["coefficients"](proj.means2d, proj.conics, geometry["opacities"], bins)
     cfg = tb.CompositeConfig()
     P = tb._pixel_basis(ts, kp.dtype, kp.device)
     th = tb._thresholds(cfg, kp.dtype)
