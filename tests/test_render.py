@@ -393,7 +393,9 @@ def test_numba_kernels_compile_in_a_child_process_and_the_first_render_waits(mon
 
     monkeypatch.setattr(nb, "_BACKGROUND", None)
     monkeypatch.setattr(nb, "_STARTED", False)
-    nb.compile_in_background("n2f2.gaussians.numba_adam", "n2f2.train.numba_blend")  # and later stages' kernels
+    from n2f2.pipeline.run import LATER_KERNELS
+
+    nb.compile_in_background(*LATER_KERNELS)  # and the later stages' kernels
     child = nb._BACKGROUND
     assert child is not None
     nb.compile_in_background()

@@ -732,3 +732,51 @@ def test_compiled_blend_request_equals_the_torch_request():
             dense[i, int(gid[e])] += float(cache.weight[e])
     torch.testing.assert_close(got.to_dense(), dense)
     torch.testing.assert_close(got_t.to_dense(), dense.t())
+
+
+@pytest.mark.parametrize(("dtype", "rtol"), [(torch.float64, 1e-12), (torch.float32, 1e-5)])
+def test_compiled_prefix_sums_match_the_tensor_reference_with_gradients(dtype, rtol):
+    """The loss's per-row prefix sums, compiled, against the cumulative sums they replace: rows
+    sharing a pixel or a target, the first and the last dim as a row's last."""
+    from n2f2.train import numba_prefix
+
+    if not numba_prefix.available():
+        pytest.skip("numba is not installed")
+    g = torch.Generator().manual_seed(6)
+    P, T, D, R = 9, 4, 7, 30
+    theta, u, a = (torch.randn(n, D, generator=g, dtype=dtype) for n in (P, T, P))
+    row, index = torch.randint(0, P, (R,), generator=g), torch.randint(0, T, (R,), generator=g)
+    last = torch.randint(0, D, (R,), generator=g)
+    last[:2] = torch.tensor([0, D - 1])
+    upstream = torch.randn(R, generator=g, dtype=dtype)
+    results = []
+    for compiled in (False, True):
+        leaves = [t.clone().requires_grad_(True) for t in (theta, u, a)]
+        with pytest.MonkeyPatch.context() as mp:
+            if not compiled:
+                mp.setattr(numba_prefix, "usable", lambda *t: False)
+            dot = numba_prefix.prefix_dot(leaves[1], leaves[0], index, row, last)
+            total = numba_prefix.prefix_sum(leaves[2], row, last)
+        grads = torch.autograd.grad(((dot + 2 * total) * upstream).sum(), leaves)
+        results.append((dot.detach(), total.detach(), grads))
+    (dot_ref, sum_ref, grads_ref), (dot, total, grads) = results
+    by_hand = torch.stack([(u[j, : k + 1] * theta[p, : k + 1]).sum() for j, p, k in zip(index, row, last)])
+    torch.testing.assert_close(dot_ref, by_hand, rtol=rtol, atol=rtol)
+    torch.testing.assert_close(dot, dot_ref, rtol=rtol, atol=rtol)
+    torch.testing.assert_close(total, sum_ref, rtol=rtol, atol=rtol)
+    for got, want in zip(grads, grads_ref):
+        assert got.dtype == dtype
+        torch.testing.assert_close(got, want, rtol=rtol, atol=rtol)
+
+
+def test_compiled_prefix_sums_gradcheck():
+    from n2f2.train import numba_prefix
+
+    if not numba_prefix.available():
+        pytest.skip("numba is not installed")
+    g = torch.Generator().manual_seed(7)
+    theta, u = torch.randn(3, 5, generator=g, dtype=torch.float64), torch.randn(2, 5, generator=g, dtype=torch.float64)
+    row, index, last = torch.tensor([0, 2, 2, 1, 0]), torch.tensor([1, 0, 1, 1, 0]), torch.tensor([4, 0, 2, 3, 1])
+    inputs = (u.requires_grad_(True), theta.requires_grad_(True))
+    assert torch.autograd.gradcheck(lambda a, b: numba_prefix.prefix_dot(a, b, index, row, last), inputs)
+    assert torch.autograd.gradcheck(lambda b: numba_prefix.prefix_sum(b, row, last), (theta,))

@@ -58,6 +58,7 @@ from ..validate import (
     positive_int,
 )
 from .blend import BlendCache, build_blend_cache
+from .numba_prefix import prefix_dot, prefix_sum
 from .sampling import PixelBatch, SegmentPool, ViewSegments
 
 if TYPE_CHECKING:
@@ -285,15 +286,15 @@ def prefix_projected_loss(
     per row. ``x G x`` over the first M dims is a prefix sum: with ``a_k = theta_k (2 sum_{j<k}
     G_kj theta_j + G_kk theta_k)``, ``x_r G x_r = sum_{k < M_r} a_k`` of the row's pixel. Same
     value and gradients up to float rounding."""
-    D, E = theta.shape[1], W.shape[0]
+    E = W.shape[0]
     G = W.t() @ W  # [D, D]
     a = theta * (2.0 * (theta @ torch.tril(G, diagonal=-1).t()) + theta * torch.diagonal(G))  # [P, D]
     last = dims.long() - 1  # [R] the row's last kept dim
-    # Flat index_select (not advanced indexing): its backward sums in a fixed order on any thread count.
-    xgx = torch.cumsum(a, 1).reshape(-1).index_select(0, row * D + last)  # [R]
-    u = (targets @ W).index_select(0, index)  # [R, D]
-    tx = torch.cumsum(u * theta.index_select(0, row), 1)  # [R, D]
-    ux = tx.reshape(-1).index_select(0, torch.arange(len(row), device=row.device) * D + last)  # [R]
+    # Compiled on CPU; elsewhere cumulative sums and flat index_selects (not advanced indexing:
+    # their backward sums in a fixed order on any thread count). Either way a run gives the same
+    # field on 1 or 2 threads.
+    xgx = prefix_sum(a, row, last)  # [R]
+    ux = prefix_dot(targets @ W, theta, index, row, last)  # [R]
     tt = (targets * targets).sum(1).index_select(0, index)  # [R]
     return _loss_from_products(xgx, ux, tt, E, cos_weight, weight)
 
