@@ -272,6 +272,10 @@ def test_densify_stats_ndc_scaling():
     s.add(torch.tensor([[1.0, 0.0], [0.0, 2.0], [5.0, 5.0]]), torch.tensor([3, 4, 0], dtype=torch.int32), 20, 10)
     torch.testing.assert_close(s.grad_accum, torch.tensor([10.0, 10.0, 0.0]))  # x * W/2, y * H/2
     assert s.count.tolist() == [1.0, 1.0, 0.0] and s.max_radii.tolist() == pytest.approx([3 / 20, 4 / 20, 0.0])
+    # A second view: Gaussian 1 hidden (its gradient NaN, ignored), a smaller radius keeps the maximum.
+    s.add(torch.tensor([[0.5, 0.0], [float("nan"), 1.0], [0.0, 0.1]]), torch.tensor([1, 0, 2], dtype=torch.int32), 20, 10)
+    torch.testing.assert_close(s.grad_accum, torch.tensor([15.0, 10.0, 0.5]))
+    assert s.count.tolist() == [2.0, 1.0, 1.0] and s.max_radii.tolist() == pytest.approx([3 / 20, 4 / 20, 2 / 20])
 
 
 def test_split_views(tiny_scene, tmp_path):

@@ -193,10 +193,12 @@ class DensifyStats:
         visible = radii > 0
         # Pixel-space gradient -> NDC-space (pixel = ((ndc + 1) W - 1) / 2), the space in
         # which 3DGS's threshold of 2e-4 is defined.
-        g = means2d_grad[visible] * torch.tensor([width / 2.0, height / 2.0], device=means2d_grad.device)
-        self.grad_accum[visible] += g.norm(dim=-1)
-        self.count[visible] += 1
-        self.max_radii[visible] = torch.maximum(self.max_radii[visible], radii[visible].float() / max(width, height))
+        g = means2d_grad * torch.tensor([width / 2.0, height / 2.0], device=means2d_grad.device)
+        # Whole-tensor updates (no boolean indexing, which finds the visible rows once per use):
+        # the hidden rows add exactly 0, and their radius 0 never raises a maximum that starts at 0.
+        self.grad_accum += torch.where(visible, g.norm(dim=-1), 0.0)
+        self.count += visible
+        torch.maximum(self.max_radii, radii.float() / max(width, height), out=self.max_radii)
 
     def state_dict(self) -> dict:
         return asdict(self)
