@@ -178,9 +178,9 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     spec = DemoScene(views=args.views, width=args.width, height=args.height, seed=args.seed, layout=args.layout)
     if not args.scene_only and args.device == "cpu":  # the rasterizer compiles while the scene is made
         from ..render.numba_backend import compile_in_background
-        from .run import LATER_KERNELS
+        from .run import BACKGROUND_KERNELS
 
-        compile_in_background(*LATER_KERNELS)
+        compile_in_background(**BACKGROUND_KERNELS)
     scene_dir = demo_scene(out, spec, progress=not args.quiet)
     print(f"demo scene: {scene_dir}\ncontact sheet: {out / 'contact_sheet.png'}")
     if args.scene_only:

@@ -15,9 +15,13 @@ from .cache import StageCache, file_digest, scene_digest, stage_key, tree_digest
 from .presets import DEFAULT_PRESET, get_preset
 
 DEFAULT_MODES = ("composite", "explicit", "soft", "oracle")
-# Modules of later stages whose numba kernels compile in the background beside the rasterizer's
-# (n2f2.render.numba_backend.compile_in_background), so their first step finds them cached.
-LATER_KERNELS = ("n2f2.gaussians.numba_adam", "n2f2.train.numba_blend", "n2f2.train.numba_prefix")
+# Modules with numba kernels beyond the rasterizer's, compiled in the background
+# (n2f2.render.numba_backend.compile_in_background): the fit's before its first render goes on,
+# the training's while the fit runs, so each stage's first step finds its kernels cached.
+BACKGROUND_KERNELS = {
+    "first": ("n2f2.gaussians.numba_adam",),
+    "later": ("n2f2.train.numba_blend", "n2f2.train.numba_prefix"),
+}
 
 
 class _StageOptions(TypedDict):
@@ -113,7 +117,7 @@ def run_pipeline(opt: RunOptions, log: Callable[[str], None] = print) -> dict:
     if opt.device == "cpu":  # compile the rasterizer while the scene is read; the first render waits
         from ..render.numba_backend import compile_in_background
 
-        compile_in_background(*LATER_KERNELS)
+        compile_in_background(**BACKGROUND_KERNELS)
     cache = StageCache.open(out)
     progress = not opt.quiet
     common = _StageOptions(

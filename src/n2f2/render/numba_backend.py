@@ -58,6 +58,7 @@ import os
 import subprocess
 import sys
 import threading
+from collections.abc import Sequence
 
 import numpy as np
 import torch
@@ -680,8 +681,9 @@ def count_pairs(
 # ------------------------------------------------------------------------------ compiling ahead
 # Compiling the kernels takes ~20 s on 2 cores, once per install (then they load from the disk
 # cache in under a second). A pipeline starts that compile in a child process while it does
-# work that does not render (generating or reading the scene), and its first render waits for
-# the child, so the kernels are compiled once and the compile overlaps that work.
+# work that does not render (generating or reading the scene), and its first render waits until
+# the child has compiled what the fit uses, so the kernels are compiled once and the compile
+# overlaps that work; the child goes on with the later stages' kernels while the fit runs.
 _BACKGROUND: subprocess.Popen | None = None
 _STARTED = False  # a process starts at most one child (run-many calls the pipeline per scene)
 
@@ -706,27 +708,39 @@ def warm_up() -> None:
         rasterize_in_bands(means.detach(), quats, scales, opacities, features.detach(), camera, backend="numba")
 
 
-def compile_in_background(*modules: str) -> None:
-    """Start :func:`warm_up`, and the ``warm_up()`` of each of ``modules`` (dotted names of
-    modules with compiled kernels of later stages), in a child process, once per process (nothing
-    without numba). The first compiled render after that waits for it
-    (:func:`wait_for_background_compile`); a later stage's first call finds its kernel cached."""
+_READY = b"rasterizer compiled"  # the child's line once the first render may go on
+
+
+def compile_in_background(first: Sequence[str] = (), later: Sequence[str] = ()) -> None:
+    """Start :func:`warm_up` in a child process, once per process (nothing without numba), then
+    the ``warm_up()`` of each module in ``first`` (dotted names: kernels the first renders' stage
+    uses too, such as the fit's optimiser), then of each in ``later`` (kernels of later stages).
+    The first compiled render waits until the child has compiled ``first``
+    (:func:`wait_for_background_compile`), not for ``later``, which the child compiles meanwhile
+    so that those stages find their kernels cached."""
     global _BACKGROUND, _STARTED
     if _STARTED or numba is None:
         return
     _STARTED = True
-    code = "; ".join(f"import {m}; {m}.warm_up()" for m in ("n2f2.render.numba_backend", *modules))
+    steps = [f"import {m}; {m}.warm_up()" for m in ("n2f2.render.numba_backend", *first)]
+    steps += [f"print({_READY.decode()!r}, flush=True)"] + [f"import {m}; {m}.warm_up()" for m in later]
     try:
         _BACKGROUND = subprocess.Popen(
-            [sys.executable, "-c", code], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+            [sys.executable, "-c", "; ".join(steps)], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL
         )
     except OSError:  # no child process here: the first render compiles, as without this
         _BACKGROUND = None
 
 
 def wait_for_background_compile() -> int | None:
-    """Wait for the child of :func:`compile_in_background` and return its exit code (None when
-    none runs). A failed child only means this process compiles what it needs itself."""
+    """Wait until the child of :func:`compile_in_background` has compiled the rasterizer (and its
+    ``first`` modules): 0 then, the child's exit code when it ended before (a failed child only
+    means this process compiles what it needs itself), None when no child runs."""
     global _BACKGROUND
     child, _BACKGROUND = _BACKGROUND, None
-    return None if child is None else child.wait()
+    if child is None:
+        return None
+    assert child.stdout is not None  # started with a pipe
+    with child.stdout:  # the child prints nothing after its one line
+        ready = child.stdout.readline().strip() == _READY
+    return 0 if ready else child.wait()
