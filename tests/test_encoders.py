@@ -122,6 +122,17 @@ def test_captions_encoder_matches_sentence_transformers(captions):
     assert torch.allclose(seg, ref[:2], atol=1e-5)
 
 
+def test_a_texts_embedding_does_not_depend_on_the_texts_encoded_with_it(captions, tiny_clip):
+    # Padded to a batch's longest text, MiniLM's embedding of "teapot" moved by ~1e-7 (two
+    # threads), enough to flip a thresholded pixel; each text now goes through the model alone.
+    short = ["teapot", "red mug", "lid of the teapot"]
+    batch = ["a long caption about the handle of the blue mug beside the teapot on the table", *short]
+    for make in (lambda: get_encoder("captions"), lambda: ClipEncoder(tiny_clip.model, tiny_clip.tokenizer)):
+        alone = torch.cat([make().encode_text([t]) for t in short])  # a fresh encoder (no cache) per text
+        together = make().encode_text(batch)[1:]
+        assert torch.equal(alone, together)
+
+
 def test_encoder_spec_rebuilds_the_same_text_encoder(captions):
     spec = captions.spec
     assert spec["embed_dim"] == 384 and "stand-in for CLIP" in spec["description"]

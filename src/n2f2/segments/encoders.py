@@ -32,6 +32,10 @@ DEFAULT_CLIP_MODEL = "laion/CLIP-ViT-B-16-laion2B-s34B-b88K"
 MINILM_MODEL_ID = "sentence-transformers/all-MiniLM-L6-v2"
 ENCODER_NAMES = ("clip", "captions")
 
+# Texts go through the text models one at a time: padded to a batch's longest text, the same
+# text's embedding differs by float rounding from batch to batch, and a query's relevancy map
+# (and a thresholded mask) would depend on which texts were encoded with it.
+
 # CLIP's input normalisation (OpenAI statistics; OpenCLIP uses the same for laion2b ViT-B/16).
 CLIP_MEAN = (0.48145466, 0.4578275, 0.40821073)
 CLIP_STD = (0.26862954, 0.26130258, 0.27577711)
@@ -186,14 +190,9 @@ class ClipEncoder:
         if not texts:
             return torch.zeros(0, self.dim)
         out = []
-        for start in range(0, len(texts), self.batch_size):
-            tok = self.tokenizer(
-                texts[start : start + self.batch_size],
-                padding=True,
-                truncation=True,
-                max_length=self.max_length,
-                return_tensors="pt",
-            ).to(self.device)
+        for text in texts:  # one at a time (see the top of this module)
+            tok = self.tokenizer([text], truncation=True, max_length=self.max_length, return_tensors="pt")
+            tok = tok.to(self.device)
             with device_autocast(self.device):
                 out.append(
                     _features(
@@ -261,14 +260,12 @@ class CaptionEncoder:
         tokenizer,
         model_id: str = MINILM_MODEL_ID,
         device: str | torch.device = "cpu",
-        batch_size: int = 64,
         max_length: int = 256,
     ) -> None:
         self.device = torch.device(device)
         self.model = model.to(self.device).eval()
         self.tokenizer = tokenizer
         self.model_id = model_id
-        self.batch_size = batch_size
         self.max_length = max_length  # sentence_bert_config.json: max_seq_length
         self.dim = int(model.config.hidden_size)
         self._cache: dict[str, Tensor] = {}  # captions repeat across views
@@ -304,16 +301,11 @@ class CaptionEncoder:
     @torch.no_grad()
     def _encode(self, texts: list[str]) -> Tensor:
         out = []
-        for start in range(0, len(texts), self.batch_size):
-            tok = self.tokenizer(
-                texts[start : start + self.batch_size],
-                padding=True,
-                truncation=True,
-                max_length=self.max_length,
-                return_tensors="pt",
-            ).to(self.device)
-            hidden = self.model(**tok).last_hidden_state  # [B, T, E]
-            weight = tok["attention_mask"].unsqueeze(-1).to(hidden.dtype)  # [B, T, 1]
+        for text in texts:  # one at a time (see the top of this module)
+            tok = self.tokenizer([text], truncation=True, max_length=self.max_length, return_tensors="pt")
+            tok = tok.to(self.device)
+            hidden = self.model(**tok).last_hidden_state  # [1, T, E]
+            weight = tok["attention_mask"].unsqueeze(-1).to(hidden.dtype)  # [1, T, 1]
             pooled = (hidden * weight).sum(1) / weight.sum(1).clamp_min(1e-9)
             out.append(F.normalize(pooled.float(), dim=-1).cpu())
         return torch.cat(out)
