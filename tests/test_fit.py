@@ -22,7 +22,8 @@ from n2f2.gaussians import fit as fit_mod
 from n2f2.gaussians.fit import fit_gaussians
 from n2f2.gaussians.fit_config import FitConfig, split_views
 from n2f2.gaussians.optim import (
-    DensifyStats, GaussianAdam, densify_and_prune, photometric_loss, reset_opacity, ssim,
+    DensifyStats, GaussianAdam, _gaussian_1d, blur_reference, densify_and_prune, photometric_loss, reset_opacity,
+    ssim,
 )
 from n2f2.io import write_json, write_png
 from n2f2.render import render_rgb
@@ -118,6 +119,49 @@ def test_ssim_matches_reference_and_identity():
     # the loss is (1 - 0.2) L1 + 0.2 (1 - SSIM)
     loss = float(photometric_loss(torch.from_numpy(a), torch.from_numpy(b), 0.2))
     assert loss == pytest.approx(0.8 * np.abs(a - b).mean() + 0.2 * (1 - _ssim_reference(a, b)), abs=1e-5)
+
+
+@pytest.mark.parametrize(("dtype", "tol"), [(torch.float64, 1e-12), (torch.float32, 1e-5)])
+@pytest.mark.parametrize("shape", [(15, 23, 17), (4, 7, 30)])  # (4, 7, 30): fewer rows than taps
+def test_compiled_blur_matches_the_reference_with_gradients(dtype, tol, shape):
+    pytest.importorskip("numba")
+    from n2f2.gaussians.numba_ssim import blur_numba
+
+    g = torch.Generator().manual_seed(3)
+    maps = torch.rand(shape, generator=g, dtype=dtype)
+    upstream = torch.randn(shape, generator=g, dtype=dtype)
+    # An asymmetric window: the backward must reverse it (the Gaussian's symmetry would hide that).
+    for window in (_gaussian_1d(11, 1.5, "cpu", dtype), torch.rand(5, generator=g, dtype=dtype)):
+        results = []
+        for fn in (blur_reference, blur_numba):
+            leaf = maps.clone().requires_grad_(True)
+            out = fn(leaf, window)
+            results.append((out.detach(), torch.autograd.grad((out * upstream).sum(), leaf)[0]))
+        (want, want_grad), (got, got_grad) = results
+        assert got.dtype == dtype and got.shape == want.shape
+        torch.testing.assert_close(got, want, rtol=tol, atol=tol)
+        torch.testing.assert_close(got_grad, want_grad, rtol=tol, atol=tol * float(want_grad.abs().max()))
+
+
+def test_compiled_blur_hand_worked_and_gradcheck():
+    pytest.importorskip("numba")
+    from n2f2.gaussians.numba_ssim import blur_numba
+
+    # One 1 in the middle of a 5x5 map, window (1, 2, 3): the output is the outer product of the
+    # window reversed (a correlation), zero padded.
+    x = torch.zeros(1, 5, 5, dtype=torch.float64)
+    x[0, 2, 2] = 1.0
+    w = torch.tensor([1.0, 2.0, 3.0], dtype=torch.float64)
+    want = torch.zeros(5, 5, dtype=torch.float64)
+    want[1:4, 1:4] = torch.outer(w.flip(0), w.flip(0))
+    torch.testing.assert_close(blur_numba(x, w)[0], want, rtol=0, atol=0)
+    # at the border the padding is zero: a 1 in the corner keeps only the window's part inside
+    x = torch.zeros(1, 4, 6, dtype=torch.float64)
+    x[0, 0, 0] = 1.0
+    assert blur_numba(x, w)[0, 0, 0] == 2.0 * 2.0 and blur_numba(x, w)[0, 1, 1] == 1.0 * 1.0
+    maps = torch.rand(2, 6, 9, dtype=torch.float64, requires_grad=True)
+    window = torch.rand(5, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    assert torch.autograd.gradcheck(lambda m: blur_numba(m, window), (maps,))
 
 
 # ------------------------------------------------------------------------------------ optimiser

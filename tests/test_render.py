@@ -426,3 +426,32 @@ def test_the_first_render_waits_for_the_first_kernels_only(monkeypatch, first, l
     assert child is not None
     assert nb.wait_for_background_compile() == expected
     assert child.wait(timeout=300) == 1  # the missing module fails the child either way
+
+
+def test_torch_on_one_thread_keeps_the_kernels_threads_and_restores_torch():
+    # Inside: torch's operations on one thread, the compiled render on the threads torch had, and
+    # a render equal to one outside; after (also after an error, and when nested) torch's count is back.
+    from n2f2.render import numba_backend as nb
+
+    pytest.importorskip("numba")
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        camera = _camera()
+        params = _scene(40, 3, seed=4)
+        outside = rasterize(*params, camera, backend="numba").features
+        with nb.torch_on_one_thread():
+            assert torch.get_num_threads() == 1 and nb.kernel_threads() == 2
+            with nb.torch_on_one_thread():
+                assert torch.get_num_threads() == 1 and nb.kernel_threads() == 2
+            assert torch.get_num_threads() == 1 and nb.kernel_threads() == 2
+            inside = rasterize(*params, camera, backend="numba").features
+        torch.testing.assert_close(inside, outside, rtol=0, atol=0)
+        assert torch.get_num_threads() == 2 and nb.kernel_threads() == 2
+        with pytest.raises(RuntimeError), nb.torch_on_one_thread():
+            raise RuntimeError("stop")
+        assert torch.get_num_threads() == 2 and nb._KERNEL_THREADS is None
+        torch.set_num_threads(1)
+        assert nb.kernel_threads() == 1  # outside the context the kernels follow torch again
+    finally:
+        torch.set_num_threads(before)

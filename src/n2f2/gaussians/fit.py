@@ -336,8 +336,30 @@ def fit_gaussians(
 ) -> FitReport:
     """Fit Gaussians to ``scene``'s training views; write ``gaussians.ply``, ``fit_report.json``
     and ``checkpoint.pt`` to ``out_dir``. With ``resume`` and a checkpoint in ``out_dir``,
-    continue from it (its config is used, except ``steps`` and ``checkpoint_every``)."""
+    continue from it (its config is used, except ``steps`` and ``checkpoint_every``).
+
+    On CPU, torch's own operations run on one thread and the compiled render on all of torch's
+    (:func:`~n2f2.render.numba_backend.torch_on_one_thread`)."""
+    if torch.device(config.device).type != "cpu":
+        return _fit_gaussians(scene, config, out_dir, resume, init, progress, stop_after)
+    from ..render.numba_backend import torch_on_one_thread
+
+    with torch_on_one_thread():
+        return _fit_gaussians(scene, config, out_dir, resume, init, progress, stop_after)
+
+
+def _fit_gaussians(
+    scene: Scene,
+    config: FitConfig,
+    out_dir: Union[str, Path],
+    resume: bool,
+    init: Union[None, str, Gaussians],
+    progress: bool,
+    stop_after: Optional[int],
+) -> FitReport:
     from tqdm.auto import tqdm
+
+    from ..render.numba_backend import kernel_threads
 
     t_start = time.perf_counter()
     out_dir = Path(out_dir)
@@ -496,7 +518,7 @@ def fit_gaussians(
         resumed_from=None if ck is None else int(ck["step"]),
         loss_curve=_subsample(loss_curve, 200),
         config=config.to_dict(),
-        threads=torch.get_num_threads(),
+        threads=kernel_threads(),  # the render's; torch's own operations run on one (above)
     )
     if step_times:
         report.update(

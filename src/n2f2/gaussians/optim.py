@@ -23,27 +23,41 @@ def _gaussian_1d(size: int, sigma: float, device, dtype) -> Tensor:  # [size], s
     return g / g.sum()
 
 
+def blur_reference(
+    maps: Tensor,  # [K, H, W]
+    g: Tensor,  # [S] the window along each axis, S odd
+) -> Tensor:  # [K, H, W]
+    """Each map correlated with ``g`` along x, then along y, with zero padding: with a separable
+    window this is the same sum as the 2D window, as a 1xS then an Sx1 grouped convolution (on a
+    CPU the 2D grouped convolution cost ~10x more and was a quarter of a fitting step at 370x250
+    pixels). The reference of :func:`n2f2.gaussians.numba_ssim.blur_numba`."""
+    k, s = maps.shape[0], g.shape[0]
+    pad = s // 2
+    x = F.conv2d(maps[None], g.view(1, 1, 1, -1).expand(k, 1, 1, s), padding=(0, pad), groups=k)
+    return F.conv2d(x, g.view(1, 1, -1, 1).expand(k, 1, s, 1), padding=(pad, 0), groups=k)[0]
+
+
+def blur(maps: Tensor, g: Tensor) -> Tensor:  # [K, H, W], [S] -> [K, H, W]
+    """:func:`blur_reference`, compiled on CPU (:mod:`n2f2.gaussians.numba_ssim`)."""
+    from . import numba_ssim
+
+    return numba_ssim.blur_numba(maps, g) if numba_ssim.usable(maps) else blur_reference(maps, g)
+
+
 def ssim(
     img1: Tensor,  # [H, W, C]
     img2: Tensor,  # [H, W, C]
     window_size: int = 11,
     sigma: float = 1.5,
 ) -> Tensor:  # [] mean SSIM
-    """Mean SSIM with an 11x11 Gaussian window (sigma 1.5), zero padding, as 3DGS's ``ssim``.
-
-    The window is separable, so it is applied as a 1x11 then an 11x1 pass (with zero padding
-    this is the same sum as the 2D window), to the five maps at once: on a CPU the 2D grouped
-    convolution cost ~10x more and was a quarter of a fitting step at 370x250 pixels."""
+    """Mean SSIM with an 11x11 Gaussian window (sigma 1.5), zero padding, as 3DGS's ``ssim``: the
+    window's two 1D passes (:func:`blur`) over the five maps at once."""
     c = img1.shape[-1]
     a = img1.permute(2, 0, 1)
     b = img2.permute(2, 0, 1)
-    maps = torch.cat([a, b, a * a, b * b, a * b])[None]  # [1, 5C, H, W]
-    g = _gaussian_1d(window_size, sigma, a.device, a.dtype)
-    pad = window_size // 2
-    k = 5 * c
-    maps = F.conv2d(maps, g.view(1, 1, 1, -1).expand(k, 1, 1, window_size), padding=(0, pad), groups=k)
-    maps = F.conv2d(maps, g.view(1, 1, -1, 1).expand(k, 1, window_size, 1), padding=(pad, 0), groups=k)
-    mu1, mu2, e11, e22, e12 = maps[0].split(c)
+    maps = torch.cat([a, b, a * a, b * b, a * b])  # [5C, H, W]
+    maps = blur(maps, _gaussian_1d(window_size, sigma, a.device, a.dtype))
+    mu1, mu2, e11, e22, e12 = maps.split(c)
     mu1_sq, mu2_sq, mu12 = mu1 * mu1, mu2 * mu2, mu1 * mu2
     s1, s2, s12 = e11 - mu1_sq, e22 - mu2_sq, e12 - mu12
     c1, c2 = 0.01**2, 0.03**2

@@ -19,7 +19,7 @@ DEFAULT_MODES = ("composite", "explicit", "soft", "oracle")
 # (n2f2.render.numba_backend.compile_in_background): the fit's before its first render goes on,
 # the training's while the fit runs, so each stage's first step finds its kernels cached.
 BACKGROUND_KERNELS = {
-    "first": ("n2f2.gaussians.numba_adam",),
+    "first": ("n2f2.gaussians.numba_adam", "n2f2.gaussians.numba_ssim"),
     "later": ("n2f2.train.numba_blend", "n2f2.train.numba_prefix"),
 }
 

@@ -58,7 +58,8 @@ import os
 import subprocess
 import sys
 import threading
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 
 import numpy as np
 import torch
@@ -508,11 +509,43 @@ def _pixel_basis(tile_size: int, dtype: np.dtype) -> np.ndarray:  # [5, p]
     return np.ascontiguousarray(np.stack([u, v, u * u, u * v, v * v]).astype(dtype))
 
 
+_KERNEL_THREADS: int | None = None  # the kernels' threads while torch_on_one_thread() runs
+
+
+def kernel_threads() -> int:
+    """The threads the compiled kernels run on: torch's thread count, or the count torch had
+    when :func:`torch_on_one_thread` began."""
+    return _KERNEL_THREADS or torch.get_num_threads()
+
+
+@contextmanager
+def torch_on_one_thread() -> Iterator[None]:
+    """torch's own operations on one thread meanwhile, the compiled kernels on the threads torch
+    had. A loop that alternates many small torch operations with the kernels (a fit step: about
+    30 of them around the render and its backward) otherwise has two thread pools taking turns
+    on the same cores: torch's OpenMP threads spin after each operation (``GOMP_SPINCOUNT``)
+    while the kernels' threads start. On a 2-core Zen 3 the demo's render, photometric loss and
+    backward took 51 ms with torch on one thread against 59 ms on two
+    (``docs/measurements.md``, "The fit's torch operations on one thread")."""
+    global _KERNEL_THREADS
+    if numba is None:  # the render is torch's own operations then: they keep torch's threads
+        yield
+        return
+    before, torch_threads = _KERNEL_THREADS, torch.get_num_threads()
+    _KERNEL_THREADS = kernel_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(torch_threads)
+        _KERNEL_THREADS = before
+
+
 def _threads() -> int:
     assert numba is not None  # only called beside the kernels, which exist only when numba imports
     # NUMBA_NUM_THREADS is set in numba's config module from the environment at import time.
     n_numba = numba_config.NUMBA_NUM_THREADS  # pyright: ignore[reportAttributeAccessIssue]
-    n = max(1, min(torch.get_num_threads(), n_numba))
+    n = max(1, min(kernel_threads(), n_numba))
     numba.set_num_threads(n)
     return n
 
