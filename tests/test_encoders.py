@@ -122,7 +122,7 @@ def test_captions_encoder_matches_sentence_transformers(captions):
     assert torch.allclose(seg, ref[:2], atol=1e-5)
 
 
-def test_a_texts_embedding_does_not_depend_on_the_texts_encoded_with_it(captions, tiny_clip):
+def test_a_texts_embedding_does_not_depend_on_the_texts_encoded_with_it(tiny_clip):
     # Padded to a batch's longest text, MiniLM's embedding of "teapot" moved by ~1e-7 (two
     # threads), enough to flip a thresholded pixel; each text now goes through the model alone.
     short = ["teapot", "red mug", "lid of the teapot"]
