@@ -524,9 +524,8 @@ def torch_on_one_thread() -> Iterator[None]:
     had. A loop that alternates many small torch operations with the kernels (a fit step: about
     30 of them around the render and its backward) otherwise has two thread pools taking turns
     on the same cores: torch's OpenMP threads spin after each operation (``GOMP_SPINCOUNT``)
-    while the kernels' threads start. On a 2-core Zen 3 the demo's render, photometric loss and
-    backward took 51 ms with torch on one thread against 59 ms on two
-    (``docs/measurements.md``, "The fit's torch operations on one thread")."""
+    while the kernels' threads start (timings: ``docs/measurements.md``, "The fit's torch
+    operations on one thread")."""
     global _KERNEL_THREADS
     if numba is None:  # the render is torch's own operations then: they keep torch's threads
         yield
