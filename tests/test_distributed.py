@@ -8,6 +8,7 @@ import json
 import os
 import shutil
 import sys
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -196,6 +197,51 @@ def test_an_interrupted_run_redoes_only_the_missing_images(ray_instance, scenes,
     assert sorted(computed) == sorted(set(range(VIEWS)) - kept)  # each missing image once, no other
     assert report["timing"]["images_extracted_now"] == VIEWS - len(kept)
     assert_same_bank(serial_banks["ground-truth"], out)
+
+
+@dataclass(frozen=True)
+class SlowBesideACrash:
+    """Item 0 writes its worker's pid to ``marker`` and works for ten minutes; item 1 raises (a
+    bug) once item 0 is running."""
+
+    marker: str
+
+    def __call__(self, item: int) -> int:
+        if item == 0:
+            Path(self.marker + ".part").write_text(str(os.getpid()))
+            os.replace(self.marker + ".part", self.marker)
+            for _ in range(6000):
+                time.sleep(0.1)
+            return item
+        while not os.path.exists(self.marker):
+            time.sleep(0.05)
+        raise RuntimeError("a bug in one task")
+
+
+def _running(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (FileNotFoundError, ProcessLookupError):
+        return False
+    return state not in ("Z", "X")  # a zombie has exited
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads process states from /proc")
+def test_a_task_still_running_when_the_caller_stops_goes_with_its_worker(ray_instance, tmp_path):
+    # An interrupt (Ray's default cancel) can land inside an import and leave the worker's modules
+    # half initialised for every later task there: the running task's worker must be killed.
+    from n2f2.distributed import RayExecutor
+
+    marker = str(tmp_path / "slow-worker-pid")
+    with pytest.raises(RuntimeError, match="a bug in one task"):
+        for _ in RayExecutor().map(SlowBesideACrash(marker), [0, 1]):
+            pass
+    pid = int(Path(marker).read_text())
+    assert pid != os.getpid()
+    deadline = time.monotonic() + 60
+    while _running(pid) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not _running(pid)
 
 
 def test_a_bad_image_is_reported_once_and_the_others_finish(ray_instance, scenes, tmp_path, capsys):

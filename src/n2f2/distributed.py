@@ -180,7 +180,10 @@ class RayExecutor:
 
     def map(self, fn: Callable[[Any], Any], items: Sequence[Any]) -> Iterator[tuple[int, Any]]:
         """``(k, fn(items[k]))`` in completion order; a bad input yields ``(k, TaskFailure)``.
-        Tasks still pending when the caller stops iterating (or raises) are cancelled."""
+        When the caller stops iterating (or raises), tasks not started are dropped and a running
+        task is killed with its worker process. Ray's gentler cancel raises KeyboardInterrupt in
+        the task, wherever it is: in the middle of an import (torch, transformers) it leaves the
+        worker's modules half initialised, and every later task Ray gives that worker fails."""
         if not items:
             return
         self.start()
@@ -202,7 +205,7 @@ class RayExecutor:
                     yield k, ray.get(ref)
         finally:
             for ref in pending:
-                ray.cancel(ref)
+                ray.cancel(ref, force=True)
 
 
 Executor = SerialExecutor | RayExecutor
