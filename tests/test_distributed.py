@@ -1,6 +1,7 @@
 """``--executor ray``: ``n2f2 segments`` and ``n2f2 run-many`` as Ray tasks give exactly what the
-serial path gives, survive a killed worker, resume with only the missing images, and report a
-bad input once while the other tasks finish. One local Ray instance (2 CPUs) serves the module."""
+serial path gives, survive a killed worker, resume with only the missing images, report a bad
+input once while the other tasks finish, and take a task still running when the driver stops
+down with its worker. One local Ray instance (2 CPUs) serves the module."""
 
 from __future__ import annotations
 
