@@ -4,10 +4,10 @@ grouped ``conv2d`` passes (the reference) as one separable loop per map.
 SSIM blurs five maps per colour channel (both images, their squares and their product) with an
 11-tap Gaussian along each axis, zero padded. A grouped convolution of 15 thin maps is mostly
 call overhead on a CPU (timings: ``docs/measurements.md``, "The SSIM window's blur compiled").
-Here each map is one thread's: a source
-row is blurred along x into a buffer, and the buffer is added into the (up to 11) output rows
-it reaches, so the map stays in cache. The blur is linear; its backward is the same loop with the
-window reversed (a correlation's adjoint), so for the symmetric Gaussian it is the same blur.
+Here each map is one thread's: a source row is blurred along x into a buffer, and the buffer is
+added into the (up to 11) output rows it reaches, so the map stays in cache. The blur is linear;
+its backward is the same loop with the window reversed (a correlation's adjoint), so for the
+symmetric Gaussian it is the same blur.
 Sums follow another order than ``conv2d``'s: equal up to float rounding (tests compare both).
 """
 
