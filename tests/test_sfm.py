@@ -176,13 +176,13 @@ def test_rerun_reuses_the_result_and_other_inputs_are_refused(toy_sfm, tmp_path,
     # Other settings, or another set of photos, into the finished folder: refused, untouched.
     assert _cli("sfm", toy_sfm.photos, "--out", toy_sfm.out, "--matcher", "sequential", "--quiet") == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "--overwrite" in err[0]
+    assert len(err) == 1 and "--force" in err[0]
     fewer = tmp_path / "fewer"
     fewer.mkdir()
     for name in sorted(toy_sfm.centres)[:8]:
         shutil.copy2(toy_sfm.photos / name, fewer / name)
     assert _cli("sfm", fewer, "--out", toy_sfm.out, "--quiet") == 2
-    assert "--overwrite" in capsys.readouterr().err
+    assert "--force" in capsys.readouterr().err
     assert report.stat().st_mtime_ns == before
 
     # A folder that is not an sfm result is never replaced, even with --overwrite.
@@ -235,10 +235,14 @@ def test_photos_that_do_not_overlap_exit_2_with_one_line(tmp_path, capfd):
     assert len(err) == 1, err
     assert "registered 0 of 4 photos" in err[0]
     assert not out.exists()  # nothing that looks like a result
-    # The working files stay beside it for a look, and a rerun replaces them.
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["noise"]  # and no working folder left
+    # --keep-partial keeps the working files for a look; a rerun replaces them.
+    assert _cli("sfm", photos, "--out", out, "--quiet", "--keep-partial") == 2
+    assert "registered 0 of 4 photos" in capfd.readouterr().err
     assert (tmp_path / "out.partial" / "colmap" / "database.db").is_file()
     assert _cli("sfm", photos, "--out", out, "--quiet") == 2
     assert "registered 0 of 4 photos" in capfd.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["noise"]
 
 
 def test_sequential_pairs_are_the_neighbours_and_powers_of_two():

@@ -82,15 +82,30 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    from .io import DISK_ERRNOS, command_outputs
+
     try:
-        result = args.func(args)
+        with command_outputs():  # a failed command leaves its output folders as they were
+            result = args.func(args)
     except N2F2Error as e:
-        print(f"n2f2 {args.command}: error: {e}", file=sys.stderr)
+        print(f"n2f2 {args.command}: error: {one_line(str(e))}", file=sys.stderr)
+        return 2
+    except OSError as e:
+        if e.errno not in DISK_ERRNOS:
+            raise
+        where = f"{e.filename}: " if e.filename else ""
+        print(f"n2f2 {args.command}: error: {where}{e.strerror or e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"n2f2 {args.command}: interrupted", file=sys.stderr)
         return 130
     return int(result or 0)
+
+
+def one_line(text: str, limit: int = 400) -> str:
+    """An error's text as one console line: newlines folded, long texts shortened."""
+    text = " ".join(text.split("\n"))
+    return text if len(text) <= limit else text[: limit - 20] + f"... ({len(text)} characters)"
 
 
 if __name__ == "__main__":

@@ -20,3 +20,12 @@ class InputError(N2F2Error):
 
 class MissingModelError(N2F2Error):
     """A model's weights are neither cached locally nor downloadable."""
+
+
+class OutputError(N2F2Error):
+    """A result could not be written (full or read-only disk, I/O error): names the file."""
+
+    def __init__(self, path: str | Path, problem: str):
+        self.path = Path(path)
+        self.problem = problem
+        super().__init__(f"{self.path}: {problem}")

@@ -38,6 +38,7 @@ with an :class:`~n2f2.errors.InputError` naming the file rather than in the midd
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Optional
 
@@ -148,9 +149,12 @@ def load_scene(
     cameras = [cameras[i] for i in order]
     lenses = [lenses[i] for i in order]
     image_paths = [image_paths[i] for i in order]
-    for a, b in zip(image_paths, image_paths[1:]):
-        if a == b:
-            raise InputError(listing, f"image {relative_name(a, root)} is listed twice")
+    seen: dict[str, Path] = {}
+    for path in image_paths:  # the same file under two names (./a/../a/x.png, a link) is a duplicate too
+        first = seen.setdefault(os.path.realpath(path), path)
+        if first is not path:
+            alias = "" if first == path else f" (also as {relative_name(first, root)})"
+            raise InputError(listing, f"image {relative_name(path, root)} is listed twice{alias}")
 
     distorted = [lens for lens in lenses if lens is not None and not lens.is_pinhole]
     original_paths, undistorted_from = None, None

@@ -162,7 +162,16 @@ def register_sfm(subparsers: argparse._SubParsersAction) -> None:
         help=f"longest side features are extracted at (default: {d.max_image_size})",
     )
     p.add_argument(
-        "--overwrite", action="store_true", help="replace a finished result in DATA made from other photos or settings"
+        "--force",
+        "--overwrite",  # the earlier name, kept as an alias
+        dest="overwrite",
+        action="store_true",
+        help="replace a finished result in DATA made from other photos or settings",
+    )
+    p.add_argument(
+        "--keep-partial",
+        action="store_true",
+        help="keep the working folder DATA.partial when structure from motion fails (default: removed)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=run_sfm_command)
@@ -177,6 +186,13 @@ def run_sfm_command(args: argparse.Namespace) -> int:
         per_image_camera=args.per_image_camera,
         max_image_size=args.max_image_size,
     )
-    report = run_sfm(args.photos, args.out, settings, overwrite=args.overwrite, progress=not args.quiet)
+    report = run_sfm(
+        args.photos,
+        args.out,
+        settings,
+        overwrite=args.overwrite,
+        keep_partial=args.keep_partial,
+        progress=not args.quiet,
+    )
     print(report.summary())
     return 0

@@ -143,9 +143,27 @@ class GroundTruth:
     root: Path
     image_names: list[str]
 
+    def depth_path(self, index: int) -> Path:
+        return self.root / "depth" / f"{self.image_names[index]}.npy"
+
     def depth(self, index: int) -> np.ndarray:
         """float32 [H, W] z-depth at full resolution."""
-        return np.load(self.root / "depth" / f"{self.image_names[index]}.npy")
+        return np.load(self.depth_path(index))
+
+    def views_with_depth(self, views: Sequence[int], what: str = "") -> list[int]:
+        """The ``views`` whose depth file exists. Depth is optional ground truth: the missing
+        files are named in one warning line on stderr (``what`` says which metric goes without
+        them), not an error."""
+        missing = [i for i in views if not self.depth_path(i).is_file()]
+        if missing:
+            shown = ", ".join(f"depth/{self.image_names[i]}.npy" for i in missing[:MISSING_NAMES_SHOWN])
+            more = f" and {len(missing) - MISSING_NAMES_SHOWN} more" if len(missing) > MISSING_NAMES_SHOWN else ""
+            print(
+                f"warning: {self.root}: {shown}{more} missing; {what or 'depth metrics'} skip "
+                f"{'that view' if len(missing) == 1 else 'those views'}",
+                file=sys.stderr,
+            )
+        return [i for i in views if i not in missing]
 
     def region_ids(self, index: int) -> np.ndarray:
         """int32 [L, H, W] region id per level (levels listed in regions.json), -1 = none."""

@@ -38,7 +38,7 @@ from pathlib import Path
 from typing import Callable, Optional, TypeVar
 
 from ..errors import InputError
-from ..io import write_json
+from ..io import LOCK_NAME, write_json
 
 __all__ = [
     "CAMERA_MODELS",
@@ -457,6 +457,7 @@ def run_sfm(
     settings: SfmSettings = SfmSettings(),
     *,
     overwrite: bool = False,
+    keep_partial: bool = False,
     progress: bool = True,
     log: Callable[[str], None] = print,
 ) -> SfmReport:
@@ -499,7 +500,7 @@ def run_sfm(
             raise InputError(
                 out,
                 "holds the structure-from-motion result of other photos or settings; "
-                "pass --overwrite to replace it, or choose another --out",
+                "pass --force to replace it, or choose another --out",
             )
     elif out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise InputError(
@@ -507,10 +508,38 @@ def run_sfm(
         )
 
     partial = out.with_name(out.name + ".partial")
-    if partial.exists():
-        if not (partial / PARTIAL_MARKER).is_file():
-            raise InputError(partial, "exists and was not made by n2f2 sfm; move it away")
-        shutil.rmtree(partial)
+    if partial.exists() and not (partial / PARTIAL_MARKER).is_file():
+        raise InputError(partial, "exists and was not made by n2f2 sfm; move it away")
+    from ..io import check_writable_dir, lock_out_dir
+
+    check_writable_dir(partial)
+    lock_out_dir(partial)  # a second sfm into the same DATA stops here, naming the first
+    for leftover in partial.iterdir():  # an earlier, interrupted attempt
+        if leftover.name != LOCK_NAME:
+            shutil.rmtree(leftover) if leftover.is_dir() and not leftover.is_symlink() else leftover.unlink()
+    try:
+        report = _pose(pycolmap, folder, names, out, partial, key, settings, progress, log)
+    except BaseException:
+        if keep_partial:
+            log(f"sfm: working files kept in {partial} (--keep-partial)")
+        else:
+            shutil.rmtree(partial, ignore_errors=True)
+        raise
+    return report
+
+
+def _pose(
+    pycolmap,
+    folder: Path,
+    names: list[str],
+    out: Path,
+    partial: Path,
+    key: str,
+    settings: SfmSettings,
+    progress: bool,
+    log: Callable[[str], None],
+) -> SfmReport:
+    """The work of :func:`run_sfm` in ``partial``, renamed to ``out`` when complete."""
     work = partial / WORK_DIR
     work.mkdir(parents=True)
     (partial / PARTIAL_MARKER).touch()
@@ -542,7 +571,7 @@ def run_sfm(
                 f"motion needs sharp, textured photos that overlap (every part of the "
                 f"scene in 3 or more photos, taken a small step apart)"
                 + ("; try --matcher exhaustive" if matcher == "sequential" else "")
-                + f"; working files in {work}",
+                + "; --keep-partial keeps the working files",
             )
         index, model = models[0]
         stages.timed("undistort", lambda: stages.undistort(work / "sparse" / str(index), partial))
@@ -579,6 +608,7 @@ def run_sfm(
     )
     write_json(partial / REPORT_NAME, report.to_dict())
     (partial / PARTIAL_MARKER).unlink()
+    (partial / LOCK_NAME).unlink(missing_ok=True)  # the lock stays held (by its descriptor) until the end
     if out.exists():  # a finished result being overwritten, or an empty folder
         shutil.rmtree(out) if out.is_dir() else out.unlink()
     os.replace(partial, out)

@@ -255,7 +255,7 @@ def run_bench(
 ) -> dict:
     """Run every requested variant (see the module docstring); writes ``OUT/bench.json``,
     ``OUT/bench.md`` and ``OUT/*.png`` and returns the bench.json content."""
-    from ..io import write_json, write_text
+    from ..io import claim_out_dir, write_json, write_text
     from ..query.composite import temperature_name
     from .claims import evaluate_claims
     from .evaluate import (
@@ -274,7 +274,7 @@ def run_bench(
 
     config = config or BenchConfig()
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    claim_out_dir(out, ())
     t_start = time.perf_counter()
     load_start = os.getloadavg()
     stage_s: dict[str, float] = {}

@@ -378,6 +378,9 @@ def _fit_gaussians(
             device=config.device,
         )
     train_views, test_views = split_views(scene, config.test_every)
+    # Checked now, not after the training: the depth metric's views (optional ground truth).
+    gt = scene.ground_truth
+    depth_views = [] if gt is None else gt.views_with_depth(test_views or train_views, "the depth error")
     if ck is None and config.background_from_images:
         config = replace(config, background=border_color(scene, train_views), background_from_images=False)
 
@@ -419,7 +422,7 @@ def _fit_gaussians(
             if env is not None:
                 assert env_adam is not None  # created together with env
                 state["environment"] = {"sh": env.sh.detach().cpu().clone(), "optimizer": env_adam.state_dict()}
-            save_torch(ck_path, state)
+            save_torch(ck_path, state, keep=True)  # resumable state: kept if the command fails
 
     end = config.steps if stop_after is None else min(config.steps, stop_after)
     bar = tqdm(total=config.steps, initial=start, disable=not progress, desc="fit-gaussians", dynamic_ncols=True)
@@ -509,7 +512,15 @@ def _fit_gaussians(
     save_checkpoint(final)
 
     report = evaluate(
-        g, scene, train_views, test_views, config, extent, renders_dir=out_dir / TEST_RENDERS_DIR, env=env
+        g,
+        scene,
+        train_views,
+        test_views,
+        config,
+        extent,
+        renders_dir=out_dir / TEST_RENDERS_DIR,
+        env=env,
+        depth_views=depth_views,
     )
     report.update(
         steps=final,
@@ -559,9 +570,11 @@ def evaluate(
     extent: float,
     renders_dir: Optional[Path] = None,
     env: Optional[Environment] = None,
+    depth_views: Optional[list[int]] = None,
 ) -> dict:
     """Mean PSNR over train and test views; with ground truth, the median absolute error of the
-    rendered expected depth over pixels with alpha > 0.5 of the test views (train views if none).
+    rendered expected depth over pixels with alpha > 0.5 of ``depth_views`` (default: the test
+    views, or the train views if none, whose depth files exist).
     With ``renders_dir``, each held-out view is written there as ``<stem>.png`` (render on the
     left, photo on the right) and ``<stem>.npy`` (the render, float32 [H, W, 3])."""
     from ..io import write_npy, write_png
@@ -574,7 +587,9 @@ def evaluate(
 
     train_psnr = float(np.mean([view_psnr(i)[0] for i in train_views]))
     test_psnr, errors = None, []
-    depth_views = test_views or train_views
+    gt = scene.ground_truth
+    if depth_views is None:
+        depth_views = [] if gt is None else gt.views_with_depth(test_views or train_views, "the depth error")
     outs = {}
     per_view = {}
     if test_views:
@@ -590,7 +605,6 @@ def evaluate(
                 pair = np.concatenate([render, scene.image(i)], axis=1)
                 write_png(renders_dir / f"{stem}.png", (pair * 255.0 + 0.5).astype(np.uint8))
         test_psnr = float(np.mean(vals))
-    gt = scene.ground_truth
     depth_abs = depth_rel = None
     if gt is not None:
         for i in depth_views:

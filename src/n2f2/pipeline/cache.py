@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from ..io import write_json
+from ..io import commit_outputs, write_json
 
 STAGES_FILE = "stages.json"
 
@@ -80,6 +80,7 @@ class StageCache:
             "outputs": [str(p.relative_to(self.run_dir)) for p in outputs],
         }
         write_json(self.run_dir / STAGES_FILE, self.records)
+        commit_outputs()  # a finished stage stays, whatever happens to the later ones
         self.ran.append(name)
         log(f"[{name}] done in {self.records[name]['seconds']:.1f} s")
         return True

@@ -28,12 +28,16 @@ def run_scene(opt: RunOptions) -> dict:
     row. Bad input is the row's status (``failed`` and the error), not an exception, so the
     other scenes go on."""
     from ..errors import N2F2Error
+    from ..io import command_outputs
 
     name = Path(opt.out).name
     start = time.perf_counter()
     row = {"scene": name, "data": str(opt.data), "run_dir": str(opt.out)}
     try:
-        result = run_pipeline(opt, log=lambda msg: print(f"{name}: {msg}", flush=True))
+        # One scene's writes as a set (its finished stages stay): a failed scene leaves its folder
+        # as it was, and a Ray worker lets go of the folder's lock when its task ends.
+        with command_outputs():
+            result = run_pipeline(opt, log=lambda msg: print(f"{name}: {msg}", flush=True))
         mious = _eval_mious(result["eval"])
     except N2F2Error as e:
         return {
@@ -111,8 +115,9 @@ def run_many(opts: list[RunOptions], out: Path, executor, progress: bool = True)
     from tqdm import tqdm
 
     from ..distributed import TaskFailure
-    from ..io import write_text
+    from ..io import claim_out_dir, write_text
 
+    claim_out_dir(out, ())  # writable, and ours alone: before any scene's work
     start = time.perf_counter()
     rows: list = [None] * len(opts)
     bar = tqdm(total=len(opts), desc="run-many", unit="scene", disable=not progress)

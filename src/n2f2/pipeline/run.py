@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Callable, TypedDict
 
 from ..errors import InputError
+from ..io import claim_out_dir
 from . import stages
 from .cache import StageCache, file_digest, scene_digest, stage_key, tree_digest
 from .presets import DEFAULT_PRESET, get_preset
@@ -113,7 +114,7 @@ def run_pipeline(opt: RunOptions, log: Callable[[str], None] = print) -> dict:
         raise InputError(opt.langsplat_features, "LangSplat features folder does not exist")
     if opt.labels is not None and not Path(opt.labels).is_dir():
         raise InputError(opt.labels, "labels folder does not exist")
-    out.mkdir(parents=True, exist_ok=True)
+    claim_out_dir(out, ())  # writable, with room, and ours alone until the command ends
     if opt.device == "cpu":  # compile the rasterizer while the scene is read; the first render waits
         from ..render.numba_backend import compile_in_background
 
@@ -338,7 +339,7 @@ def demo_scene(out: Path, spec: DemoScene, progress: bool = True, log: Callable[
     from ..data.synthetic import write_contact_sheet
 
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    claim_out_dir(out, ())
     scene_dir = out / "scene"
     regenerated = cached_demo_scene(StageCache.open(out), scene_dir, spec, progress, log)
     sheet = out / "contact_sheet.png"

@@ -161,6 +161,15 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
+# Query texts longer than this are shortened on the console; query.json keeps them whole.
+SHOWN_TEXT_CHARS = 80
+
+
+def shown(text: str, limit: int = SHOWN_TEXT_CHARS) -> str:
+    """``text`` for a console line: at most ``limit`` characters, the length said when cut."""
+    return text if len(text) <= limit else f"{text[: limit - 25]}... ({len(text)} characters)"
+
+
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
@@ -199,7 +208,7 @@ def run(args: argparse.Namespace) -> int:
         for r in v["queries"]:
             loc = r["localization"]
             print(
-                f"{v['view']}  {r['query']!r}: max relevancy {r['relevancy_max']:.3f} at "
+                f"{v['view']}  {shown(r['query'])!r}: max relevancy {r['relevancy_max']:.3f} at "
                 f"({loc['x']}, {loc['y']}), mask {r['mask_area_px']} px"
                 + (f", scale {r['chosen_scale']}" if r["chosen_scale"] else "")
             )
@@ -207,7 +216,7 @@ def run(args: argparse.Namespace) -> int:
     for t, s in (sel3d["selections"] if sel3d else {}).items():
         assert sel3d is not None  # the loop runs over sel3d's selections only
         print(
-            f"3D {t!r}: {s['count']} of {sel3d['num_gaussians']} Gaussians"
+            f"3D {shown(t)!r}: {s['count']} of {sel3d['num_gaussians']} Gaussians"
             + (f" -> {out / s['ply']}" if s["ply"] else " (empty selection, no PLY written)")
         )
     print(f"query: {len(texts)} queries x {len(summary['views'])} views ({args.mode}) -> {out}")

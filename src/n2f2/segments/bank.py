@@ -295,18 +295,28 @@ def _record_dir(root: Path, stem: str) -> Path:
 def _write_record(root: Path, stem: str, arrays: dict, captions: Optional[list[str]]) -> None:
     """Write one image's record into a temporary folder, then rename it into place, so a
     record folder either is complete or does not exist."""
+    from ..io import DISK_ERRNOS, output_error
+
     final = _record_dir(root, stem)
     tmp = root / f".{stem}.tmp-{os.getpid()}"
     if tmp.exists():
         shutil.rmtree(tmp)
-    tmp.mkdir(parents=True)
-    for name, arr in arrays.items():
-        np.save(tmp / f"{name}.npy", arr)
-    if captions is not None:
-        (tmp / "captions.json").write_text(json.dumps(captions))
-    if final.exists():  # a record finished by another process meanwhile: ours replaces it
-        shutil.rmtree(final)
-    os.rename(tmp, final)
+    try:
+        tmp.mkdir(parents=True)
+        for name, arr in arrays.items():
+            np.save(tmp / f"{name}.npy", arr)
+        if captions is not None:
+            (tmp / "captions.json").write_text(json.dumps(captions))
+        if final.exists():  # a record finished by another process meanwhile: ours replaces it
+            shutil.rmtree(final)
+        os.rename(tmp, final)  # complete records are resumable state: kept if the command fails
+    except OSError as e:
+        if e.errno in DISK_ERRNOS:
+            raise output_error(final, e) from None
+        raise
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
 
 
 def _record_complete(root: Path, stem: str) -> bool:

@@ -70,6 +70,11 @@ def load_pretrained(cls, model_id: str, what: str, alternative: str, flag: str =
     """``cls.from_pretrained(model_id)``: from the local cache first (works offline), then,
     unless ``HF_HUB_OFFLINE`` is set, from the Hub. Any failure becomes one
     :class:`MissingModelError` that says what to download and which flag avoids the model."""
+    from transformers.utils import logging as hf_logging
+
+    # transformers' "Loading weights" bar takes a fraction of a second and leaves two lines on
+    # stderr for every model; n2f2's own bars say what is being done.
+    hf_logging.disable_progress_bar()
     try:
         return cls.from_pretrained(model_id, local_files_only=True, **kwargs)
     except (OSError, ValueError) as first:

@@ -310,6 +310,16 @@ def gt_depth_provider(scene) -> DepthProvider:
         )
     from .segmenters import resize_nearest
 
+    # Every view's depth is needed: a missing file fails now, not after the first images.
+    missing = [i for i in range(len(scene.cameras)) if not scene.ground_truth.depth_path(i).is_file()]
+    if missing:
+        n = len(missing)
+        raise InputError(
+            scene.ground_truth.depth_path(missing[0]),
+            "missing" + (f" (and {n - 1} other views' depth)" if n > 1 else "") + "; --depth-source gt needs "
+            "every view's depth map (--depth-source render lifts with the Gaussians' depth)",
+        )
+
     def provide(i: int) -> tuple[np.ndarray, np.ndarray]:
         gt = scene.ground_truth
         path = gt.root / "depth" / f"{gt.image_names[i]}.npy"

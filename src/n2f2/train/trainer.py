@@ -244,7 +244,8 @@ def projected_loss(
     E = W.shape[0]
     gx = x @ (W.t() @ W)  # [P, D]
     # index_select, not [index]: its backward (index_add) sums in the same order whatever the
-    # thread count, so a run gives the same field on 1 or 2 threads (serial and Ray runs agree).
+    # thread count. The matrix products' sums are ordered by the BLAS, which may split them by
+    # thread (MKL on AVX-512 does): runs on 1 and 2 threads agree to float32 rounding.
     u = (targets @ W).index_select(0, index)  # [P, D]
     tt = (targets * targets).sum(1).index_select(0, index)  # [P]
     return _loss_from_products((gx * x).sum(1), (u * x).sum(1), tt, E, cos_weight, weight)
@@ -291,8 +292,8 @@ def prefix_projected_loss(
     a = theta * (2.0 * (theta @ torch.tril(G, diagonal=-1).t()) + theta * torch.diagonal(G))  # [P, D]
     last = dims.long() - 1  # [R] the row's last kept dim
     # Compiled on CPU; elsewhere cumulative sums and flat index_selects (not advanced indexing:
-    # their backward sums in a fixed order on any thread count). Either way a run gives the same
-    # field on 1 or 2 threads.
+    # their backward sums in a fixed order on any thread count). The products with G and W
+    # follow the BLAS's order (see projected_loss).
     xgx = prefix_sum(a, row, last)  # [R]
     ux = prefix_dot(targets @ W, theta, index, row, last)  # [R]
     tt = (targets * targets).sum(1).index_select(0, index)  # [R]
@@ -570,7 +571,7 @@ def train_field(
     def save_checkpoint() -> None:
         blob = checkpoint_blob()
         check_finite(ck_path, {"field_state": blob["field_state"], "optimizer": blob["optimizer"]["state"]})
-        save_torch(ck_path, blob)
+        save_torch(ck_path, blob, keep=True)  # resumable state: kept if the command fails
 
     out.mkdir(parents=True, exist_ok=True)
     iter_times: list[float] = []
