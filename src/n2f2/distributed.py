@@ -15,6 +15,7 @@ A worker process that dies is Ray's business: the task is retried up to ``max_re
 from __future__ import annotations
 
 import argparse
+import importlib
 import os
 from dataclasses import dataclass
 from typing import Any, Callable, Hashable, Iterator, Optional, Sequence
@@ -105,13 +106,36 @@ def check_ray_address(address: str, timeout: float = 5.0) -> None:
         ) from None
 
 
+def _init_local_ray(ray, num_cpus: Optional[int]) -> None:
+    """Start a local Ray instance whose servers all listen on 127.0.0.1 only.
+
+    Ray binds its servers (GCS, raylet, workers, agents, metrics) to loopback when the node
+    address is loopback, but ``ray.init`` swaps a loopback ``_node_ip_address`` for this
+    machine's network address unless ``ray_constants.ENABLE_RAY_CLUSTER`` is off (as it is on
+    macOS and Windows). It is turned off for this call only: joining a cluster and the
+    processes Ray starts (given the node address on their command lines) are unaffected."""
+    try:
+        constants: Any = importlib.import_module("ray._private.ray_constants")
+    except ImportError:  # a Ray without it: its servers listen on all interfaces
+        constants = None
+    enabled = getattr(constants, "ENABLE_RAY_CLUSTER", None)
+    if enabled is not None:
+        constants.ENABLE_RAY_CLUSTER = False
+    try:
+        ray.init(address="local", num_cpus=num_cpus, include_dashboard=False, _node_ip_address="127.0.0.1")
+    finally:
+        if enabled is not None:
+            constants.ENABLE_RAY_CLUSTER = enabled
+
+
 class RayExecutor:
     """Tasks run as Ray tasks, one per item, each asking for ``cpus_per_task`` CPUs and
     ``gpus_per_task`` GPUs (Ray sets ``CUDA_VISIBLE_DEVICES`` and ``OMP_NUM_THREADS`` of the
     worker to match).
 
     ``address=None`` starts a local Ray instance for the duration of the ``with`` block
-    (``num_cpus``, default all cores; node address 127.0.0.1; no dashboard); ``"auto"`` or
+    (``num_cpus``, default all cores; no dashboard; its servers listen on 127.0.0.1 only,
+    :func:`_init_local_ray`); ``"auto"`` or
     ``"HOST:PORT"`` joins a running cluster. When Ray is already initialised in this process,
     that instance is used and left running. Ray starts on the first :meth:`map`, so a command
     with nothing left to do does not pay its start-up."""
@@ -152,12 +176,7 @@ class RayExecutor:
             return
         try:
             if self.address is None:
-                ray.init(
-                    address="local",
-                    num_cpus=self.num_cpus or os.cpu_count(),
-                    include_dashboard=False,
-                    _node_ip_address="127.0.0.1",
-                )
+                _init_local_ray(ray, self.num_cpus or os.cpu_count())
             else:
                 ray.init(address=self.address)
         except (ConnectionError, ValueError, RuntimeError) as e:

@@ -93,13 +93,14 @@ def write_bytes(path: str | Path, data: bytes) -> None:
         tmp.write_bytes(data)
 
 
-def write_text(path: str | Path, text: str) -> None:
-    with atomic_path(path) as tmp:
+def write_text(path: str | Path, text: str, keep: bool = False) -> None:
+    with atomic_path(path, keep=keep) as tmp:
         tmp.write_text(text)
 
 
-def write_json(path: str | Path, obj: Any) -> None:
-    write_text(path, json.dumps(obj, indent=2, default=_json_default) + "\n")
+def write_json(path: str | Path, obj: Any, keep: bool = False) -> None:
+    """``obj`` as indented JSON, atomically (``keep``: see :func:`atomic_path`)."""
+    write_text(path, json.dumps(obj, indent=2, default=_json_default) + "\n", keep=keep)
 
 
 def write_npy(path: str | Path, array: np.ndarray) -> None:

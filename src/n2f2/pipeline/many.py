@@ -115,7 +115,7 @@ def run_many(opts: list[RunOptions], out: Path, executor, progress: bool = True)
     from tqdm import tqdm
 
     from ..distributed import TaskFailure
-    from ..io import claim_out_dir, write_text
+    from ..io import claim_out_dir, commit_outputs, write_text
 
     claim_out_dir(out, ())  # writable, and ours alone: before any scene's work
     start = time.perf_counter()
@@ -144,4 +144,5 @@ def run_many(opts: list[RunOptions], out: Path, executor, progress: bool = True)
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / f"{SUMMARY_NAME}.json", summary)
     write_text(out / f"{SUMMARY_NAME}.md", summary_markdown(summary))
+    commit_outputs()  # the summary stays when the command then exits 2 for a failed scene
     return summary
