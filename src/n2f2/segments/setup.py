@@ -125,6 +125,9 @@ def report_lines(report: dict) -> list[str]:
         f"{c['dropped_degenerate']} degenerate dropped, {c['dropped_empty']} empty), "
         f"median scale {s['scale_median']:.4g}{per} -> {report['bank']}"
     ]
+    parts = t.get("seconds_per_image_by_part") or {}
+    if parts:
+        lines.append("segments: seconds per image by part: " + ", ".join(f"{k} {v:.2f}" for k, v in parts.items()))
     check = report.get("ground_truth_check")
     if check:
         medians = ", ".join(f"{k} {v:.3g}" for k, v in check["median_scale_by_level"].items())
