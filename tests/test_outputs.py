@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import textwrap
@@ -167,7 +168,12 @@ def test_a_second_run_into_a_busy_folder_is_refused_and_the_first_finishes(base,
         while not (out / "checkpoint.pt").exists():  # the first is training and checkpointing
             assert first.poll() is None and time.monotonic() < deadline, first.communicate()
             time.sleep(0.05)
-        second = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+        # Paused while the second starts (however long its imports take), then let go on.
+        os.kill(first.pid, signal.SIGSTOP)
+        try:
+            second = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+        finally:
+            os.kill(first.pid, signal.SIGCONT)
         one_line({"rc": second.returncode, "err": second.stderr, "out": second.stdout},
                  str(out), f"PID {first.pid}", "another n2f2 run")
         _, err = first.communicate(timeout=600)
