@@ -279,3 +279,21 @@ def test_output_folder_holding_the_photos_is_refused(tmp_path, capsys):
     assert _cli("sfm", scene / "images", "--out", scene, "--overwrite") == 2
     assert "contains the photos" in capsys.readouterr().err
     assert sorted(os.listdir(scene / "images")) == ["0.png", "1.png", "2.png"]
+
+
+@pytest.mark.parametrize("bad", ["corrupt", "link"])
+def test_an_unreadable_photo_is_one_line_and_leaves_no_working_folder(toy_sfm, tmp_path, capsys, bad):
+    photos = tmp_path / "photos"
+    shutil.copytree(toy_sfm.photos, photos)
+    victim = photos / sorted(p.name for p in photos.iterdir())[3]
+    victim.unlink()
+    if bad == "corrupt":
+        victim.write_bytes(b"\xff\xd8\xff\xe0 not a JPEG")
+    else:  # a link to a file that is not an image
+        (tmp_path / "notes.txt").write_text("not an image")
+        victim.symlink_to(tmp_path / "notes.txt")
+    out = tmp_path / "out"
+    assert _cli("sfm", photos, "--out", out, "--quiet") == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and victim.name in err[0] and "cannot read image" in err[0], err
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["photos", *(["notes.txt"] if bad == "link" else [])])
