@@ -25,6 +25,12 @@ Random SAM weights leave only about a dozen segments per image, so CLIP is also 
 ``--clip-segments`` (default 100) box-shaped segments of the first image, the count a real
 image gives. Times on CUDA are taken after synchronising the device;
 ``torch.cuda.max_memory_allocated`` is reported there. Prints a Markdown table, writes JSON.
+
+On the CPU each model part is also printed beside its floor, measured in the same process right
+after the run: its multiply-accumulates (counted from the model folders' configs: SAM ViT-H's
+encoder 3.27 TMAC at 1024 x 1024, the decoder 1.79 GMAC a point prompt and 1,024 prompts an
+image, CLIP ViT-B/16 17.6 GMAC a crop) at the fp32 rate of a [4096, 1280] x [1280, 5120]
+``torch.matmul`` on the same threads, so the ratio reads the same on any CPU.
 """
 
 from __future__ import annotations
@@ -80,6 +86,83 @@ def make_scene(root: Path, images: list[Path]) -> Path:
                   torch.full((n, 3), float(np.log(0.06))), torch.full((n,), 4.0), rgb_to_sh(rgb))
     write_ply(root / "gaussians.ply", g)
     return root
+
+
+# ----------------------------------------------------------------------------- arithmetic floors
+def vit_layer_macs(tokens: int, d: int, mlp: int) -> int:
+    """Multiply-accumulates of one transformer block's projections and MLP over ``tokens``."""
+    return tokens * (4 * d * d + 2 * d * mlp)
+
+
+def sam_encoder_macs(v: dict) -> int:
+    """SAM's ViT image encoder at its input size: patch embedding, windowed blocks on the grid
+    padded to a multiple of the window (``window_size`` 14: 64 x 64 -> 70 x 70), global blocks on
+    the grid, attention products (QK^T and AV) of both, and the neck (1x1 then 3x3 conv)."""
+    grid = v["image_size"] // v["patch_size"]
+    d, mlp, w = v["hidden_size"], v["mlp_dim"], v["window_size"]
+    padded = -(-grid // w) * w
+    windows, n_win = (padded // w) ** 2, w * w
+    macs = grid * grid * 3 * v["patch_size"] ** 2 * d
+    for layer in range(v["num_hidden_layers"]):
+        if layer in v["global_attn_indexes"]:
+            macs += vit_layer_macs(grid * grid, d, mlp) + 2 * (grid * grid) ** 2 * d
+        else:
+            macs += vit_layer_macs(padded * padded, d, mlp) + windows * 2 * n_win * n_win * d
+    c = v["output_channels"]
+    return macs + grid * grid * (d * c + 9 * c * c)
+
+
+def sam_decoder_macs_per_prompt(m: dict, prompt_tokens: int = 7) -> int:
+    """SAM's mask decoder for one point prompt (multimask): the two-way transformer's image-side
+    projections (keys and values of the 4096 image tokens for token-to-image attention, queries
+    and output for image-to-token, in every layer, and the final attention's keys and values,
+    at the downsampled attention width) and attention products, then the two transposed 2x2
+    convolutions (64 -> 128 -> 256) and the masks' dot products; the prompt tokens' own
+    projections and MLPs are negligible (7 tokens)."""
+    d, L = m["hidden_size"], m["num_hidden_layers"]
+    inner = d // m.get("attention_downsample_rate", 2)
+    n, t = 64 * 64, prompt_tokens
+    per_layer = 4 * n * d * inner + 2 * 2 * t * n * inner  # k, v (token->image); q, out (image->token); products
+    final = 2 * n * d * inner + 2 * t * n * inner
+    upscale = n * d * (d // 4) * 4 + (4 * n) * (d // 4) * (d // 8) * 4
+    masks = 4 * (d // 8) * (16 * n)
+    return L * per_layer + final + upscale + masks
+
+
+def clip_image_macs(v: dict) -> int:
+    """CLIP's vision tower on one crop: patch embedding, the blocks with their attention
+    products, and the projection."""
+    tokens = (v["image_size"] // v["patch_size"]) ** 2 + 1
+    d, mlp = v["hidden_size"], v["intermediate_size"]
+    macs = (tokens - 1) * 3 * v["patch_size"] ** 2 * d
+    macs += v["num_hidden_layers"] * (vit_layer_macs(tokens, d, mlp) + 2 * tokens * tokens * d)
+    return macs + d * v.get("projection_dim", 512)
+
+
+def matmul_gflops(repeats: int = 5) -> float:
+    """fp32 GFLOP/s of a [4096, 1280] x [1280, 5120] torch.matmul (ViT-H's MLP shape) on this
+    process's threads, the median of ``repeats`` after one warm-up."""
+    import torch
+
+    a, b = torch.randn(4096, 1280), torch.randn(1280, 5120)
+    torch.matmul(a, b)
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        torch.matmul(a, b)
+        times.append(time.perf_counter() - t)
+    return 2 * 4096 * 1280 * 5120 / float(np.median(times)) / 1e9
+
+
+def floors(models: Path, gflops: float, prompts: int) -> dict:
+    """Seconds each part's multiply-accumulates take at ``gflops``: the SAM encoder per image, the
+    decoder per image (``prompts`` point prompts), CLIP per segment."""
+    sam = json.loads((models / "sam-vit-huge" / "config.json").read_text())
+    clip = json.loads((models / "clip-vit-b-16" / "config.json").read_text())
+    macs = {"sam_image_encoder": sam_encoder_macs(sam["vision_config"]),
+            "sam_mask_decoder": prompts * sam_decoder_macs_per_prompt(sam["mask_decoder_config"]),
+            "clip_per_segment": clip_image_macs({**clip["vision_config"], "projection_dim": clip["projection_dim"]})}
+    return {"gflops_fp32": gflops, "macs": macs, "seconds": {k: 2 * v / (gflops * 1e9) for k, v in macs.items()}}
 
 
 # ----------------------------------------------------------------------------- child
@@ -144,6 +227,10 @@ def child(args: argparse.Namespace) -> int:
     clip_at_n = None
     if rc == 0 and args.clip_segments > 0:
         clip_at_n = time_clip(state["encoder"], state["image"], args.clip_segments)
+    # The floors, measured in this process on its threads right after the run.
+    from n2f2.segments.sam import SamSettings
+
+    floor = floors(args.models, matmul_gflops(), SamSettings().points_per_side ** 2) if args.device == "cpu" else None
     # The rest of an image's share: from the end of its extraction to the start of the next
     # image's (the last: to the end of the command, which includes fitting the quantiles).
     for k, r in enumerate(records):
@@ -156,7 +243,7 @@ def child(args: argparse.Namespace) -> int:
     out = {"argv": ["n2f2"] + argv, "rc": rc, "wall_s": wall, "user_s": usage.ru_utime, "system_s": usage.ru_stime,
            "max_rss_mib": usage.ru_maxrss / 1024.0, "models_loaded_s": state["models_loaded_at"],
            "torch_threads": torch.get_num_threads(), "bank_timing": bank.get("timing"),
-           "bank_counts": bank.get("counts"), "images": records, "clip_at_n": clip_at_n}
+           "bank_counts": bank.get("counts"), "images": records, "clip_at_n": clip_at_n, "floor": floor}
     if args.device.startswith("cuda"):
         out["cuda_max_allocated_mib"] = torch.cuda.max_memory_allocated() / 2**20
         out["cuda_device"] = torch.cuda.get_device_name()
@@ -218,6 +305,22 @@ def table(result: dict) -> str:
         per = n["total_s"] / n["segments"]
         lines.append(f"CLIP at {n['segments']} box segments of the first image: {n['total_s']:.1f} s (crops "
                      f"{n['crops_s']:.1f} s, model {n['model_s']:.1f} s), {per:.3f} s per segment")
+    f = result.get("floor")
+    if f:
+        sec = f["seconds"]
+        mean = {k: float(np.mean([r[k] for r in images])) for k in ("sam_image_encoder_s", "sam_mask_decoder_s")}
+        rows = [f"| part | mean time | floor at {f['gflops_fp32']:.0f} GFLOP/s fp32 (same run) | ratio |",
+                "|---|---:|---:|---:|"]
+        for label, key, floor in (("SAM image encoder", "sam_image_encoder_s", sec["sam_image_encoder"]),
+                                  ("SAM mask decoder", "sam_mask_decoder_s", sec["sam_mask_decoder"])):
+            rows.append(f"| {label} | {mean[key]:.1f} s | {floor:.1f} s | {mean[key] / floor:.2f}x |")
+        if n:
+            model = n["model_s"] / n["segments"]
+            rows.append(f"| CLIP per segment (model) | {model:.3f} s | {sec['clip_per_segment']:.3f} s | "
+                        f"{model / sec['clip_per_segment']:.2f}x |")
+            rows.append(f"| CLIP per segment (crops + model) | {per:.3f} s | {sec['clip_per_segment']:.3f} s | "
+                        f"{per / sec['clip_per_segment']:.2f}x |")
+        lines += ["", "\n".join(rows)]
     if "cuda_max_allocated_mib" in result:
         lines.append(f"CUDA ({result['cuda_device']}): max allocated {result['cuda_max_allocated_mib'] / 1024:.2f} GiB")
     return "\n".join(lines)
