@@ -13,6 +13,7 @@ from ..errors import InputError
 from ..field.model import FieldConfig
 from ..gaussians.fit import FitConfig
 from ..segments.lifting import LiftSettings
+from ..segments.segmenters import SEGMENTER_NAMES
 from ..train.trainer import TrainConfig
 from ..validate import add_device_option, nonneg_int, positive_float, positive_int
 from .presets import DEFAULT_PRESET, PRESETS
@@ -41,7 +42,7 @@ def _add_run_options(p: argparse.ArgumentParser, per_scene_inputs: bool = True) 
         p.add_argument("--gaussians", metavar="PLY", default=None, help="use these Gaussians instead of fitting")
     p.add_argument(
         "--segmenter",
-        choices=["sam", "classical", "ground-truth"],
+        choices=SEGMENTER_NAMES,
         default=None,
         help="segmenter (default: ground-truth on the demo scene, else sam)",
     )

@@ -15,7 +15,13 @@ from ..config import add_config_options, config_overrides
 from ..distributed import add_executor_options
 from ..validate import add_device_option, positive_float
 from .lifting import LiftSettings
+from .segmenters import SEGMENTER_NAMES, SEGMENTERS
 from .setup import SegmentsSetup
+
+
+def segmenter_help() -> str:
+    """``--segmenter``'s help, from the registry."""
+    return "; ".join(f"{k.name}: {k.description}" for k in SEGMENTERS.values())
 
 
 def _common(p: argparse.ArgumentParser) -> None:
@@ -65,10 +71,9 @@ def register(subparsers) -> None:
     _common(p)
     p.add_argument(
         "--segmenter",
-        choices=["sam", "classical", "ground-truth"],
+        choices=SEGMENTER_NAMES,
         default="sam",
-        help="sam: SAM automatic masks (paper, default); classical: multi-scale Felzenszwalb "
-        "(no weights needed); ground-truth: demo scene regions with captions",
+        help=segmenter_help(),
     )
     p.add_argument(
         "--encoder",
@@ -90,7 +95,9 @@ def register(subparsers) -> None:
         "--sam-model",
         metavar="ID",
         default=None,
-        help="SAM model: Hugging Face id or a local folder saved with save_pretrained (default facebook/sam-vit-huge)",
+        help="SAM or SAM 2 model: Hugging Face id or a local folder saved with save_pretrained (default: "
+        + ", ".join(f"{k.default_model_id} for {k.name}" for k in SEGMENTERS.values() if k.default_model_id)
+        + ")",
     )
     add_executor_options(p, "image")
     p.set_defaults(func=run_segments)

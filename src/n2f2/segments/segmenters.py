@@ -10,22 +10,26 @@ two go to different layers.
 * ``sam``: SAM automatic mask generation as used by the paper and LangSplat, in :mod:`.sam`;
   the vectorised version of LangSplat's mask NMS it uses is here (:func:`mask_nms`; theirs is a
   Python double loop over mask pairs).
+* ``sam2``: the same automatic masks from SAM 2.1 (Hiera-tiny by default), in :mod:`.sam2`.
 * ``classical``: multi-scale Felzenszwalb (scikit-image), for real photos without SAM weights.
 * ``ground-truth``: the demo scene's part / object / group regions, with their captions.
+
+:data:`SEGMENTERS` registers them by name (:class:`SegmenterKind`); :func:`get_segmenter` builds
+one. Model-backed segmenters are imported only when built, so importing this module stays cheap
+(and :mod:`.sam`, which imports from here, is never imported by it at module level).
 """
 
 from __future__ import annotations
 
+import importlib
 from dataclasses import asdict, dataclass
-from typing import Optional, Sequence
+from typing import Any, Callable, Optional, Sequence
 
 import numpy as np
 import torch
 from torch import Tensor
 
 from ..errors import InputError
-
-SEGMENTER_NAMES = ("sam", "classical", "ground-truth")
 
 
 # ----------------------------------------------------------------------------- segment sets
@@ -473,22 +477,102 @@ class GroundTruthSegmenter:
         return SegmentSet(layers, np.ones(len(source_ids), np.float32), captions=captions, source_ids=source_ids)
 
 
+# ----------------------------------------------------------------------------- registry
+@dataclass(frozen=True)
+class SegmenterKind:
+    """A segmenter that :func:`get_segmenter` can build by name.
+
+    ``build(scene, model_id, device, settings)`` makes it; ``settings`` arrives as an instance of
+    :meth:`settings_class` (None when the kind takes no settings) and ``model_id`` already
+    defaults to ``default_model_id``. Builders import their module themselves, so registering a
+    model-backed segmenter costs no import."""
+
+    name: str
+    build: Callable[..., Any]
+    settings: str = ""  # "module:Class" in n2f2.segments, the dataclass of the keyword settings; "" = none
+    default_model_id: Optional[str] = None  # Hugging Face id used when no model is given; None = no model
+    needs_scene: bool = False  # builds from the scene (ground truth), not from images alone
+    description: str = ""  # one line for a command-line help text
+
+    def settings_class(self) -> Optional[type]:
+        """The settings dataclass (imports its module), or None."""
+        if not self.settings:
+            return None
+        module, attr = self.settings.split(":")
+        return getattr(importlib.import_module(f"{__package__}.{module}"), attr)
+
+    def create(self, scene=None, model_id: Optional[str] = None, device: str | torch.device = "cpu", **settings):
+        """Build the segmenter: check the scene is there if needed, make the settings (a
+        TypeError names an unknown one), then load the model if any."""
+        if self.needs_scene and scene is None:
+            raise ValueError(f"the {self.name} segmenter needs the scene")
+        cls = self.settings_class()
+        made = None if cls is None else cls(**settings)
+        return self.build(scene=scene, model_id=model_id or self.default_model_id, device=device, settings=made)
+
+
+def _build_sam(scene, model_id, device, settings):
+    from .sam import SamSegmenter
+
+    return SamSegmenter.from_pretrained(model_id, device=device, settings=settings)
+
+
+def _build_sam2(scene, model_id, device, settings):
+    from .sam2 import Sam2Segmenter
+
+    return Sam2Segmenter.from_pretrained(model_id, device=device, settings=settings)
+
+
+def _build_classical(scene, model_id, device, settings):
+    return ClassicalSegmenter(settings)
+
+
+def _build_ground_truth(scene, model_id, device, settings):
+    return GroundTruthSegmenter(scene)
+
+
+SEGMENTERS: dict[str, SegmenterKind] = {
+    kind.name: kind
+    for kind in (
+        SegmenterKind(
+            "sam",
+            _build_sam,
+            settings="sam:SamSettings",
+            default_model_id="facebook/sam-vit-huge",  # = sam.DEFAULT_SAM_MODEL
+            description="SAM automatic masks (paper, default)",
+        ),
+        SegmenterKind(
+            "sam2",
+            _build_sam2,
+            settings="sam2:Sam2Settings",
+            default_model_id="facebook/sam2.1-hiera-tiny",  # = sam2.DEFAULT_SAM2_MODEL
+            description="SAM 2.1 automatic masks, same settings (Hiera-tiny: lighter than SAM ViT-H)",
+        ),
+        SegmenterKind(
+            "classical",
+            _build_classical,
+            settings="segmenters:ClassicalSettings",
+            description="multi-scale Felzenszwalb (no weights needed)",
+        ),
+        SegmenterKind(
+            "ground-truth",
+            _build_ground_truth,
+            needs_scene=True,
+            description="demo scene regions with captions",
+        ),
+    )
+}
+SEGMENTER_NAMES = tuple(SEGMENTERS)
+
+
 def get_segmenter(
     name: str, scene=None, model_id: Optional[str] = None, device: str | torch.device = "cpu", **settings
 ):
-    """Build a segmenter by name: ``sam`` (``model_id`` default ``facebook/sam-vit-huge``,
-    ``settings`` are :class:`SamSettings` fields), ``classical`` (:class:`ClassicalSettings`
+    """Build a segmenter by name (see :data:`SEGMENTERS`): ``sam`` (``model_id`` default
+    ``facebook/sam-vit-huge``, ``settings`` are :class:`SamSettings` fields), ``sam2`` (default
+    ``facebook/sam2.1-hiera-tiny``, the same settings: :class:`Sam2Settings`), ``classical`` (:class:`ClassicalSettings`
     fields) or ``ground-truth`` (needs ``scene``)."""
-    if name == "sam":
-        from .sam import DEFAULT_SAM_MODEL, SamSegmenter, SamSettings
-
-        return SamSegmenter.from_pretrained(
-            model_id or DEFAULT_SAM_MODEL, device=device, settings=SamSettings(**settings)
-        )
-    if name == "classical":
-        return ClassicalSegmenter(ClassicalSettings(**settings))
-    if name == "ground-truth":
-        if scene is None:
-            raise ValueError("the ground-truth segmenter needs the scene")
-        return GroundTruthSegmenter(scene)
-    raise ValueError(f"unknown segmenter {name!r}; choose one of {', '.join(SEGMENTER_NAMES)}")
+    kind = SEGMENTERS.get(name)
+    if kind is None:
+        raise ValueError(f"unknown segmenter {name!r}; choose one of {', '.join(SEGMENTER_NAMES)}")
+    return kind.create(scene=scene, model_id=model_id, device=device, **settings)
