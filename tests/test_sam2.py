@@ -192,7 +192,7 @@ def test_fast_decoder_equals_the_models_forward(tiny_sam2, tiny_sam2_with_biases
         x, _ = seg.preprocess(photo("astronaut", 40, 56))
         embeddings = model.get_image_embeddings(x)
         points = torch.rand(11, 2, generator=torch.Generator().manual_seed(3)) * 128
-        want_iou, want = seg.decode(embeddings, points)  # [11, 3], [11, 3, 32, 32]
+        want_iou, want = seg.reference_decode(embeddings, points)  # [11, 3], [11, 3, 32, 32]
         want = want.flatten(0, 1)
         fast = FastSam2Decoder(model, embeddings, chunk=chunk, mask_chunk=mask_chunk)
         iou, low, index = fast.decode(points)
@@ -209,7 +209,7 @@ def test_fast_decoder_equals_the_models_forward(tiny_sam2, tiny_sam2_with_biases
 
 def test_fast_decoder_setting_picks_the_decoder(tiny_sam2, monkeypatch):
     """``fast_decoder`` (default True) decodes with :class:`FastSam2Decoder`; False with
-    ``Sam2Model``'s forward (:meth:`Sam2Segmenter.decode`) only."""
+    ``Sam2Model``'s forward (:meth:`Sam2Segmenter.reference_decode`) only."""
     import n2f2.segments.sam2 as sam2
 
     used = []
@@ -219,14 +219,14 @@ def test_fast_decoder_setting_picks_the_decoder(tiny_sam2, monkeypatch):
             used.append("fast")
             return super().decode(points, min_iou)
 
-    plain = Sam2Segmenter.decode
+    plain = Sam2Segmenter.reference_decode
 
     def forward(self, embeddings, points):
         used.append("forward")
         return plain(self, embeddings, points)
 
     monkeypatch.setattr(sam2, "FastSam2Decoder", Spy)
-    monkeypatch.setattr(Sam2Segmenter, "decode", forward)
+    monkeypatch.setattr(Sam2Segmenter, "reference_decode", forward)
     image = photo("astronaut", 40, 56)
     Sam2Segmenter(tiny_sam2, replace(SETTINGS, points_per_side=2))(image)
     assert used == ["fast"]

@@ -28,8 +28,7 @@ their image part and ignores the video memory weights).
 
 from __future__ import annotations
 
-import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
@@ -37,9 +36,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .encoders import device_autocast, device_sync
 from .sam import SAM_PIXEL_MEAN, SAM_PIXEL_STD, SamSegmenter, SamSettings
-from .segmenters import SegmentSet, mask_nms, remove_small_regions
 
 DEFAULT_SAM2_MODEL = "facebook/sam2.1-hiera-tiny"
 SAM2_MODELS = tuple(f"facebook/sam2.1-hiera-{size}" for size in ("tiny", "small", "base-plus", "large"))
@@ -47,13 +44,9 @@ SAM2_MODELS = tuple(f"facebook/sam2.1-hiera-{size}" for size in ("tiny", "small"
 
 @dataclass
 class Sam2Settings(SamSettings):
-    """:class:`~.sam.SamSettings` (the paper's / LangSplat's automatic-mask settings), and how
-    prompts are decoded."""
-
-    # Decode with :class:`FastSam2Decoder` (the same masks as ``Sam2Model``'s forward, up to
-    # float rounding, about 4x faster on CPU); False runs ``Sam2Model`` itself
-    # (:meth:`Sam2Segmenter.decode`). Not part of the spec: it does not change results.
-    fast_decoder: bool = True
+    """:class:`~.sam.SamSettings`, the paper's / LangSplat's automatic-mask settings, for SAM 2.1
+    (``fast_decoder``: :class:`FastSam2Decoder`, the same masks as ``Sam2Model``'s forward up to
+    float rounding; False runs the forward, :meth:`Sam2Segmenter.reference_decode`)."""
 
 
 class Sam2Segmenter(SamSegmenter):
@@ -61,13 +54,12 @@ class Sam2Segmenter(SamSegmenter):
 
     Per image, as :class:`~.sam.SamSegmenter`: one image-encoder pass; the point grid decoded
     ``points_per_batch`` prompts at a time from the cached image features (by
-    :class:`FastSam2Decoder`, or with ``fast_decoder=False`` by :meth:`decode`, ``Sam2Model``'s
-    own forward); per batch only the masks above the IoU threshold upsampled and checked for
+    :class:`FastSam2Decoder`, or with ``fast_decoder=False`` by :meth:`reference_decode`,
+    ``Sam2Model``'s own forward); per batch only the masks above the IoU threshold upsampled and checked for
     stability (:meth:`~.sam.SamSegmenter.filter_masks`); NMS whenever ``max_pending_masks``
     accumulate; then small regions and LangSplat's mask NMS. This class supplies SAM 2's input
     frame, decoding and mask upsampling; the filters and NMS are ``sam``'s. ``last_timing`` and
-    ``last_counts`` are filled as for ``sam``. (``sam``'s prompt decoding is specific to
-    ``SamModel``, so the per-image loop is written out here.) ``settings``:
+    ``last_counts`` are filled as for ``sam``, whose per-image loop this is. ``settings``:
     :class:`Sam2Settings`, or a :class:`~.sam.SamSettings` (decoded by the fast decoder unless
     it has ``fast_decoder=False``)."""
 
@@ -99,12 +91,6 @@ class Sam2Segmenter(SamSegmenter):
         model = load_pretrained(Sam2Model, model_id, what="SAM 2.1", alternative=alternative, flag="--sam-model")
         return Sam2Segmenter(model, settings, model_id=model_id, device=device)
 
-    @property
-    def spec(self) -> dict:
-        settings = asdict(self.settings)
-        settings.pop("fast_decoder", None)  # how the masks are computed, not which
-        return {"name": self.name, "model_id": self.model_id, **settings}
-
     def _input_size(self) -> int:
         return int(self.model.config.prompt_encoder_config.image_size)
 
@@ -131,7 +117,13 @@ class Sam2Segmenter(SamSegmenter):
         (nothing to crop: the input frame has no padding). ``resized`` is unused."""
         return F.interpolate(low_res[:, None].float(), size=original, mode="bilinear", align_corners=False)[:, 0]
 
-    def decode(
+    def image_embeddings(self, pixel_values: Tensor):  # [1, 3, T, T] -> the decoder's image inputs
+        return self.model.get_image_embeddings(pixel_values)
+
+    def fast_decoder(self, embeddings):
+        return FastSam2Decoder(self.model, embeddings)
+
+    def reference_decode(
         self,
         embeddings: list[Tensor],  # from get_image_embeddings: [1, C/8, 4e, 4e], [1, C/4, 2e, 2e], [1, C, e, e]
         points: Tensor,  # [B, 2] (x, y) prompts in the model's input frame
@@ -146,78 +138,6 @@ class Sam2Segmenter(SamSegmenter):
             multimask_output=True,
         )
         return out.iou_scores[0], out.pred_masks[0]
-
-    def _generate(self, image: np.ndarray) -> SegmentSet:  # [H, W, 3] float32
-        H, W = image.shape[:2]
-        st = self.settings
-        timing = {"image_encoder": 0.0, "mask_decoder": 0.0, "postprocess": 0.0}
-        counts = {"candidates": 0, "iou_kept": 0, "stable": 0, "after_nms": 0, "final": 0}
-        self.last_timing, self.last_counts = timing, counts
-        clock = time.perf_counter()
-
-        def lap(part: str) -> None:
-            nonlocal clock
-            device_sync(self.device)
-            now = time.perf_counter()
-            timing[part] += now - clock
-            clock = now
-
-        pixel_values, (h, w) = self.preprocess(image)
-        with device_autocast(self.device):
-            embeddings = self.model.get_image_embeddings(pixel_values)
-        points = torch.as_tensor(self.point_grid(H, W), dtype=torch.float32, device=self.device)
-        points = points * torch.tensor([w / W, h / H], device=self.device)  # into the model's frame
-        lap("image_encoder")
-
-        all_masks, all_iou, all_stab = [], [], []
-        settled = 0  # leading masks of all_masks that already passed NMS together
-        with device_autocast(self.device):
-            fast = FastSam2Decoder(self.model, embeddings) if getattr(st, "fast_decoder", True) else None
-        for start in range(0, points.shape[0], st.points_per_batch):
-            pts = points[start : start + st.points_per_batch]
-            with device_autocast(self.device):
-                if fast is not None:  # only the masks above the IoU threshold are upscaled
-                    iou, low, keep = fast.decode(pts, st.pred_iou_thresh)
-                    iou = iou.reshape(-1).float()  # [B * 3]
-                else:
-                    iou, low = self.decode(embeddings, pts)
-                    iou = iou.reshape(-1).float()  # [B * 3]
-                    keep = torch.nonzero(iou > st.pred_iou_thresh).flatten()
-                    low = low.reshape(-1, *low.shape[-2:])[keep]  # [K, 4e, 4e]
-            lap("mask_decoder")
-            counts["candidates"] += int(iou.numel())
-            counts["iou_kept"] += int(keep.numel())
-            if keep.numel() == 0:
-                continue
-            masks, stability, kept = self.filter_masks(low, (h, w), (H, W))
-            counts["stable"] += int(kept.numel())
-            all_masks.append(masks)
-            all_iou.append(iou[keep][kept])
-            all_stab.append(stability)
-            if sum(len(m) for m in all_masks) > st.max_pending_masks:
-                # Bound memory on large images, as sam does: NMS what has accumulated so far.
-                kept_masks, kept_iou, kept_stab = self._nms(all_masks, all_iou, all_stab, settled)
-                all_masks, all_iou, all_stab = [kept_masks], [kept_iou], [kept_stab]
-                settled = len(kept_masks)
-            lap("postprocess")
-        if not all_masks or sum(len(m) for m in all_masks) == 0:
-            return SegmentSet.empty(H, W)
-        masks, iou, stability = self._nms(all_masks, all_iou, all_stab, settled)
-        masks, iou, stability = masks.cpu(), iou.cpu(), stability.cpu()  # cv2 and packing: CPU
-        counts["after_nms"] = len(masks)
-        if st.min_mask_region_area > 0:
-            cleaned = np.stack([remove_small_regions(m, st.min_mask_region_area) for m in masks.numpy()])
-            big = cleaned.reshape(len(cleaned), -1).sum(1) >= st.min_mask_region_area
-            masks, iou, stability = torch.from_numpy(cleaned[big]), iou[big], stability[big]
-        if len(masks) == 0:
-            lap("postprocess")
-            return SegmentSet.empty(H, W)
-        score = iou * stability
-        kept = mask_nms(masks, score, st.nms_iou_thr, st.nms_score_thr, st.nms_inner_thr)
-        out = SegmentSet.from_masks(masks[kept].numpy(), score[kept].numpy())
-        counts["final"] = out.num_segments
-        lap("postprocess")
-        return out
 
 
 # ----------------------------------------------------------------------------- fast decoder
