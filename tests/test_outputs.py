@@ -295,3 +295,42 @@ def test_results_a_killed_run_had_set_aside_are_put_back_by_the_next(tmp_path):
     assert (out / "field.pt").read_text() == "the earlier field"
     assert (out / "eval.json").read_text() == "new"
     assert sorted(p.name for p in out.iterdir()) == [f".live.json.n2f2-old-{os.getpid()}", "eval.json", "field.pt"]
+
+
+def test_n2f2_runs_segments_stage_finishes_an_interrupted_bank(base, tmp_path, monkeypatch):
+    # The stage's bank, interrupted after two images, is finished by the next run: the images
+    # done are not segmented again, and the bank equals one built in one go.
+    from n2f2.pipeline import stages
+    from n2f2.segments.bank import SegmentAndEncode
+    from n2f2.segments.lifting import LiftSettings
+
+    done, original = [], SegmentAndEncode.extract
+
+    def extract(self, index, stem, image):
+        if len(done) == 2 and stop:
+            raise KeyboardInterrupt
+        done.append(stem)
+        return original(self, index, stem, image)
+
+    monkeypatch.setattr(SegmentAndEncode, "extract", extract)
+    kw = dict(segmenter="ground-truth", encoder="captions", lift=LiftSettings(), progress=False, log=lambda m: None)
+    stop = True
+    with pytest.raises(KeyboardInterrupt):
+        stages.build_segment_bank(base["scene"], tmp_path / "bank", base["ply"], **kw)
+    first = list(done)
+    stop = False
+    stages.build_segment_bank(base["scene"], tmp_path / "bank", base["ply"], **kw)
+    assert len(first) == 2 and set(done[2:]).isdisjoint(first) and len(done) == 6
+    stages.build_segment_bank(base["scene"], tmp_path / "whole", base["ply"], **kw)
+    for name in ("layers.npy", "embeddings.npy", "scales.npy"):
+        for stem in first + done[2:6]:
+            a, b = np.load(tmp_path / "bank" / stem / name), np.load(tmp_path / "whole" / stem / name)
+            assert np.array_equal(a, b, equal_nan=a.dtype.kind == "f"), (stem, name)
+    # Other settings: the unfinished bank is replaced, not mixed in.
+    stop, done[:] = True, []
+    with pytest.raises(KeyboardInterrupt):
+        stages.build_segment_bank(base["scene"], tmp_path / "other", base["ply"], **kw)
+    stop = False
+    area = {**kw, "lift": LiftSettings(scale_measure="area")}
+    stages.build_segment_bank(base["scene"], tmp_path / "other", base["ply"], **area)
+    assert len(done) == 2 + 6

@@ -55,7 +55,13 @@ def _add_run_options(p: argparse.ArgumentParser, per_scene_inputs: bool = True) 
         "the text encoder the features are aligned with (default: the one an n2f2 export "
         "recorded in DIR/encoder.json, else clip)",
     )
-    p.add_argument("--model", metavar="ID", default=None, help="CLIP model id or folder")
+    p.add_argument("--model", "--clip-model", dest="model", metavar="ID", default=None, help="CLIP model id or folder")
+    p.add_argument(
+        "--sam-model",
+        metavar="ID",
+        default=None,
+        help="SAM or SAM 2 model (--segmenter sam|sam2): Hugging Face id or a local folder saved with save_pretrained",
+    )
     if per_scene_inputs:
         p.add_argument(
             "--langsplat-features",
@@ -109,6 +115,7 @@ def _run_options(args: argparse.Namespace, data: Path, out: Path) -> RunOptions:
         segmenter=args.segmenter,
         encoder=args.encoder,
         model=args.model,
+        sam_model=args.sam_model,
         langsplat_features=Path(args.langsplat_features) if args.langsplat_features else None,
         labels=Path(args.labels) if args.labels else None,
         preset=args.preset,

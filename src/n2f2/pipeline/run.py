@@ -46,6 +46,7 @@ class RunOptions:
     segmenter: str | None = None
     encoder: str | None = None
     model: str | None = None
+    sam_model: str | None = None
     langsplat_features: Path | None = None
     labels: Path | None = None
     preset: str = DEFAULT_PRESET
@@ -182,6 +183,7 @@ def run_pipeline(opt: RunOptions, log: Callable[[str], None] = print) -> dict:
             args=["--segmenter", opt.segmenter, "--encoder", opt.encoder, "--scale-measure", opt.scale_measure],
             depth=opt.depth_source,
             model=opt.model,
+            **({"sam_model": opt.sam_model} if opt.sam_model else {}),  # keys of earlier runs unchanged
         )
 
         def build() -> None:
@@ -195,6 +197,7 @@ def run_pipeline(opt: RunOptions, log: Callable[[str], None] = print) -> dict:
                 encoder=opt.encoder,
                 lift=lift,
                 model=opt.model,
+                sam_model=opt.sam_model,
                 depth_source=opt.depth_source,
                 **common,
             )

@@ -80,6 +80,16 @@ def _bank_results(out: Path) -> list[str]:
     return ["bank.json", *sorted(records)]
 
 
+def _unfinished_bank(out: Path) -> bool:
+    """``out/bank.json`` exists and says the bank is not complete (an interrupted build)."""
+    import json
+
+    try:
+        return json.loads((out / "bank.json").read_text()).get("complete") is False
+    except (OSError, ValueError, AttributeError):
+        return False
+
+
 def build_segment_bank(
     data: Path,
     out: Path,
@@ -89,6 +99,7 @@ def build_segment_bank(
     encoder: str,
     lift: "LiftSettings",
     model: Optional[str] = None,
+    sam_model: Optional[str] = None,
     depth_source: str = "render",
     downscale: float = 1.0,
     skip_missing: bool = False,
@@ -96,7 +107,9 @@ def build_segment_bank(
     progress: bool = True,
     log: Log = print,
 ) -> dict:
-    """Segment, embed and lift every image into the segment bank ``out``, as ``n2f2 segments``."""
+    """Segment, embed and lift every image into the segment bank ``out``, as ``n2f2 segments``.
+    A bank this stage left unfinished (interrupted: ``bank.json`` says ``complete: false``)
+    with the same settings is finished, not started again."""
     from ..io import remove_results
     from ..segments.bank import build_bank
     from ..segments.setup import SegmentsSetup, report_lines
@@ -111,12 +124,19 @@ def build_segment_bank(
         segmenter=segmenter,
         encoder=encoder,
         model=model,
-        sam_model=None,
+        sam_model=sam_model,
         device=str(device),
     )
     scene, source, depth = setup.build()
-    remove_results(out, present)
-    report = build_bank(scene, source, depth, out, depth_source=depth_source, lift=lift, progress=progress)
+    if not _unfinished_bank(out):
+        remove_results(out, present)
+    try:
+        report = build_bank(scene, source, depth, out, depth_source=depth_source, lift=lift, progress=progress)
+    except InputError as e:
+        if not present or "different" not in e.problem:  # not an unfinished bank of other settings
+            raise
+        remove_results(out, _bank_results(out))
+        report = build_bank(scene, source, depth, out, depth_source=depth_source, lift=lift, progress=progress)
     for line in report_lines(report):
         log(line)
     return report
