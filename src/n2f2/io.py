@@ -60,6 +60,8 @@ def atomic_path(path: str | Path, keep: bool = False) -> Iterator[Path]:
             _JOURNAL.before_replace(path)
         os.replace(tmp_path, path)
     except OSError as e:
+        if e.filename is not None and not _ours(Path(str(e.filename)), path):
+            raise  # another file (an input being copied): its own error, naming it
         if e.errno in DISK_ERRNOS:
             raise output_error(path, e) from None
         if e.errno is None and "written" in str(e):  # numpy's short write ("4800 requested and 3040 written")
@@ -70,6 +72,11 @@ def atomic_path(path: str | Path, keep: bool = False) -> Iterator[Path]:
         if tmp_path is not None and tmp_path.exists():
             with contextlib.suppress(OSError):
                 tmp_path.unlink()
+
+
+def _ours(name: Path, path: Path) -> bool:
+    """``name`` is ``path``, a sibling of it (its temporary file) or one of its folders."""
+    return name.parent == path.parent or name == path.parent or name in path.parents
 
 
 def make_dirs(folder: str | Path) -> None:
