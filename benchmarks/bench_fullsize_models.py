@@ -50,6 +50,7 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
+SAM_DIRS = {"sam": "sam-vit-huge", "sam2": "sam2.1-hiera-tiny"}  # --segmenter -> its folder in --models
 PLUSH_DOG = REPO.parent / "shared" / "data" / "plush-dog" / "images"
 DEFAULT_IMAGES = [PLUSH_DOG / "IMG_3496.jpg", PLUSH_DOG / "IMG_3497.jpg"]
 
@@ -217,8 +218,8 @@ def child(args: argparse.Namespace) -> int:
     setup.depth_provider = depth_provider
     if args.device.startswith("cuda"):
         torch.cuda.reset_peak_memory_stats()
-    argv = ["segments", str(args.scene), "--gaussians", str(args.scene / "gaussians.ply"), "--segmenter", "sam",
-            "--sam-model", str(args.models / "sam-vit-huge"), "--encoder", "clip",
+    argv = ["segments", str(args.scene), "--gaussians", str(args.scene / "gaussians.ply"), "--segmenter",
+            args.segmenter, "--sam-model", str(args.models / SAM_DIRS[args.segmenter]), "--encoder", "clip",
             "--clip-model", str(args.models / "clip-vit-b-16"), "--out", str(args.bank), "--device", args.device,
             "--quiet"]
     rc = main(argv)
@@ -230,7 +231,8 @@ def child(args: argparse.Namespace) -> int:
     # The floors, measured in this process on its threads right after the run.
     from n2f2.segments.sam import SamSettings
 
-    floor = floors(args.models, matmul_gflops(), SamSettings().points_per_side ** 2) if args.device == "cpu" else None
+    cpu_sam = args.device == "cpu" and args.segmenter == "sam"  # the counts are SAM ViT-H's
+    floor = floors(args.models, matmul_gflops(), SamSettings().points_per_side ** 2) if cpu_sam else None
     # The rest of an image's share: from the end of its extraction to the start of the next
     # image's (the last: to the end of the command, which includes fitting the quantiles).
     for k, r in enumerate(records):
@@ -329,7 +331,10 @@ def table(result: dict) -> str:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--models", type=Path, default=Path("/tmp/fullsize_models"),
-                    help="folder with sam-vit-huge/ and clip-vit-b-16/ (make_fullsize_models.py)")
+                    help="folder with sam-vit-huge/ (or sam2.1-hiera-tiny/) and clip-vit-b-16/ "
+                         "(make_fullsize_models.py)")
+    ap.add_argument("--segmenter", choices=list(SAM_DIRS), default="sam",
+                    help="sam: SAM ViT-H (with the floors); sam2: SAM 2.1 Hiera-tiny")
     ap.add_argument("--images", type=Path, nargs="+", default=DEFAULT_IMAGES, help="photos (same size)")
     ap.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
     ap.add_argument("--json", type=Path, default=Path("fullsize_models.json"), help="where to write the numbers")
@@ -344,7 +349,7 @@ def main(argv=None) -> int:
     if args.child:
         return child(args)
 
-    for d in ("sam-vit-huge", "clip-vit-b-16"):
+    for d in (SAM_DIRS[args.segmenter], "clip-vit-b-16"):
         if not (args.models / d / "config.json").is_file():
             sys.exit(f"{args.models / d}: no model; run benchmarks/make_fullsize_models.py {args.models} first")
     missing = [str(p) for p in args.images if not p.is_file()]
@@ -356,7 +361,7 @@ def main(argv=None) -> int:
         child_json = work / "child.json"
         cmd = [sys.executable, str(Path(__file__).resolve()), "--child", "--scene", str(scene), "--bank",
                str(work / "bank"), "--child-json", str(child_json), "--models", str(args.models),
-               "--device", args.device, "--clip-segments", str(args.clip_segments)]
+               "--device", args.device, "--clip-segments", str(args.clip_segments), "--segmenter", args.segmenter]
         t = time.perf_counter()
         proc = subprocess.run(cmd)
         if proc.returncode != 0:

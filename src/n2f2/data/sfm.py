@@ -571,7 +571,7 @@ def _pose(
                 f"motion needs sharp, textured photos that overlap (every part of the "
                 f"scene in 3 or more photos, taken a small step apart)"
                 + ("; try --matcher exhaustive" if matcher == "sequential" else "")
-                + "; --keep-partial keeps the working files",
+                + "; `n2f2 sfm --keep-partial` keeps the working files",
             )
         index, model = models[0]
         stages.timed("undistort", lambda: stages.undistort(work / "sparse" / str(index), partial))
