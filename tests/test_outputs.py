@@ -334,3 +334,14 @@ def test_n2f2_runs_segments_stage_finishes_an_interrupted_bank(base, tmp_path, m
     area = {**kw, "lift": LiftSettings(scale_measure="area")}
     stages.build_segment_bank(base["scene"], tmp_path / "other", base["ply"], **area)
     assert len(done) == 2 + 6
+
+
+def test_run_reads_its_labels_before_fitting(base, tmp_path, capsys):
+    scene = copy(base["scene"], tmp_path / "scene")
+    label = sorted((scene / "label").glob("frame_*.json"))[0]
+    label.write_text("{ not json")
+    out = tmp_path / "run"
+    t = time.perf_counter()
+    assert_refused(capsys, ["run", scene, "--out", out, "--fit-steps", 5, "--train-steps", 5, "--quiet"], [scene],
+                   label.name)
+    assert not out.exists() and time.perf_counter() - t < 60  # nothing fitted first

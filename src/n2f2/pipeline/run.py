@@ -129,6 +129,11 @@ def run_pipeline(opt: RunOptions, log: Callable[[str], None] = print) -> dict:
 
     data = posed_scene_path(data, out / "sfm", progress=progress, log=log)  # photos: pose them first
     sdig = scene_digest(data)
+    labels = Path(opt.labels) if opt.labels else (data / "label" if (data / "label").is_dir() else None)
+    if labels is not None:  # every label file read now: a bad one stops the run in seconds, not after training
+        from ..data.labels import read_label_dir
+
+        read_label_dir(labels)
 
     # 1. Gaussians: fitted here, or given.
     if opt.gaussians is not None:
@@ -248,7 +253,6 @@ def run_pipeline(opt: RunOptions, log: Callable[[str], None] = print) -> dict:
     )
 
     # 4. Evaluation, when labels exist.
-    labels = Path(opt.labels) if opt.labels else (data / "label" if (data / "label").is_dir() else None)
     eval_json = None
     if labels is not None:
         from ..query.engine import DEFAULT_RENDER
