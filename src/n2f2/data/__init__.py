@@ -149,10 +149,10 @@ def load_scene(
     cameras = [cameras[i] for i in order]
     lenses = [lenses[i] for i in order]
     image_paths = [image_paths[i] for i in order]
-    seen: dict[str, Path] = {}
-    for path in image_paths:  # the same file under two names (./a/../a/x.png, a link) is a duplicate too
-        first = seen.setdefault(os.path.realpath(path), path)
-        if first is not path:
+    seen: dict[str, int] = {}
+    for k, path in enumerate(image_paths):  # the same file under two names (./a/../a/x.png, a link) too
+        first = image_paths[seen.setdefault(os.path.realpath(path), k)]
+        if seen[os.path.realpath(path)] != k:
             alias = "" if first == path else f" (also as {relative_name(first, root)})"
             raise InputError(listing, f"image {relative_name(path, root)} is listed twice{alias}")
 
