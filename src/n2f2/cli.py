@@ -17,6 +17,7 @@ import sys
 # GOMP_SPINCOUNT yourself overrides both; when several jobs share 2 cores,
 # OMP_WAIT_POLICY=PASSIVE or OMP_NUM_THREADS=1 avoids the spin-wait slowdown.
 PASSIVE_WAIT_COMMANDS = ("view",)
+SERVER_COMMANDS = ("view",)  # run until stopped; what they write is never undone
 BATCH_SPIN_COUNT = "100000"
 
 from . import __version__  # noqa: E402 (after the wait-policy notes above; imports no torch)
@@ -82,10 +83,15 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    import contextlib
+
     from .io import DISK_ERRNOS, command_outputs
 
+    # A failed command leaves its output folders as they were. A server's files (the viewer's
+    # exports) are the user's once written: Ctrl-C, its normal end, must not take them back.
+    journal = contextlib.nullcontext() if args.command in SERVER_COMMANDS else command_outputs()
     try:
-        with command_outputs():  # a failed command leaves its output folders as they were
+        with journal:
             result = args.func(args)
     except N2F2Error as e:
         print(f"n2f2 {args.command}: error: {one_line(str(e))}", file=sys.stderr)
