@@ -20,7 +20,7 @@ import math
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Optional, Union
+from typing import Optional, Sequence, Union
 
 import numpy as np
 import torch
@@ -570,11 +570,11 @@ def evaluate(
     extent: float,
     renders_dir: Optional[Path] = None,
     env: Optional[Environment] = None,
-    depth_views: Optional[list[int]] = None,
+    depth_views: Sequence[int] = (),
 ) -> dict:
     """Mean PSNR over train and test views; with ground truth, the median absolute error of the
-    rendered expected depth over pixels with alpha > 0.5 of ``depth_views`` (default: the test
-    views, or the train views if none, whose depth files exist).
+    rendered expected depth over pixels with alpha > 0.5 of ``depth_views`` (the fit passes the
+    test views, or the train views if none, whose depth files exist).
     With ``renders_dir``, each held-out view is written there as ``<stem>.png`` (render on the
     left, photo on the right) and ``<stem>.npy`` (the render, float32 [H, W, 3])."""
     from ..io import write_npy, write_png
@@ -588,8 +588,6 @@ def evaluate(
     train_psnr = float(np.mean([view_psnr(i)[0] for i in train_views]))
     test_psnr, errors = None, []
     gt = scene.ground_truth
-    if depth_views is None:
-        depth_views = [] if gt is None else gt.views_with_depth(test_views or train_views, "the depth error")
     outs = {}
     per_view = {}
     if test_views:

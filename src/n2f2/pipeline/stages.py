@@ -80,16 +80,6 @@ def _bank_results(out: Path) -> list[str]:
     return ["bank.json", *sorted(records)]
 
 
-def _unfinished_bank(out: Path) -> bool:
-    """``out/bank.json`` exists and says the bank is not complete (an interrupted build)."""
-    import json
-
-    try:
-        return json.loads((out / "bank.json").read_text()).get("complete") is False
-    except (OSError, ValueError, AttributeError):
-        return False
-
-
 def build_segment_bank(
     data: Path,
     out: Path,
@@ -111,7 +101,7 @@ def build_segment_bank(
     A bank this stage left unfinished (interrupted: ``bank.json`` says ``complete: false``)
     with the same settings is finished, not started again."""
     from ..io import remove_results
-    from ..segments.bank import build_bank
+    from ..segments.bank import bank_header, build_bank, unfinished_bank
     from ..segments.setup import SegmentsSetup, report_lines
 
     present = _claim(out, _bank_results(out))
@@ -128,15 +118,9 @@ def build_segment_bank(
         device=str(device),
     )
     scene, source, depth = setup.build()
-    if not _unfinished_bank(out):
+    if not unfinished_bank(out, bank_header(scene, source, depth_source, lift)):
         remove_results(out, present)
-    try:
-        report = build_bank(scene, source, depth, out, depth_source=depth_source, lift=lift, progress=progress)
-    except InputError as e:
-        if not present or "different" not in e.problem:  # not an unfinished bank of other settings
-            raise
-        remove_results(out, _bank_results(out))
-        report = build_bank(scene, source, depth, out, depth_source=depth_source, lift=lift, progress=progress)
+    report = build_bank(scene, source, depth, out, depth_source=depth_source, lift=lift, progress=progress)
     for line in report_lines(report):
         log(line)
     return report

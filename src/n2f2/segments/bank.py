@@ -335,6 +335,28 @@ def _record_complete(root: Path, stem: str) -> bool:
     return d.is_dir() and all((d / f).is_file() for f in RECORD_FILES)
 
 
+def bank_header(scene, source: SegmentSource, depth_source: str, lift: LiftSettings) -> dict:
+    """What ``bank.json`` records of how a bank is made; a resumed bank must match it."""
+    return {
+        "format": BANK_FORMAT,
+        "version": BANK_VERSION,
+        "scene": scene_fingerprint(scene),
+        "segmenter": source.segmenter_spec,
+        "encoder": source.encoder_spec,
+        "lifting": {**asdict(lift), "depth_source": depth_source, "scale": SCALE_DESCRIPTIONS[lift.scale_measure]},
+    }
+
+
+def unfinished_bank(out: str | Path, header: dict) -> bool:
+    """``out`` holds a bank that an interrupted build left (``complete: false``) with the
+    settings of ``header``: building it again finishes it."""
+    try:
+        old = json.loads((Path(out) / "bank.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(old, dict) and old.get("complete") is False and all(old.get(k) == v for k, v in header.items())
+
+
 def _check_resume(meta_path: Path, header: dict) -> None:
     try:
         old = json.loads(meta_path.read_text())
@@ -461,14 +483,7 @@ def build_bank(
     if executor is not None and worker_setup is None:
         raise ValueError("a distributed executor needs worker_setup")
     source.prepare(stems)
-    header = {
-        "format": BANK_FORMAT,
-        "version": BANK_VERSION,
-        "scene": scene_fingerprint(scene),
-        "segmenter": source.segmenter_spec,
-        "encoder": source.encoder_spec,
-        "lifting": {**asdict(lift), "depth_source": depth_source, "scale": SCALE_DESCRIPTIONS[lift.scale_measure]},
-    }
+    header = bank_header(scene, source, depth_source, lift)
     meta_path = out / "bank.json"
     if meta_path.exists():
         _check_resume(meta_path, header)
