@@ -39,7 +39,6 @@ from torch import Tensor
 from .sam import SAM_PIXEL_MEAN, SAM_PIXEL_STD, SamSegmenter, SamSettings
 
 DEFAULT_SAM2_MODEL = "facebook/sam2.1-hiera-tiny"
-SAM2_MODELS = tuple(f"facebook/sam2.1-hiera-{size}" for size in ("tiny", "small", "base-plus", "large"))
 
 
 @dataclass
