@@ -2,8 +2,10 @@
 
 Start the viewer in another process, then point this at it:
 
-    n2f2 view RUN_DIR --port 7007 &
-    python benchmarks/bench_viewer.py --url http://127.0.0.1:7007 [--requests 50] [--screenshot out.png]
+    n2f2 view RUN_DIR &
+    python benchmarks/bench_viewer.py [--url http://127.0.0.1:7008] [--requests 50] [--screenshot out.png]
+
+``--url`` is the viewer's JSON API and 2D page (``n2f2 view --api-port``), not the 3D viewer's port.
 
 Each request asks one query (cycling through a few of the demo scene's queries) in one view
 (cycling through the training views, so the first requests also pay for rendering and caching
@@ -25,6 +27,8 @@ import urllib.error
 import urllib.request
 
 import numpy as np
+
+from n2f2.viewer.settings import API_PORT, HOST
 
 QUERIES = ["teapot", "lid of the teapot", "red mug", "bag of cookies", "plate of fruit"]
 
@@ -81,7 +85,9 @@ def screenshot(url: str, path: str, query: str = "lid of the teapot") -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--url", default="http://127.0.0.1:7007", help="a running `n2f2 view` (default %(default)s)")
+    ap.add_argument(
+        "--url", default=f"http://{HOST}:{API_PORT}", help="a running `n2f2 view`'s API (default %(default)s)"
+    )
     ap.add_argument("--requests", type=int, default=50, help="concurrent requests (default 50)")
     ap.add_argument("--screenshot", default=None, metavar="PNG", help="also save a browser screenshot here")
     args = ap.parse_args()

@@ -180,7 +180,10 @@ def test_train_flags_reach_the_configs():
 def test_fit_segments_and_run_flags_reach_their_settings(tmp_path):
     from n2f2.gaussians.fit import FitConfig
     from n2f2.pipeline.commands import _run_options
-    from n2f2.segments.commands import _lift_settings
+    from n2f2.segments.commands import job_from_args
+
+    def _lift_settings(args):
+        return job_from_args(args).lift
 
     args = build_parser().parse_args(["fit-gaussians", "DATA", "--out", "O", "--depth-spread", "0.5", "--steps", "20"])
     assert config_overrides(args, FitConfig) == {"depth_spread_weight": 0.5, "steps": 20}

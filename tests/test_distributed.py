@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from n2f2.cli import build_parser, main
-from n2f2.segments.commands import SegmentsSetup
+from n2f2.segments.setup import SegmentsSetup
 
 VIEWS, WIDTH, HEIGHT = 6, 80, 60
 RUN_OPTS = ["--fit-steps", "20", "--train-steps", "8", "--dim", "16", "--quiet"]
@@ -150,8 +150,11 @@ class CountCalls:
 
 
 def _setup(scene: Path, teacher: str, clip: Path) -> SegmentsSetup:
+    from n2f2.segments.commands import job_from_args
+    from n2f2.segments.stage import setup_of
+
     args = build_parser().parse_args(_segments_args(scene, Path("unused"), teacher, clip))
-    return SegmentsSetup.from_args(args)
+    return setup_of(job_from_args(args, segmenter=args.segmenter, encoder=args.encoder, sam_model=args.sam_model))
 
 
 def _build_with(setup, out: Path) -> dict:

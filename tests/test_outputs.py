@@ -300,9 +300,9 @@ def test_results_a_killed_run_had_set_aside_are_put_back_by_the_next(tmp_path):
 def test_n2f2_runs_segments_stage_finishes_an_interrupted_bank(base, tmp_path, monkeypatch):
     # The stage's bank, interrupted after two images, is finished by the next run: the images
     # done are not segmented again, and the bank equals one built in one go.
-    from n2f2.pipeline import stages
     from n2f2.segments.bank import SegmentAndEncode
     from n2f2.segments.lifting import LiftSettings
+    from n2f2.segments.stage import BankJob, run_bank
 
     done, original = [], SegmentAndEncode.extract
 
@@ -312,16 +312,20 @@ def test_n2f2_runs_segments_stage_finishes_an_interrupted_bank(base, tmp_path, m
         done.append(stem)
         return original(self, index, stem, image)
 
+    def build(out, lift=LiftSettings()):
+        job = BankJob(base["scene"], out, base["ply"], lift=lift, segmenter="ground-truth", encoder="captions",
+                      force=True, keep_unfinished=True, progress=False)
+        return run_bank(job, log=lambda m: None)
+
     monkeypatch.setattr(SegmentAndEncode, "extract", extract)
-    kw = dict(segmenter="ground-truth", encoder="captions", lift=LiftSettings(), progress=False, log=lambda m: None)
     stop = True
     with pytest.raises(KeyboardInterrupt):
-        stages.build_segment_bank(base["scene"], tmp_path / "bank", base["ply"], **kw)
+        build(tmp_path / "bank")
     first = list(done)
     stop = False
-    stages.build_segment_bank(base["scene"], tmp_path / "bank", base["ply"], **kw)
+    build(tmp_path / "bank")
     assert len(first) == 2 and set(done[2:]).isdisjoint(first) and len(done) == 6
-    stages.build_segment_bank(base["scene"], tmp_path / "whole", base["ply"], **kw)
+    build(tmp_path / "whole")
     for name in ("layers.npy", "embeddings.npy", "scales.npy"):
         for stem in first + done[2:6]:
             a, b = np.load(tmp_path / "bank" / stem / name), np.load(tmp_path / "whole" / stem / name)
@@ -329,11 +333,38 @@ def test_n2f2_runs_segments_stage_finishes_an_interrupted_bank(base, tmp_path, m
     # Other settings: the unfinished bank is replaced, not mixed in.
     stop, done[:] = True, []
     with pytest.raises(KeyboardInterrupt):
-        stages.build_segment_bank(base["scene"], tmp_path / "other", base["ply"], **kw)
+        build(tmp_path / "other")
     stop = False
-    area = {**kw, "lift": LiftSettings(scale_measure="area")}
-    stages.build_segment_bank(base["scene"], tmp_path / "other", base["ply"], **area)
+    build(tmp_path / "other", LiftSettings(scale_measure="area"))
     assert len(done) == 2 + 6
+
+
+def test_stage_cache_records_an_interrupted_stage_until_it_finishes(tmp_path):
+    # A stage stopped in the middle is neither fresh nor forgotten: the next run with the same
+    # key is told to continue it; another key starts afresh; a finished stage is skipped.
+    from n2f2.io import command_outputs
+    from n2f2.pipeline.cache import StageCache
+
+    out = tmp_path / "run"
+    out.mkdir()
+    target = out / "result.txt"
+
+    def fail():
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        with command_outputs():
+            StageCache.open(out).run("stage", "k1", [target], fail, log=lambda m: None)
+    cache = StageCache.open(out)
+    assert cache.interrupted("stage", "k1") and not cache.interrupted("stage", "k2")
+    assert not cache.fresh("stage", "k1", [target])
+    target.write_text("done")  # a stage whose output exists but that never finished is not fresh
+    assert not cache.fresh("stage", "k1", [target])
+    with command_outputs():
+        assert cache.run("stage", "k1", [target], lambda: None, log=lambda m: None)
+    cache = StageCache.open(out)
+    assert not cache.interrupted("stage", "k1") and cache.fresh("stage", "k1", [target])
+    assert set(cache.records["stage"]) == {"key", "seconds", "outputs"}
 
 
 def test_run_reads_its_labels_before_fitting(base, tmp_path, capsys):
@@ -345,3 +376,27 @@ def test_run_reads_its_labels_before_fitting(base, tmp_path, capsys):
     assert_refused(capsys, ["run", scene, "--out", out, "--fit-steps", 5, "--train-steps", 5, "--quiet"], [scene],
                    label.name)
     assert not out.exists() and time.perf_counter() - t < 60  # nothing fitted first
+
+
+@pytest.mark.parametrize("command, module, func, argv, advice", [
+    ("fit-gaussians", "n2f2.gaussians.commands", "run", ["DATA", "--out", "O"], "add --resume"),
+    ("train", "n2f2.train.commands", "run_train", ["DATA", "--gaussians", "G", "--segments", "B", "--out", "O"],
+     "add --resume"),
+    ("segments", "n2f2.segments.commands", "run_segments", ["DATA", "--out", "B"], "add --resume"),
+    ("run", "n2f2.pipeline.commands", "_cmd_run", ["DATA", "--out", "O"], "the same command continues"),
+])
+def test_ctrl_c_says_how_to_continue_and_the_advice_parses(monkeypatch, capsys, command, module, func, argv, advice):
+    # Ctrl-C: exit 130 and one line saying how to go on; the flag it names is one the command takes.
+    import importlib
+
+    from n2f2.cli import build_parser, main
+
+    def interrupted(args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(importlib.import_module(module), func, interrupted)
+    assert main([command, *argv]) == 130
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"n2f2 {command}: interrupted;") and advice in err and "\n" not in err
+    if "--resume" in advice:
+        assert build_parser().parse_args([command, *argv, "--resume"]).resume is True

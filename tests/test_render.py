@@ -391,7 +391,7 @@ def test_numba_kernels_compile_in_a_child_process_and_the_first_render_waits(mon
     # a render started meanwhile waits for the rasterizer's (and the fit's) first, and a process
     # starts only one child.
     from n2f2.pipeline.run import BACKGROUND_KERNELS
-    from n2f2.render import numba_backend as nb
+    from n2f2.render import numba_runtime as nb
 
     monkeypatch.setattr(nb, "_BACKGROUND", None)
     monkeypatch.setattr(nb, "_STARTED", False)
@@ -417,7 +417,7 @@ def test_the_first_render_waits_for_the_first_kernels_only(monkeypatch, first, l
     # A module that fails after the rasterizer and the first modules are compiled does not hold
     # up the first render (it waits for the "ready" line); one that fails before is the child's
     # exit code, and the render compiles what it needs itself.
-    from n2f2.render import numba_backend as nb
+    from n2f2.render import numba_runtime as nb
 
     monkeypatch.setattr(nb, "_BACKGROUND", None)
     monkeypatch.setattr(nb, "_STARTED", False)
@@ -431,7 +431,7 @@ def test_the_first_render_waits_for_the_first_kernels_only(monkeypatch, first, l
 def test_torch_on_one_thread_keeps_the_kernels_threads_and_restores_torch():
     # Inside: torch's operations on one thread, the compiled render on the threads torch had, and
     # a render equal to one outside; after (also after an error, and when nested) torch's count is back.
-    from n2f2.render import numba_backend as nb
+    from n2f2.render import numba_runtime as nb
 
     pytest.importorskip("numba")
     before = torch.get_num_threads()

@@ -306,8 +306,8 @@ def test_registry_names_defaults_and_unknown_name():
 
 
 def test_segmenters_module_does_not_import_the_model_modules():
-    """``segmenters`` registers ``sam`` and ``sam2`` without importing them (``sam`` imports
-    from ``segmenters``; the CLI imports the registry for its choices)."""
+    """``segmenters`` registers ``sam`` and ``sam2`` without importing them (the CLI imports the
+    registry for its choices)."""
     code = (
         "import sys, n2f2.segments.segmenters as s; "
         "print(sorted(m for m in sys.modules if m in ('n2f2.segments.sam', 'n2f2.segments.sam2', 'transformers')))"

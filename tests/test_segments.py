@@ -424,6 +424,9 @@ def test_bank_round_trip_and_interrupted_resume(tmp_path):
     report = build_bank(scene, src, _flat_depth(scene), out, progress=False)
     assert src.calls == [2, 3]  # finished images were skipped
     assert report["counts"]["segments"] == 12 and report["counts"]["valid"] == 12
+    # The timing covers every image, also the two the interrupted run finished.
+    assert report["timing"]["images_extracted_now"] == 2
+    assert sorted(report["timing"]["per_image"]) == ["frame_00001", "frame_00002", "frame_00003", "frame_00004"]
 
     fresh = tmp_path / "fresh"
     build_bank(scene, _BlockSource(), _flat_depth(scene), fresh, progress=False)

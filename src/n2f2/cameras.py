@@ -97,15 +97,6 @@ class Camera:
         m[:3, :3] = m[:3, :3] @ OPENCV_TO_OPENGL
         return m
 
-    @staticmethod
-    def from_world_to_camera(
-        w2c: np.ndarray, fx: float, fy: float, cx: float, cy: float, width: int, height: int
-    ) -> "Camera":
-        w2c = np.asarray(w2c, dtype=np.float64)
-        if w2c.shape not in ((4, 4), (3, 4)):
-            raise ValueError(f"world-to-camera matrix must be 3x4 or 4x4, got shape {w2c.shape}")
-        return Camera(fx, fy, cx, cy, width, height, R=w2c[:3, :3], t=w2c[:3, 3])
-
     # ----------------------------------------------------------------------------- geometry
     def world_to_cam_points(self, points: np.ndarray) -> np.ndarray:
         """points [..., 3] world -> [..., 3] camera space."""

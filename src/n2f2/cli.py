@@ -76,6 +76,14 @@ def _choose_process_kind(argv: list[str]) -> None:
         keep_freed_blocks()
 
 
+# What a command stopped with Ctrl-C keeps, and how to go on from there.
+CONTINUE_HINT = {
+    **dict.fromkeys(("run", "demo", "run-many"), "; the same command continues where it stopped"),
+    **dict.fromkeys(("fit-gaussians", "train"), "; add --resume to continue from the last checkpoint"),
+    "segments": "; add --resume to finish the bank (its finished images are kept)",
+}
+
+
 def main(argv: list[str] | None = None) -> int:
     _choose_process_kind(sys.argv[1:] if argv is None else [str(a) for a in argv])
     parser = build_parser()
@@ -103,7 +111,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"n2f2 {args.command}: error: {where}{e.strerror or e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print(f"n2f2 {args.command}: interrupted", file=sys.stderr)
+        print(f"n2f2 {args.command}: interrupted{CONTINUE_HINT.get(args.command, '')}", file=sys.stderr)
         return 130
     return int(result or 0)
 

@@ -7,7 +7,10 @@ written once for every use:
 * command-line options: a field declared with :func:`option` carries its help text, argparse
   type and choices; :func:`add_config_options` turns such fields into flags whose help shows
   each preset's value, read from the presets, and :func:`config_overrides` collects the flags
-  given. The commands hold no copy of a setting's text, type or default."""
+  given. The commands hold no copy of a setting's text, type or default. Other settings
+  dataclasses (``QueryConfig``, ``EvalConfig``, ``SfmSettings``, ``ViewerLimits``) declare their
+  flags the same way; a command that reads a flag's value as it is gives it the field's own
+  default (``field_defaults``), and :func:`field_default` reads one for a hand-written flag."""
 
 from __future__ import annotations
 
@@ -19,10 +22,34 @@ from typing import Any, Callable, ClassVar, Mapping, Optional, Sequence, TypeVar
 T = TypeVar("T", bound="ConfigDict")
 
 
+# ----------------------------------------------------------------------------- presets
+# The named presets of every stage: each config class has a static constructor of each name
+# (FitConfig.cpu, TrainConfig.paper, ...), and n2f2.pipeline.presets gathers them per name.
+PRESET_NAMES: tuple[str, ...] = ("cpu", "paper")
+DEFAULT_PRESET = "cpu"
+
+
+def default_preset(device: object = "cpu") -> str:
+    """The preset a command uses when none is given: the paper's settings on a CUDA device,
+    the small ``cpu`` ones elsewhere."""
+    return "paper" if str(device).startswith("cuda") else DEFAULT_PRESET
+
+
+def add_preset_option(parser: argparse.ArgumentParser, what: str) -> None:
+    """``--preset`` with the same choices and default rule in every command; ``what`` says
+    what each preset sets in this command."""
+    parser.add_argument(
+        "--preset",
+        choices=PRESET_NAMES,
+        default=None,
+        help=f"{what} (default: {DEFAULT_PRESET}; paper with --device cuda)",
+    )
+
+
 class ConfigDict:
     """Mixin for config dataclasses: ``to_dict``, ``from_dict`` and ``preset``."""
 
-    PRESETS: ClassVar[tuple[str, ...]] = ()  # names of static constructors, e.g. ("cpu", "paper")
+    PRESETS: ClassVar[tuple[str, ...]] = ()  # names of static constructors, e.g. PRESET_NAMES
 
     def to_dict(self) -> dict:
         return asdict(self)  # type: ignore[call-overload]
@@ -44,6 +71,7 @@ class ConfigDict:
 
 # ----------------------------------------------------------------------------- command-line options
 OPTION_KEY = "n2f2.option"  # the dataclass field metadata key that option() fills
+OPTION_FIELD = "n2f2_field"  # the argparse action attribute add_config_options sets: (class, field)
 
 
 @dataclass(frozen=True)
@@ -55,6 +83,7 @@ class OptionSpec:
     choices: Optional[tuple[Any, ...]] = None
     flag: Optional[str] = None  # the flag without "--" when not the field name in kebab case
     metavar: Optional[str] = None
+    nargs: Optional[str] = None  # argparse nargs, e.g. "+" for a tuple field
 
 
 def option(
@@ -65,11 +94,12 @@ def option(
     choices: Optional[Sequence[Any]] = None,
     flag: Optional[str] = None,
     metavar: Optional[str] = None,
+    nargs: Optional[str] = None,
 ) -> Any:
     """A dataclass field (``dataclasses.field(default=...)``) that is also a command-line option:
     :func:`add_config_options` makes ``--kebab-name`` of it with this help, type and choices.
     A bool field becomes ``--name / --no-name``."""
-    spec = OptionSpec(help, type, None if choices is None else tuple(choices), flag, metavar)
+    spec = OptionSpec(help, type, None if choices is None else tuple(choices), flag, metavar, nargs)
     return dataclasses.field(default=default, metadata={OPTION_KEY: spec})
 
 
@@ -77,6 +107,19 @@ def option_specs(cls: type) -> dict[str, tuple[dataclasses.Field, OptionSpec]]:
     """``name -> (field, spec)`` of every field of dataclass ``cls`` declared with :func:`option`,
     in declaration order."""
     return {f.name: (f, f.metadata[OPTION_KEY]) for f in fields(cls) if OPTION_KEY in f.metadata}
+
+
+def field_default(cls: type, name: str) -> Any:
+    """The default of field ``name`` of dataclass ``cls`` (a ``default_factory`` called), for an
+    option whose default cannot be None and must not be a second copy of it."""
+    f = next((f for f in fields(cls) if f.name == name), None)
+    if f is None:
+        raise ValueError(f"{cls.__name__} has no field {name!r}")
+    if f.default is not dataclasses.MISSING:
+        return f.default
+    if f.default_factory is not dataclasses.MISSING:
+        return f.default_factory()
+    raise ValueError(f"{cls.__name__}.{name} has no default")
 
 
 def preset_configs(cls: type) -> dict[str, Any]:
@@ -135,25 +178,29 @@ def add_config_options(
     names: Union[None, Sequence[str], Mapping[str, str]] = None,
     *,
     presets: Optional[Mapping[str, Any]] = None,
+    field_defaults: bool = False,
 ) -> None:
     """Add a flag for each :func:`option` field of dataclass ``cls`` (``names``: only these, in
     this order; a mapping names their flags, ``{"iterations": "train-steps"}``). Each flag's
-    default is None, meaning: keep the preset's value (see :func:`config_overrides`). The help
-    is the field's text followed by its value under each of ``presets`` (``{name: config}``;
-    default: ``cls``'s own presets), read from them."""
+    default is None, meaning: keep the preset's value (see :func:`config_overrides`); with
+    ``field_defaults``, the field's own default (for a command that reads the flag's value as
+    it is). The help is the field's text followed by its value under each of ``presets``
+    (``{name: config}``; default: ``cls``'s own presets), read from them. Each action records
+    its field as ``(cls, name)`` in attribute :data:`OPTION_FIELD`."""
     presets = preset_configs(cls) if presets is None else presets
     specs = option_specs(cls)
     for name, (flag, dest) in _flags(cls, names).items():
         f, spec = specs[name]
         text = f"{spec.help} ({preset_values(presets, name)})".replace("%", "%%")
-        kw: dict[str, Any] = {"dest": dest, "default": None, "help": text}
+        default = field_default(cls, name) if field_defaults else None
+        kw: dict[str, Any] = {"dest": dest, "default": default, "help": text}
         if isinstance(f.default, bool):
             kw["action"] = argparse.BooleanOptionalAction
         else:
-            kw.update(choices=spec.choices, metavar=spec.metavar)
+            kw.update(choices=spec.choices, metavar=spec.metavar, nargs=spec.nargs)
             if spec.type is not None:
                 kw["type"] = spec.type
-        parser.add_argument(flag, **kw)
+        setattr(parser.add_argument(flag, **kw), OPTION_FIELD, (cls, name))
 
 
 def config_overrides(

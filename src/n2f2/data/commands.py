@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 import json
 
-from ..validate import positive_float, positive_int
+from ..config import add_config_options
+from ..validate import positive_float
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -123,9 +124,8 @@ def run_inspect(args: argparse.Namespace) -> int:
 
 # ----------------------------------------------------------------------------- n2f2 sfm
 def register_sfm(subparsers: argparse._SubParsersAction) -> None:
-    from .sfm import CAMERA_MODELS, MATCHERS, SfmSettings
+    from .sfm import SfmSettings
 
-    d = SfmSettings()
     p = subparsers.add_parser(
         "sfm",
         help="pose a folder of photos with structure from motion (pycolmap) and write a COLMAP scene",
@@ -136,31 +136,14 @@ def register_sfm(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("photos", metavar="PHOTOS", help="folder of photos (directly inside, or in PHOTOS/images)")
     p.add_argument("--out", required=True, metavar="DATA", help="output scene folder")
-    p.add_argument(
-        "--matcher",
-        choices=MATCHERS,
-        default=d.matcher,
-        help=f"exhaustive: every pair; sequential: neighbours in file-name order (video frames); "
-        f"auto: exhaustive up to {d.exhaustive_max_images} photos (default: auto)",
-    )
-    p.add_argument(
-        "--camera-model",
-        choices=CAMERA_MODELS,
-        default=d.camera_model,
-        help=f"lens model estimated before undistortion (default: {d.camera_model})",
-    )
+    # SfmSettings' option() fields, defaulting to its own values (the flags are read as they are).
+    add_config_options(p, SfmSettings, ["matcher", "camera_model"], field_defaults=True)
     p.add_argument(
         "--per-image-camera",
         action="store_true",
         help="estimate intrinsics per photo instead of one camera shared by all",
     )
-    p.add_argument(
-        "--max-image-size",
-        type=positive_int,
-        default=d.max_image_size,
-        metavar="N",
-        help=f"longest side features are extracted at (default: {d.max_image_size})",
-    )
+    add_config_options(p, SfmSettings, ["max_image_size"], field_defaults=True)
     p.add_argument(
         "--force",
         "--overwrite",  # the earlier name, kept as an alias

@@ -79,12 +79,6 @@ class Scene:
             )
         return self._cache[index]
 
-    def check_images_exist(self) -> None:
-        """Fail early, naming the file, when an image listed by the scene file is missing."""
-        for path in self.image_paths:
-            if not path.is_file():
-                raise InputError(path, "image listed by the scene file does not exist")
-
     def scene_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """Axis-aligned bounds [3], [3] of the sparse points, or of the camera centres."""
         pts = (

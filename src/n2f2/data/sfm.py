@@ -37,8 +37,10 @@ from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Callable, Optional, TypeVar
 
+from ..config import option
 from ..errors import InputError
 from ..io import LOCK_NAME, write_json
+from ..validate import positive_int
 
 __all__ = [
     "CAMERA_MODELS",
@@ -64,26 +66,33 @@ MATCHERS = ("auto", "exhaustive", "sequential")
 # Perspective models COLMAP can undistort to PINHOLE; fisheye models are left out (a wide
 # fisheye does not fit one undistorted pinhole image).
 CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
+EXHAUSTIVE_MAX_IMAGES = 200  # SfmSettings.exhaustive_max_images: the most photos "auto" matches exhaustively
 
 
 @dataclass(frozen=True)
 class SfmSettings:
     """Settings of :func:`run_sfm`. The defaults are chosen for handheld phone photos of one
-    object or room (tens to a few hundred photos); each says why it differs from COLMAP's."""
+    object or room (tens to a few hundred photos); each says why it differs from COLMAP's.
+    Fields declared with option() are flags of `n2f2 sfm`."""
 
     # "exhaustive" matches every pair (most robust for unordered photos, O(N^2));
     # "sequential" matches each photo with its `sequential_overlap` successors in file-name
     # order (and with i + 2^k), for video frames; "auto" picks exhaustive up to
     # `exhaustive_max_images` photos (plush-dog's 3,486 pairs of ~1,300 features each took
     # ~50 s of CPU time; 200 photos are 19,900 pairs).
-    matcher: str = "auto"
-    exhaustive_max_images: int = 200
+    matcher: str = option(
+        "auto",
+        help="exhaustive: every pair; sequential: neighbours in file-name order (video frames); "
+        f"auto: exhaustive up to {EXHAUSTIVE_MAX_IMAGES} photos",
+        choices=MATCHERS,
+    )
+    exhaustive_max_images: int = EXHAUSTIVE_MAX_IMAGES
     sequential_overlap: int = 10  # COLMAP's default
     # SIMPLE_RADIAL (one focal length, principal point at the centre, one radial term) is
     # COLMAP's default: phone and compact-camera lenses are close to it, and with few or
     # weakly textured photos it is better determined than OPENCV's eight parameters. Use
     # OPENCV for a wide lens with visible barrel distortion and many good photos.
-    camera_model: str = "SIMPLE_RADIAL"
+    camera_model: str = option("SIMPLE_RADIAL", help="lens model estimated before undistortion", choices=CAMERA_MODELS)
     # One camera shared by all photos (COLMAP's SINGLE mode): photos from one phone at one
     # zoom share intrinsics, and pooling them constrains focal length and distortion far
     # better than per-photo estimates. Photos of different sizes get one camera each anyway.
@@ -92,7 +101,7 @@ class SfmSettings:
     # (keypoints are scaled back; the undistorted images keep the full resolution). COLMAP's
     # 3200 quadruples the SIFT work on a 12 MP phone photo, whose first octave is already
     # upsampled twice, for features far finer than a Gaussian-splatting fit resolves.
-    max_image_size: int = 1600
+    max_image_size: int = option(1600, help="longest side features are extracted at", type=positive_int, metavar="N")
     # SIFT's difference-of-Gaussians threshold. COLMAP's 0.0067 finds only ~470 features a
     # photo on a soft, low-contrast object in 750x500 photos (plush-dog: 44 of 84 registered);
     # 0.0025 finds ~1,300 (79 of 84). On well-textured photos `max_num_features` caps the count.

@@ -39,6 +39,7 @@ from ..field.lift import bank_level_rule, level_segments
 from ..query.engine import ViewCache
 from ..query.lifted import LevelBlockEngine
 from .runner import BOXES, QUERY_KINDS, EvalConfig, EvalResult, evaluate_run
+from .tables import markdown_table, pct
 
 # (row name, source, mode of that source's evaluation), in pipeline order
 ROWS = (
@@ -248,8 +249,6 @@ def loss_budget(
 def budget_table(budget: Mapping, kinds: bool = False) -> str:
     """The budget as a Markdown table: per row mIoU / loc. / mAP under both boxes, or with
     ``kinds`` the part / object / group split (exact box: mIoU, scaled box: mIoU, mAP)."""
-    from .reports import markdown_table, pct
-
     rows = budget["rows"]
     boxes = [b for b in BOXES if all(b in r["scores"] for r in rows)]
     size = {b: ",".join(str(s) for s in budget.get("boxes", {}).get(b, [])) for b in boxes}

@@ -49,6 +49,7 @@ from typing import TYPE_CHECKING, Any, Callable, Literal, Optional, Union
 import numpy as np
 
 from ..errors import InputError
+from ..query.modes import ORACLE, QUERY_MODES
 from .protocol import (
     LANGSPLAT_MIX,
     ProtocolConfig,
@@ -377,7 +378,7 @@ def evaluate_run_ovs3d(
     for m in wanted:
         if m not in supported:
             raise InputError(None, f"mode {m!r} does not apply to this {engine.variant!r} field")
-    wanted = [m for m in wanted if m != "oracle"]
+    wanted = [m for m in wanted if not QUERY_MODES[m].needs_truth]
     if not wanted:
         raise InputError(None, "the 3D-OVS evaluation has no oracle mode: choose composite, explicit, soft or levels")
     num_views = len(engine.scene.cameras)
@@ -391,10 +392,11 @@ def evaluate_run_ovs3d(
         on_ready()
     classes = list(labels.classes)
     C = len(classes)
-    scale_modes = [m for m in wanted if m not in ("composite", "soft")]
-    render_modes = (["composite"] if "composite" in wanted else []) + (
-        ["oracle"] if scale_modes or "soft" in wanted else []
-    )
+    scale_modes = [m for m in wanted if QUERY_MODES[m].per_scale]
+    blended = [m for m in wanted if QUERY_MODES[m].blends]
+    one_map = [m for m in wanted if not QUERY_MODES[m].from_scales]  # answered by the engine directly
+    # The modes made from every scale's maps share one pass: the oracle's scorer hook hands them over.
+    render_modes = one_map + ([ORACLE.name] if scale_modes or blended else [])
     maps: dict[int, dict[str, dict[str, np.ndarray]]] = {}  # view -> mode -> box -> [C, H, W]
     chosen: dict[int, dict[str, dict[str, list[int]]]] = {}  # view -> mode -> box -> scale per class
     for view in tqdm(labels.views, desc="eval 3D-OVS views", unit="view", disable=not progress):
@@ -402,10 +404,10 @@ def evaluate_run_ovs3d(
         H, W = vc.height, vc.width
         per_mode: dict[str, dict[str, np.ndarray]] = {}
         picks: dict[str, dict[str, list[int]]] = {}
-        if "composite" in wanted:
-            rel = engine.query(vc, classes, mode="composite").relevancy.float().cpu().numpy()
-            per_mode["composite"] = {b: rel for b in boxes}
-        if scale_modes or "soft" in wanted:
+        for m in one_map:
+            rel = engine.query(vc, classes, mode=m).relevancy.float().cpu().numpy()
+            per_mode[m] = {b: rel for b in boxes}
+        if scale_modes or blended:
             kept = {b: np.zeros((C, H, W), np.float32) for b in boxes}
             levels = {b: [0] * C for b in boxes}
             soft = np.zeros((C, H, W), np.float32)
@@ -420,12 +422,12 @@ def evaluate_run_ovs3d(
                     levels[b][qi] = best
                 return np.zeros(len(r))
 
-            engine.query(vc, classes, mode="oracle", scorer=scorer)
+            engine.query(vc, classes, mode=ORACLE.name, scorer=scorer)
             for m in scale_modes:
                 per_mode[m] = kept
                 picks[m] = levels
-            if "soft" in wanted:
-                per_mode["soft"] = {b: soft for b in boxes}
+            for m in blended:
+                per_mode[m] = {b: soft for b in boxes}
         maps[view.view_index] = per_mode
         chosen[view.view_index] = picks
 
@@ -478,7 +480,7 @@ def evaluate_run_ovs3d(
 
 def ovs3d_markdown(d: dict) -> str:
     """``eval.md`` of a 3D-OVS evaluation (:func:`evaluate_run_ovs3d`)."""
-    from .reports import _fmt, markdown_table
+    from .tables import fmt, markdown_table
 
     boxes = list(d["boxes"])
     title = {b: f"{b} {','.join(map(str, d['boxes'][b]['box_sizes']))} px" for b in boxes}
@@ -503,8 +505,8 @@ def ovs3d_markdown(d: dict) -> str:
         s = d["scores"][m]
         rows.append(
             [m]
-            + [_fmt(s[b]["miou"], percent=True) for b in boxes]
-            + [_fmt(s[b]["accuracy"], percent=True) for b in boxes]
+            + [fmt(s[b]["miou"], percent=True) for b in boxes]
+            + [fmt(s[b]["accuracy"], percent=True) for b in boxes]
         )
     out.append("\n## mIoU and pixel accuracy\n\n")
     out.append(
@@ -514,7 +516,7 @@ def ovs3d_markdown(d: dict) -> str:
     )
     out.append("\n## Per class (IoU %, mean over views)\n\n")
     rows = [
-        [c] + [_fmt(d["scores"][m][b]["per_class_iou"][c], percent=True) for m in d["modes"] for b in boxes]
+        [c] + [fmt(d["scores"][m][b]["per_class_iou"][c], percent=True) for m in d["modes"] for b in boxes]
         for c in d["classes"]
     ]
     out.append(markdown_table(["class"] + [f"{m} {title[b]}" for m in d["modes"] for b in boxes], rows))

@@ -54,6 +54,7 @@ import numpy as np
 
 from ..errors import InputError
 from .protocol import frame_targets, mask_iou, max_locations, points_in_boxes
+from .tables import fmt, markdown_table
 
 if TYPE_CHECKING:
     from ..query.engine import QueryEngine
@@ -300,8 +301,6 @@ def evaluate_protocol3d(
 # ------------------------------------------------------------------------------ reports
 def protocol3d_markdown(d: Mapping) -> str:
     """The ``eval.md`` section of a :class:`Protocol3dResult` (as a dict)."""
-    from .reports import _fmt, markdown_table
-
     modes = list(d["modes"])
     acc_keys = list(next(iter(d["scores"].values()))["acc"])
     out = [
@@ -315,9 +314,9 @@ def protocol3d_markdown(d: Mapping) -> str:
     for m in modes:
         s = d["scores"][m]
         rows.append(
-            [m, _fmt(s["miou"], percent=True)]
-            + [_fmt(s["acc"][k], percent=True) for k in acc_keys]
-            + [_fmt(s["loc_accuracy"], percent=True), s["num_pairs"], len(s["empty_selections"])]
+            [m, fmt(s["miou"], percent=True)]
+            + [fmt(s["acc"][k], percent=True) for k in acc_keys]
+            + [fmt(s["loc_accuracy"], percent=True), s["num_pairs"], len(s["empty_selections"])]
         )
     out.append("\n")
     out.append(
@@ -338,7 +337,7 @@ def protocol3d_markdown(d: Mapping) -> str:
             ious = [p["iou"] for p in s["pairs"] if p["category"] == q]
             sel = s["selections"].get(q, {})
             scale = f" ({sel['scale']})" if sel.get("scale") else ""
-            row += [f"{sel.get('count', 0)}{scale}", _fmt(float(np.mean(ious)) if ious else math.nan, percent=True)]
+            row += [f"{sel.get('count', 0)}{scale}", fmt(float(np.mean(ious)) if ious else math.nan, percent=True)]
         rows.append(row)
     out.append("\n### Per query (Gaussians selected, and mean IoU % over the frames it is labelled in)\n\n")
     out.append(

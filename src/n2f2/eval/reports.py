@@ -11,17 +11,17 @@ score.)
 from __future__ import annotations
 
 import math
-import numbers
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Mapping, Optional, Sequence, Union
+from typing import TYPE_CHECKING, Any, Mapping, Optional, Union
 
 import numpy as np
 
 from ..io import atomic_path
 from .runner import ONE_MAP_MODES, QUERY_KINDS, QUERY_TYPES, SCALE_MODES, compare_evals, load_eval
+from .tables import fmt, markdown_table, pct
 
 if TYPE_CHECKING:
-    from .metrics import QueryDeltas, RetrievalScores
+    from .metrics import QueryDeltas
     from .protocol import SceneScores
     from .runner import EvalResult
 
@@ -75,43 +75,6 @@ def eval_results(out: Union[str, Path]) -> list[str]:
     return [*RESULT_NAMES, *found]
 
 
-def _fmt(value: object, digits: int = 1, percent: bool = False) -> str:
-    """Numbers as text: percent (x100) with ``digits`` decimals, NaN as "n/a", None as "-"."""
-    if value is None:
-        return "-"
-    if isinstance(value, (bool, np.bool_)):
-        return "yes" if value else "no"
-    if isinstance(value, (int, np.integer)) and not percent:
-        return str(int(value))
-    if isinstance(value, numbers.Real):
-        v = float(value)
-        if math.isnan(v):
-            return "n/a"
-        return f"{100 * v:.{digits}f}" if percent else f"{v:.{digits}f}"
-    return str(value)
-
-
-def _cell(text: object) -> str:
-    return str(text).replace("|", "\\|").replace("\n", " ")
-
-
-def markdown_table(
-    headers: Sequence[str],
-    rows: Sequence[Sequence[object]],
-    align: Optional[Sequence[str]] = None,  # per column "l" | "r" | "c"; default l then r
-) -> str:
-    """A GitHub Markdown table; cells are str()-ed (floats should be formatted by the caller),
-    and '|' in a cell is escaped."""
-    n = len(headers)
-    if any(len(r) != n for r in rows):
-        raise ValueError(f"every row needs {n} cells")
-    align = list(align) if align is not None else ["l"] + ["r"] * (n - 1)
-    rule = {"l": ":---", "r": "---:", "c": ":---:"}
-    lines = ["| " + " | ".join(_cell(h) for h in headers) + " |", "| " + " | ".join(rule[a] for a in align) + " |"]
-    lines += ["| " + " | ".join(_cell(c) for c in r) + " |" for r in rows]
-    return "\n".join(lines) + "\n"
-
-
 def scene_scores_table(
     scores: Mapping[str, SceneScores],  # scene name -> scores
     mean_row: bool = True,
@@ -123,9 +86,9 @@ def scene_scores_table(
         rows.append(
             [
                 scene,
-                _fmt(s.miou, percent=True),
-                _fmt(s.loc_accuracy, percent=True),
-                _fmt(s.oracle_miou, percent=True),
+                fmt(s.miou, percent=True),
+                fmt(s.loc_accuracy, percent=True),
+                fmt(s.oracle_miou, percent=True),
                 s.num_pairs,
                 ",".join(str(b) for b in s.box_sizes),
                 ",".join(str(r) for r in s.majority_radii),
@@ -138,9 +101,9 @@ def scene_scores_table(
         rows.append(
             [
                 "**mean**",
-                _fmt(sum(v.miou for v in vals) / len(vals), percent=True),
-                _fmt(sum(v.loc_accuracy for v in vals) / len(vals), percent=True),
-                _fmt(sum(v.oracle_miou for v in vals) / len(vals), percent=True),
+                fmt(sum(v.miou for v in vals) / len(vals), percent=True),
+                fmt(sum(v.loc_accuracy for v in vals) / len(vals), percent=True),
+                fmt(sum(v.oracle_miou for v in vals) / len(vals), percent=True),
                 sum(v.num_pairs for v in vals),
                 "",
                 "",
@@ -170,11 +133,11 @@ def pairs_table(scores: SceneScores) -> str:
         [
             p.frame,
             p.category,
-            _fmt(p.iou, percent=True),
-            _fmt(p.hit),
+            fmt(p.iou, percent=True),
+            fmt(p.hit),
             p.seg_level,
             p.loc_level,
-            " ".join(_fmt(v, percent=True) for v in p.iou_per_level),
+            " ".join(fmt(v, percent=True) for v in p.iou_per_level),
         ]
         for p in scores.pairs
     ]
@@ -190,23 +153,12 @@ def deltas_table(deltas: QueryDeltas, name_a: str = "a", name_b: str = "b", perc
                 [
                     tag,
                     d.query,
-                    _fmt(d.a, percent=percent),
-                    _fmt(d.b, percent=percent),
-                    ("+" if d.delta >= 0 else "") + _fmt(d.delta, percent=percent),
+                    fmt(d.a, percent=percent),
+                    fmt(d.b, percent=percent),
+                    ("+" if d.delta >= 0 else "") + fmt(d.delta, percent=percent),
                 ]
             )
     return markdown_table(["", "query", name_a, name_b, "delta"], rows, ["l", "l", "r", "r", "r"])
-
-
-def retrieval_table(results: Mapping[str, RetrievalScores]) -> str:  # run name -> scores
-    ks = sorted({k for r in results.values() for k in r.ks})
-    rows = [
-        [name]
-        + [_fmt(r.recall.get(k), percent=True) for k in ks]
-        + [_fmt(r.mean_first_rank), len(r.per_query), len(r.skipped)]
-        for name, r in results.items()
-    ]
-    return markdown_table(["run"] + [f"R@{k} %" for k in ks] + ["mean first rank", "queries", "skipped"], rows)
 
 
 # ------------------------------------------------------------------------------ plots
@@ -331,10 +283,6 @@ def plot_level_histogram(
 
 
 # ------------------------------------------------------------------------------ eval.md and its plots
-def pct(v: Any) -> str:
-    return _fmt(v, percent=True)
-
-
 def box_title(result: Mapping, box: str) -> str:
     """ "exact 30 px" / "scaled 5 px" (sizes actually used, from the protocol's record)."""
     return f"{box} {','.join(str(s) for s in result['boxes'][box]['box_sizes'])} px"
@@ -574,7 +522,7 @@ def markdown_report(result: Mapping, deltas: Optional[Mapping] = None, reference
 
 
 def _fmt_num(v: Any) -> str:
-    return _fmt(v, digits=2)
+    return fmt(v, digits=2)
 
 
 def _signed(v: float) -> str:

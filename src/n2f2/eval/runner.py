@@ -85,7 +85,9 @@ from typing import Any, Callable, Literal, Mapping, Optional, Sequence, Union
 
 import numpy as np
 
+from ..config import option
 from ..errors import InputError
+from ..query.modes import MODES, ORACLE, QUERY_MODES
 from .metrics import average_precision, per_query_scores, query_deltas, recall_at_k, segment_mean_relevancy
 from .protocol import (
     PairRecord,
@@ -103,16 +105,24 @@ DEFAULT_KS = (1, 2, 3, 4, 5)
 RETRIEVAL_IOU = 0.5  # a bank segment matches a label when IoU(segment, union mask) >= this
 QUERY_TYPES = ("simple", "compound", "unknown")
 QUERY_KINDS = ("part", "object", "group", "mixed", "unknown")  # the hierarchy level a query names
-SCALE_MODES = ("explicit", "levels", "oracle")  # modes that choose a scale per pair
-FROM_SCALES = SCALE_MODES + ("soft",)  # modes computed from the all-scale maps of each query
-ONE_MAP_MODES = ("composite", "soft")  # one map per query: the same under both boxes
+SCALE_MODES = tuple(m for m in MODES if QUERY_MODES[m].per_scale)  # modes that choose a scale per pair
+FROM_SCALES = tuple(m for m in MODES if QUERY_MODES[m].from_scales)  # made from the all-scale maps of each query
+ONE_MAP_MODES = tuple(m for m in MODES if not QUERY_MODES[m].per_scale)  # one map per query: the same under both boxes
 
 
 @dataclass(frozen=True)
 class EvalConfig:
-    """Settings of :func:`evaluate_run`. Defaults: LangSplat's protocol, labels must match."""
+    """Settings of :func:`evaluate_run`. Defaults: LangSplat's protocol, labels must match.
+    Fields declared with option() are flags of `n2f2 eval`."""
 
-    modes: Optional[tuple[str, ...]] = None  # None = every mode the field supports
+    modes: Optional[tuple[str, ...]] = option(
+        None,
+        help=f"query modes to score ({', '.join(MODES)}); none: every mode the field supports (composite "
+        "explicit soft oracle for a nested or flat field, levels oracle for a 3-level one)",
+        choices=MODES,
+        metavar="MODE",
+        nargs="+",
+    )
     missing_frames: Literal["error", "skip"] = "error"  # label of a frame not in the scene (skips counted)
     rescale_labels: bool = False  # labels drawn at another size: False raises, True rescales
     ks: tuple[int, ...] = DEFAULT_KS  # R@K cut-offs
@@ -361,9 +371,11 @@ def _scale_maps(
     }
     choices: dict = {m: {b: {} for b in protocols} for m in wanted}
     stacks: list = [None] * K
-    soft = np.zeros((K, H, W), np.float32) if "soft" in modes else None
+    blended = [m for m in modes if QUERY_MODES[m].blends]
+    soft = np.zeros((K, H, W), np.float32) if blended else None
     if soft is not None:
-        maps["soft"] = {b: {"seg": soft, "loc": soft} for b in protocols}  # one map, as composite's
+        for m in blended:
+            maps[m] = {b: {"seg": soft, "loc": soft} for b in protocols}  # one map, as composite's
 
     def score(r: np.ndarray, qi: int, b: str) -> None:  # one query's [S, H, W] maps under box setting b
         target = targets[categories[qi]]
@@ -372,13 +384,10 @@ def _scale_maps(
         radius = resolve_majority_radius(cfg.majority_radius, W, cfg.box_ref_width)
         res = evaluate_frame_category(r, target.mask, target.boxes, size, cfg.threshold, radius)
         hits = res.hit_per_level
-        picks = {
-            "explicit": (res.seg_level, res.loc_level),
-            "levels": (res.seg_level, res.loc_level),
-            "oracle": (int(np.argmax(res.iou_per_level)), hits.index(True) if any(hits) else res.loc_level),
-        }
+        by_protocol = (res.seg_level, res.loc_level)
+        by_truth = (int(np.argmax(res.iou_per_level)), hits.index(True) if any(hits) else res.loc_level)
         for m in wanted:
-            seg, loc = picks[m]
+            seg, loc = by_truth if QUERY_MODES[m].needs_truth else by_protocol
             maps[m][b]["seg"][qi] = r[seg]
             maps[m][b]["loc"][qi] = r[loc]
             choices[m][b][categories[qi]] = (seg, loc, res.iou_per_level)
@@ -402,7 +411,7 @@ def _scale_maps(
         return np.zeros(len(r))
 
     try:
-        engine.query(view, categories, mode="oracle", scorer=scorer)
+        engine.query(view, categories, mode=ORACLE.name, scorer=scorer)
     finally:
         for job in pending:
             job.result()  # re-raises a worker's error here
@@ -625,10 +634,10 @@ def evaluate_run(
 
     all_categories = list(dict.fromkeys(c for f in frames for c in f.categories))
     slugs = dict(zip(all_categories, unique_slugs(all_categories)))
-    npy_mode = "composite" if "composite" in modes else ("levels" if "levels" in modes else None)
-    render_modes = (["composite"] if "composite" in modes else []) + (
-        ["oracle"] if any(m in FROM_SCALES for m in modes) else []
-    )
+    npy_mode = next((QUERY_MODES[m] for m in MODES if m in modes and QUERY_MODES[m].writes_npy), None)
+    one_map = [m for m in modes if not QUERY_MODES[m].from_scales]  # answered by the engine directly
+    # The modes made from every scale's maps share one pass: the oracle's scorer hook hands them over.
+    render_modes = one_map + ([ORACLE.name] if any(m in FROM_SCALES for m in modes) else [])
     heldout = set(int(v) for v in engine.meta.get("heldout_views", []) or [])
     train_views = engine.meta.get("train_views")
 
@@ -661,9 +670,9 @@ def evaluate_run(
         t1 = time.perf_counter()
         maps: dict = {}
         choices: dict = {}
-        if "composite" in modes:
-            rel = engine.query(view, categories, mode="composite").relevancy.float().cpu().numpy()
-            maps["composite"] = {b: {"seg": rel, "loc": rel} for b in protocols}
+        for m in one_map:
+            rel = engine.query(view, categories, mode=m).relevancy.float().cpu().numpy()
+            maps[m] = {b: {"seg": rel, "loc": rel} for b in protocols}
         all_scales = None
         if any(m in FROM_SCALES for m in modes):
             smaps, choices, all_scales = _scale_maps(
@@ -673,7 +682,7 @@ def evaluate_run(
                 targets,
                 modes,
                 protocols,
-                keep_all=(npy_mode == "levels" and relevancy_dir is not None),
+                keep_all=(npy_mode is not None and npy_mode.per_scale and relevancy_dir is not None),
             )
             maps.update(smaps)
         t2 = time.perf_counter()
@@ -700,10 +709,10 @@ def evaluate_run(
             files = relevancy_files.setdefault(view.name, {})
             for k, c in enumerate(categories):
                 path = Path(relevancy_dir) / view.name / f"{slugs[c]}.npy"
-                if npy_mode == "composite":
-                    arr = maps["composite"]["exact"]["seg"][k]
+                if not npy_mode.per_scale:
+                    arr = maps[npy_mode.name]["exact"]["seg"][k]
                 else:
-                    assert all_scales is not None  # npy_mode "levels" with relevancy_dir: _scale_maps kept them
+                    assert all_scales is not None  # a per-scale npy_mode with relevancy_dir: _scale_maps kept them
                     arr = all_scales[k]
                 write_npy(path, np.ascontiguousarray(arr, dtype=np.float32))
                 files[c] = str(path)
@@ -832,7 +841,7 @@ def evaluate_run(
         query_types_source=types_source,
         views=view_info,
         relevancy_files=relevancy_files,
-        relevancy_mode=npy_mode if relevancy_dir is not None else None,
+        relevancy_mode=npy_mode.name if relevancy_dir is not None and npy_mode is not None else None,
         ap={m: {b: ap_summary(v) for b, v in by.items()} for m, by in ap_pairs.items()},
         kinds={m: {b: kind_scores(s.pairs, ap_pairs[m][b], kinds) for b, s in by.items()} for m, by in scores.items()},
         query_kinds={c: kinds.get(c, "unknown") for c in all_categories},

@@ -1,7 +1,8 @@
 """Experiments built on the pipeline: the paper's ablations on the demo scene (``n2f2 bench``).
 
 * :mod:`.variants`: the fields the bench trains and the paper's step sizes at a smaller D;
-* :mod:`.bench`: its settings, its data (through the pipeline's stages and cache) and the run;
+* :mod:`.config`: its settings and the data every variant trains on;
+* :mod:`.bench`: that data (through the pipeline's stages and cache) and the run;
 * :mod:`.training`: training a variant, with resume and continuation of shorter runs;
 * :mod:`.memory`: activation and parameter memory of training;
 * :mod:`.evaluate`: the protocol, the per-level cosine and the composite-weight statistics;
@@ -17,8 +18,8 @@ from .._lazy import lazy_exports
 __getattr__, __all__ = lazy_exports(
     __name__,
     {
-        "BenchConfig": "bench",
-        "BenchData": "bench",
+        "BenchConfig": "config",
+        "BenchData": "config",
         "run_bench": "bench",
         "VARIANTS": "variants",
         "VariantSpec": "variants",

@@ -37,98 +37,22 @@ Nothing here re-implements training, relevancy or the protocol; the claims' verd
 from __future__ import annotations
 
 import json
-import math
 import os
 import shutil
 import time
-from dataclasses import asdict, dataclass, replace
-from dataclasses import field as dc_field
+from dataclasses import asdict, replace
 from pathlib import Path
-from typing import Any, Callable, Mapping, Optional, Sequence, Union
+from typing import Callable, Mapping, Optional, Sequence, Union
 
 from ..errors import InputError
 from ..pipeline.presets import get_preset
 from ..pipeline.run import DemoScene
-from ..segments.lifting import SCALE_MEASURES
+from ..query.modes import QUERY_MODES
 from .claims import PAPER_RENDER, UNIT, tag
-from .variants import DEFAULT_VARIANTS, VARIANTS, run_name, scaled_step
+from .config import BenchConfig, BenchData
+from .variants import VARIANTS, run_name, scaled_step
 
-# Composite temperatures of Eq. 6: 1 = the paper (the bench's main rows), inf = the plain mean of the scale features.
-TEMPERATURES = (1.0, math.inf, 0.1, 0.01)
 _CPU = get_preset("cpu")  # the defaults the bench shares with `n2f2 run`
-_SCENE = DemoScene()  # the default demo scene
-
-
-# ------------------------------------------------------------------------------ config
-@dataclass
-class BenchConfig:
-    """Settings of :func:`run_bench`. Defaults: the full bench on the default demo scene, sized to
-    finish in about 30 minutes on 2 CPU cores once the Gaussians exist (see :meth:`quick`)."""
-
-    iterations: int = 1000  # training steps per variant (fewer than the cpu preset's, to keep ~30 min)
-    dim: int = _CPU.field.dim  # D of every field (paper 512; k is scaled to keep the number of scales)
-    pixels_per_step: int = _CPU.train.pixels_per_step
-    # The cpu preset's departures from the paper (the paper: eigenvalue, 0); see
-    # LiftSettings.scale_measure and TrainConfig.scale_jitter.
-    scale_measure: str = _CPU.lift.scale_measure
-    scale_jitter: float = _CPU.train.scale_jitter
-    variants: tuple[str, ...] = DEFAULT_VARIANTS
-    temperatures: tuple[float, ...] = TEMPERATURES  # composite T evaluated on the k=1 nested run
-    timing_repeats: int = 5  # medians over this many repeats in the timing breakdown
-    timing_threads: int = 1  # torch threads while timing (1: stable on a shared 2-core machine)
-    # Scene generated when none is given (the default demo scene), and its Gaussian fit.
-    scene_views: int = _SCENE.views
-    scene_width: int = _SCENE.width
-    scene_height: int = _SCENE.height
-    fit_steps: Optional[int] = None  # None: the cpu preset's schedule sized to the scene
-    seed: int = 0
-    device: str = "cpu"
-    progress: bool = True
-
-    def __post_init__(self) -> None:
-        unknown = [v for v in self.variants if v not in VARIANTS]
-        if unknown:
-            raise ValueError(f"unknown variant(s) {unknown}; choose from {list(VARIANTS)}")
-        if self.iterations < 1:
-            raise ValueError(f"iterations must be >= 1, got {self.iterations}")
-        if self.dim < 3:
-            raise ValueError(f"dim must be >= 3, got {self.dim}")
-        if self.scale_measure not in SCALE_MEASURES:
-            raise ValueError(f"scale_measure must be one of {SCALE_MEASURES}, got {self.scale_measure!r}")
-        if not 0.0 <= self.scale_jitter < 1.0:
-            raise ValueError(f"scale_jitter must be in [0, 1), got {self.scale_jitter}")
-        if not self.temperatures or any(not t > 0 for t in self.temperatures):
-            raise ValueError(f"temperatures must be positive, got {self.temperatures}")
-        self.variants = tuple(dict.fromkeys(self.variants))
-        self.temperatures = tuple(dict.fromkeys(float(t) for t in self.temperatures))
-
-    @staticmethod
-    def quick(**overrides: Any) -> "BenchConfig":
-        """A few minutes: small generated scene, D = 32, short training, fewer timing repeats."""
-        base: dict[str, Any] = dict(
-            iterations=150,
-            dim=32,
-            pixels_per_step=2048,
-            timing_repeats=2,
-            scene_views=16,
-            scene_width=96,
-            scene_height=72,
-            fit_steps=300,
-        )
-        base.update(overrides)
-        return BenchConfig(**base)
-
-
-@dataclass
-class BenchData:
-    """The scene, Gaussians and segment bank every variant trains on."""
-
-    scene_dir: Path
-    gaussians: Path
-    bank_dir: Path
-    label_dir: Path
-    built: dict[str, bool] = dc_field(default_factory=dict)  # stage -> built now (False: reused)
-    seconds: dict[str, float] = dc_field(default_factory=dict)
 
 
 # ------------------------------------------------------------------------------ data
@@ -143,9 +67,10 @@ def prepare_data(
     """Generate the demo scene, fit its Gaussians (the cpu preset sized to the scene) and build
     its segment bank (ground-truth segments, caption embeddings) under ``out/data`` unless given,
     each with the pipeline's stages under the stage cache of ``out/data``."""
-    from ..pipeline import stages
+    from ..gaussians.stage import FitJob, run_fit
     from ..pipeline.cache import StageCache, file_digest, scene_digest, stage_key, tree_digest
     from ..pipeline.run import cached_demo_scene
+    from ..segments.stage import BankJob, run_bank
 
     data = out / "data"
     data.mkdir(parents=True, exist_ok=True)
@@ -192,14 +117,17 @@ def prepare_data(
             "fit-gaussians",
             key,
             [ply],
-            lambda: stages.fit_gaussians(
-                scene_dir,
-                fit_dir,
-                _CPU,
-                config.fit_steps,
-                seed=config.seed,
-                device=config.device,
-                progress=config.progress,
+            lambda: run_fit(
+                FitJob(
+                    scene_dir,
+                    fit_dir,
+                    preset=_CPU.name,
+                    overrides={} if config.fit_steps is None else {"steps": config.fit_steps},
+                    seed=config.seed,
+                    device=config.device,
+                    force=True,
+                    progress=config.progress,
+                ),
                 log=log,
             ),
             log,
@@ -226,7 +154,7 @@ def prepare_data(
         def build() -> None:
             if bank_dir.exists():  # other inputs: a resumed bank would mix them
                 shutil.rmtree(bank_dir)
-            stages.build_segment_bank(
+            job = BankJob(
                 scene_dir,
                 bank_dir,
                 ply,
@@ -234,9 +162,10 @@ def prepare_data(
                 encoder="captions",
                 lift=replace(_CPU.lift, scale_measure=config.scale_measure),
                 device=config.device,
+                force=True,
                 progress=config.progress,
-                log=log,
             )
+            run_bank(job, log=log)
 
         built["bank"] = cache.run("segments", key, [bank_dir / "bank.json"], build, log)
     seconds["bank"] = time.perf_counter() - t0
@@ -341,7 +270,7 @@ def run_bench(
             continue
         entry["evals"]["T1"] = evaluate_variant(run_dir, data, modes, run_dir / "eval", config, 1.0, log, encoder)
         if name == variant_runs.get("nested"):  # the paper's test-time rendering beside the default
-            paper_modes = [m for m in modes if m in ("composite", "explicit")]
+            paper_modes = [m for m in modes if QUERY_MODES[m].paper and not QUERY_MODES[m].needs_truth]
             entry["evals"][PAPER_RENDER] = evaluate_variant(
                 run_dir, data, paper_modes, run_dir / "eval_gaussians", config, 1.0, log, encoder, render="gaussians"
             )

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Mapping, Optional, Sequence
 
 if TYPE_CHECKING:
-    from .bench import BenchConfig, BenchData
+    from .config import BenchConfig, BenchData
 
 
 class MemoEncoder:

@@ -64,11 +64,6 @@ class ActivationMeter:
         self._ctx.__exit__(*exc)
 
 
-def parameter_bytes(module: Any) -> int:
-    """Bytes of a module's trainable parameters."""
-    return int(sum(p.numel() * p.element_size() for p in module.parameters() if p.requires_grad))
-
-
 def field_parameter_count(config: Any, embed_dim: int) -> int:
     """Trainable parameters of a field with ``config`` (built once per config and dropped: the
     paper-size TriPlane is ~200 MB for a moment). The variant and k do not change the count."""

@@ -14,8 +14,11 @@ import numpy as np
 
 from ..eval.reports import box_title, pct
 from ..eval.runner import BOXES
+from ..query.modes import MODES, QUERY_MODES
 from .claims import PAPER_RENDER, UNIT, convergence, score, signed_pts, tag, temperature_label
 from .variants import PAPER_STEPS, VARIANTS
+
+PAPER_MODES = tuple(m for m in MODES if QUERY_MODES[m].paper)  # the paper's Table 3 and Table 6 columns
 
 
 def write_plots(out: Path, result: Mapping, runs: Mapping[str, dict], variant_runs: Mapping[str, str]) -> dict:
@@ -33,7 +36,7 @@ def write_plots(out: Path, result: Mapping, runs: Mapping[str, dict], variant_ru
     ks = _k_rows(runs, variant_runs, result)
     if len(ks) > 1:
         curves = {}
-        for mode in ("composite", "explicit", "oracle"):
+        for mode in PAPER_MODES:
             for b in BOXES:
                 pts = [(k, score(e, mode, b)) for k, _, e in ks if mode in e["scores"]]
                 if pts:
@@ -324,13 +327,13 @@ def markdown_bench(result: Mapping, runs: Mapping[str, dict], variant_runs: Mapp
         for k, name, e in ks:
             rows.append(
                 [k, steps.get(name, "-"), e["field"]["num_scales"]]
-                + [pct(score(e, m, b)) for m in ("composite", "explicit", "oracle") for b in BOXES]
+                + [pct(score(e, m, b)) for m in PAPER_MODES for b in BOXES]
                 + [pct(score(e, "composite", b, "loc_accuracy")) for b in BOXES]
             )
         out.append(
             markdown_table(
                 ["paper k", "k here", "scales"]
-                + [f"{m} mIoU % ({bt[b]})" for m in ("composite", "explicit", "oracle") for b in BOXES]
+                + [f"{m} mIoU % ({bt[b]})" for m in PAPER_MODES for b in BOXES]
                 + [f"composite loc. % ({bt[b]})" for b in BOXES],
                 rows,
             )
@@ -730,7 +733,7 @@ def _cosine_table(result: Mapping, variant_runs: Mapping[str, str]) -> str:
     rows = []
     for v, name in variant_runs.items():
         r = result["runs"][name]
-        if r.get("cosine") and v in ("nested", "flat", "levels", "mlp"):
+        if r.get("cosine") and v in VARIANTS and VARIANTS[v].cosine:
             rows.append(
                 [VARIANTS[v].title]
                 + _cos_cells(r["cosine"])

@@ -12,7 +12,7 @@ import numpy as np
 from ..errors import InputError
 
 if TYPE_CHECKING:
-    from .bench import BenchConfig, BenchData
+    from .config import BenchConfig, BenchData
 
 
 def timing_breakdown(
@@ -47,9 +47,9 @@ def timing_breakdown(
                 vc = engine.render_view(view, modes=[mode], rgb=False)
                 render.append(vc.seconds["render"])
                 cache.append(vc.seconds["cache"])
-            per = {}
+            per, scales = {}, 0
             for n in (1, len(queries)):
-                engine.query(vc, queries[:n], mode)  # warm-up
+                scales = len(engine.query(vc, queries[:n], mode).scale_labels)  # warm-up; its candidate scales
                 per[n] = float(
                     np.median([engine.query(vc, queries[:n], mode).seconds for _ in range(config.timing_repeats)])
                 )
@@ -59,7 +59,7 @@ def timing_breakdown(
                 {
                     "method": label,
                     "mode": mode,
-                    "scales": _num_scales(engine, mode),
+                    "scales": scales,
                     "render_s": r,
                     "cache_s": c,
                     "query_1_s": per[1],
@@ -94,14 +94,6 @@ def timing_breakdown(
         }
     finally:
         torch.set_num_threads(threads)
-
-
-def _num_scales(engine: Any, mode: str) -> int:
-    if mode == "composite":
-        return 1
-    if mode == "levels":
-        return 3
-    return len(engine.scale_dims)
 
 
 def _scene_queries(scene_dir: Path) -> list[str]:

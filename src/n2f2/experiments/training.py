@@ -21,7 +21,7 @@ from .memory import ActivationMeter, field_parameter_count, rasterized_channels
 from .variants import VariantSpec, variant_field_config
 
 if TYPE_CHECKING:
-    from .bench import BenchConfig, BenchData
+    from .config import BenchConfig, BenchData
 
 MEMORY_NAME = "bench_memory.json"
 LIFT_REPORT_NAME = "lift_report.json"

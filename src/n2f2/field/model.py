@@ -40,8 +40,9 @@ from ..errors import InputError
 from ..io import load_torch, save_torch
 from ..validate import _non_finite, nonneg_int, positive_int
 from .triplane import PositionalEncoding, TriPlane
-from .variants import NUM_LEVELS, FieldVariant, get_variant, level_blocks, level_to_block
+from .variants import NUM_LEVELS, FieldVariant, get_variant, level_blocks, level_mask, level_to_block
 from .variants import VARIANTS as FIELD_VARIANTS
+from .variants import prefix_mask as prefix_mask
 
 if TYPE_CHECKING:
     from ..gaussians.model import Gaussians
@@ -122,11 +123,6 @@ def mlp(in_dim: int, hidden: int, out_dim: int, num_layers: int) -> nn.Sequentia
         if i < num_layers - 1:
             layers.append(nn.ReLU(inplace=True))
     return nn.Sequential(*layers)
-
-
-def prefix_mask(M: Tensor, dim: int, dtype: torch.dtype = torch.float32) -> Tensor:
-    """B(s): ``[B, D]`` mask with ones in the first ``M[b]`` columns of row b. M [B] integer."""
-    return (torch.arange(dim, device=M.device) < M.unsqueeze(-1)).to(dtype)
 
 
 class NestedField(nn.Module):
@@ -217,15 +213,8 @@ class NestedField(nn.Module):
 
     # ------------------------------------------------------------------ scale-aware projection
     def dims_for_scale(self, s: Tensor) -> Tensor:  # s [B] quantized scale in [0, 1) -> M [B] long
-        """M(s) of the nested field (``D`` for the flat variant)."""
-        if self.variant == "flat":
-            return torch.full(s.shape, self.dim, dtype=torch.long, device=s.device)
-        if self.variant == "levels":
-            raise ValueError("the 'levels' variant has no prefix M(s); use supervision_mask / level_features")
-        from ..segments.bins import scale_to_dims
-
-        M = scale_to_dims(s, self.dim, self.config.step_size)
-        return torch.as_tensor(M, device=s.device).long()
+        """M(s) of the nested field (``D`` for the flat variant; :meth:`FieldVariant.dims_for_scale`)."""
+        return self.kind.dims_for_scale(s, self.dim, self.config.step_size)
 
     def scale_aware(self, theta: Tensor, M: Tensor) -> Tensor:  # theta [B, D], M [B] -> phi [B, E]
         """``phi = W (B(s) * theta) = W[:, :M] theta[:M]`` per row."""
@@ -236,20 +225,13 @@ class NestedField(nn.Module):
         return (theta * mask) @ self.W.t()
 
     def supervision_mask(self, s: Tensor) -> Tensor:  # s [B] quantized scale -> [B, D] float
-        """Which dims a segment of quantized scale ``s`` supervises (variant-aware B(s))."""
-        if self.variant == "levels":
-            from ..segments.bins import three_level_groups
-
-            level = torch.as_tensor(three_level_groups(s), device=s.device).long()
-            return self.level_mask(level)
-        return prefix_mask(self.dims_for_scale(s), self.dim)
+        """Which dims a segment of quantized scale ``s`` supervises (the variant's B(s),
+        :meth:`FieldVariant.supervision_mask`)."""
+        return self.kind.supervision_mask(s, self.dim, self.config.step_size)
 
     def level_mask(self, level: Tensor) -> Tensor:  # level [B] in {0, 1, 2} -> [B, D] float
         """ "levels" variant: ones on the block of hierarchy level ``level`` (0 = part)."""
-        blocks = torch.tensor(level_blocks(self.dim), device=level.device)  # [3, 2]
-        start_end = blocks[level_to_block(level)]  # [B, 2]
-        d = torch.arange(self.dim, device=level.device)
-        return ((d >= start_end[:, :1]) & (d < start_end[:, 1:])).float()
+        return level_mask(level, self.dim)
 
     def level_features(self, theta: Tensor) -> Tensor:  # theta [..., D] -> [..., 3, E]
         """ "levels" variant: the three level features, index 0 = part, 1 = object, 2 = group."""

@@ -13,6 +13,9 @@ For a field of ``D`` dims configured with step size ``k`` (``FieldConfig.step_si
 * :meth:`~FieldVariant.step`: the step of its prefix scales (what the query engine and
   ``eval.json`` call the step); :meth:`~FieldVariant.step_size`: the ``step_size`` a field of it is
   trained with when step size ``k`` is asked for (the bench's step-size sweep);
+* :meth:`~FieldVariant.dims_for_scale` and :meth:`~FieldVariant.supervision_mask`: what a segment
+  of quantized scale ``s`` supervises, ``M(s)`` (prefix variants, :attr:`~FieldVariant.prefix`) and
+  the ``[B, D]`` mask ``B(s)``;
 * :attr:`~FieldVariant.modes`: the query modes it answers; :attr:`~FieldVariant.answers_with`:
   ``"prefix"`` or ``"levels"``, the score cache its per-query scale choice and its ``oracle`` run
   on, i.e. what the oracle picks among (prefixes or level blocks);
@@ -32,9 +35,10 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from typing import TYPE_CHECKING, ClassVar, Optional
 
-from ..segments.bins import supervised_dims
+from ..segments.bins import scale_to_dims, supervised_dims, three_level_groups
 
 if TYPE_CHECKING:
+    import torch
     from torch import Tensor
 
 NUM_LEVELS = 3  # part, object, group (fine to coarse), as the demo ground truth and LangSplat
@@ -53,6 +57,24 @@ def level_to_block(level: Tensor | int) -> Tensor | int:
     return NUM_LEVELS - 1 - level
 
 
+def prefix_mask(M: Tensor, dim: int, dtype: Optional[torch.dtype] = None) -> Tensor:
+    """B(s): ``[B, D]`` mask with ones in the first ``M[b]`` columns of row b (float32 unless
+    ``dtype``). M [B] integer."""
+    import torch
+
+    return (torch.arange(dim, device=M.device) < M.unsqueeze(-1)).to(dtype or torch.float32)
+
+
+def level_mask(level: Tensor, dim: int) -> Tensor:  # level [B] in {0, 1, 2} -> [B, D] float
+    """The "levels" variant's B: ones on the block of hierarchy level ``level`` (0 = part)."""
+    import torch
+
+    blocks = torch.tensor(level_blocks(dim), device=level.device)  # [3, 2]
+    start_end = blocks[level_to_block(level)]  # [B, 2]
+    d = torch.arange(dim, device=level.device)
+    return ((d >= start_end[:, :1]) & (d < start_end[:, 1:])).float()
+
+
 class FieldVariant(ABC):
     """What a field variant supervises and how it is queried (see the module docstring). The
     variants are stateless: one instance each, in :data:`VARIANTS`."""
@@ -62,6 +84,7 @@ class FieldVariant(ABC):
     modes: ClassVar[tuple[str, ...]] = ("composite", "explicit", "oracle")  # query modes it answers
     answers_with: ClassVar[str] = "prefix"  # "prefix" | "levels": what explicit choice / oracle pick among
     uses_step: ClassVar[bool] = False  # whether the step size k changes what it supervises
+    prefix: ClassVar[bool] = False  # whether a segment of scale s supervises a prefix theta[:M(s)]
     other_modes_hint: ClassVar[str]  # the advice for a user who asks for a mode it does not answer
 
     @abstractmethod
@@ -71,6 +94,15 @@ class FieldVariant(ABC):
     @abstractmethod
     def scale_labels(self, dim: int, step_size: int = 1) -> list[str]:
         """The names of its scales in reports and query results."""
+
+    @abstractmethod
+    def supervision_mask(self, s: Tensor, dim: int, step_size: int = 1) -> Tensor:  # s [B] -> [B, D] float
+        """B(s): which of the ``dim`` dims a segment of quantized scale ``s`` supervises."""
+
+    def dims_for_scale(self, s: Tensor, dim: int, step_size: int = 1) -> Tensor:  # s [B] -> M [B] long
+        """M(s), the prefix a segment of quantized scale ``s`` supervises (ValueError for a variant
+        whose scales are no prefixes)."""
+        raise ValueError(f"the {self.name!r} variant has no prefix M(s); use supervision_mask / level_features")
 
     def step(self, dim: int, step_size: int) -> int:
         """The step of its prefix scales at ``dim`` dims, configured step size ``step_size``.
@@ -95,6 +127,10 @@ class PrefixVariant(FieldVariant):
     """A variant whose scales are prefixes ``theta[:d]`` answered by ``W[:, :d]``."""
 
     modes = ("composite", "explicit", "soft", "oracle")
+    prefix = True
+
+    def supervision_mask(self, s: Tensor, dim: int, step_size: int = 1) -> Tensor:
+        return prefix_mask(self.dims_for_scale(s, dim, step_size), dim)
 
     def scale_dims(self, dim: int, step_size: int = 1) -> list[int]:
         """The prefix lengths ``d`` of its scales, coarse (short) to fine."""
@@ -116,6 +152,12 @@ class NestedVariant(PrefixVariant):
     uses_step = True
     other_modes_hint = "mode 'levels' needs a field trained with variant 'levels'"
 
+    def dims_for_scale(self, s: Tensor, dim: int, step_size: int = 1) -> Tensor:
+        """``M(s) = k ceil(floor(D / k) (1 - s))`` (:func:`n2f2.segments.bins.scale_to_dims`)."""
+        import torch
+
+        return torch.as_tensor(scale_to_dims(s, dim, step_size), device=s.device).long()
+
 
 class FlatVariant(PrefixVariant):
     """The non-nested ablation: every scale supervises all D dims (``B(s) = 1``), so there is one
@@ -127,6 +169,12 @@ class FlatVariant(PrefixVariant):
 
     def step(self, dim: int, step_size: int) -> int:
         return int(dim)
+
+    def dims_for_scale(self, s: Tensor, dim: int, step_size: int = 1) -> Tensor:
+        """All ``D`` dims at every scale."""
+        import torch
+
+        return torch.full(s.shape, dim, dtype=torch.long, device=s.device)
 
 
 class LevelsVariant(FieldVariant):
@@ -148,6 +196,14 @@ class LevelsVariant(FieldVariant):
 
     def scale_labels(self, dim: int, step_size: int = 1) -> list[str]:
         return list(LEVEL_NAMES)
+
+    def supervision_mask(self, s: Tensor, dim: int, step_size: int = 1) -> Tensor:
+        """The block of the segment's level, one tercile of the quantized scale each
+        (:func:`n2f2.segments.bins.three_level_groups`)."""
+        import torch
+
+        level = torch.as_tensor(three_level_groups(s), device=s.device).long()
+        return level_mask(level, dim)
 
     def mode_for(self, mode: str) -> Optional[str]:
         """``explicit`` -> ``levels`` (its per-query scale choice); no ``composite``."""

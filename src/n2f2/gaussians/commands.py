@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from ..config import add_config_options, config_overrides, option_flag
+from ..config import add_config_options, add_preset_option, config_overrides, field_default
 from ..validate import add_device_option, finite_float, nonneg_int, positive_float, positive_int, unit_interval
 
 
@@ -24,12 +24,8 @@ def register(subparsers) -> None:
         "or a folder of photos, posed first by `n2f2 sfm` into DIR/sfm",
     )
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
-    p.add_argument(
-        "--preset",
-        choices=["cpu", "paper"],
-        default="cpu",
-        help="cpu: a few minutes for small scenes, sized to the scene (default); paper: 3DGS's "
-        f"{FitConfig.paper().steps} steps",
+    add_preset_option(
+        p, f"cpu: a few minutes for small scenes, sized to the scene; paper: 3DGS's {FitConfig.paper().steps} steps"
     )
     # Every option() field of FitConfig (n2f2.config): --steps, --depth-spread, --max-gaussians,
     # --checkpoint-every; None keeps the preset's (or the checkpoint's) value.
@@ -51,7 +47,8 @@ def register(subparsers) -> None:
         "an INRIA 3DGS PLY trained elsewhere in the same world frame, fitted further "
         "(default: sparse points when the scene has them, else random)",
     )
-    p.add_argument("--seed", type=nonneg_int, default=0, help="random seed (default 0)")
+    seed = field_default(FitConfig, "seed")
+    p.add_argument("--seed", type=nonneg_int, default=seed, help=f"random seed (default {seed})")
     p.add_argument(
         "--skip-missing",
         action="store_true",
@@ -64,66 +61,26 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from dataclasses import replace
     from pathlib import Path
 
-    from ..data import load_scene
-    from ..data.sfm import posed_scene_path
-    from ..errors import InputError
-    from ..io import claim_out_dir, remove_results
-    from .fit import (
-        BACKGROUND_NAME,
-        CHECKPOINT_NAME,
-        PLY_NAME,
-        REPORT_NAME,
-        TEST_RENDERS_DIR,
-        FitConfig,
-        fit_gaussians,
-        saved_config,
-    )
-    from .ply import read_ply
+    from .fit import FitConfig
+    from .stage import FitJob, run_fit
 
-    overrides = config_overrides(args, FitConfig)
-    for name, value in overrides.items():
-        if not value >= 0:  # NaN too
-            raise InputError(None, f"{option_flag(FitConfig, name)} must be >= 0, got {value}")
-    if args.downscale <= 0:
-        raise InputError(None, f"--downscale must be > 0, got {args.downscale}")
-    results = (PLY_NAME, CHECKPOINT_NAME, REPORT_NAME, BACKGROUND_NAME, TEST_RENDERS_DIR)
-    present = claim_out_dir(args.out, results, resume=args.resume, force=args.force)
-    if args.resume and present and CHECKPOINT_NAME not in present:  # a fresh start would replace them
-        raise InputError(
-            Path(args.out),
-            f"--resume: no {CHECKPOINT_NAME} to continue from, but the folder holds "
-            f"results ({', '.join(present)}); pass --force to replace them, or choose another --out",
+    run_fit(
+        FitJob(
+            data=Path(args.data),
+            out=Path(args.out),
+            preset=args.preset,
+            overrides=config_overrides(args, FitConfig),
+            init=args.init,
+            seed=args.seed,
+            downscale=args.downscale,
+            skip_missing=args.skip_missing,
+            device=args.device,
+            resume=args.resume,
+            force=args.force,
+            progress=not args.quiet,
         )
-    # A resumed run keeps the checkpoint's schedule; only explicit flags change it.
-    base = saved_config(args.out) if args.resume else None
-    data = posed_scene_path(Path(args.data), Path(args.out) / "sfm", progress=not args.quiet)  # photos: pose them
-    scene = load_scene(data, downscale=args.downscale, skip_missing=args.skip_missing)
-    init = args.init
-    if init is not None and init not in ("points", "random"):
-        if Path(init).suffix.lower() != ".ply":
-            raise InputError(None, f"--init must be points, random or a .ply file, got {init!r}")
-        init = read_ply(init)
-    if base is None:
-        base = replace(FitConfig.preset(args.preset), seed=args.seed)
-        if args.preset == "cpu":  # a --steps keeps the schedule's fractions
-            base = base.sized_for(scene, steps=args.steps, init=init)
-    config = replace(base, device=args.device, **overrides)
-    if args.force:  # the inputs are read: now the old results go
-        remove_results(args.out, present)
-    report = fit_gaussians(scene, config, args.out, resume=args.resume, init=init, progress=not args.quiet)
-    test = "n/a" if report.test_psnr is None else f"{report.test_psnr:.2f} dB"
-    depth = (
-        ""
-        if report.depth_median_rel_extent is None
-        else f", median depth error {100 * report.depth_median_rel_extent:.2f}% of extent"
-    )
-    print(
-        f"fit-gaussians: {report.steps} steps, {report.num_gaussians} Gaussians, "
-        f"train PSNR {report.train_psnr:.2f} dB, test PSNR {test}{depth}, "
-        f"{report.wall_time_s:.0f} s -> {args.out}"
     )
     return 0
 

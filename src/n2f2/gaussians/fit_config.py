@@ -12,7 +12,7 @@ from typing import ClassVar, Optional, Union
 
 import numpy as np
 
-from ..config import ConfigDict, option
+from ..config import PRESET_NAMES, ConfigDict, option
 from ..data.scene import Scene
 from ..errors import InputError
 from ..validate import nonneg_float, nonneg_int, positive_int
@@ -30,7 +30,8 @@ class FitConfig(ConfigDict):
 
     Step counters are 1-based as in 3DGS: an event "every n steps" happens after step n, 2n..."""
 
-    PRESETS: ClassVar[tuple[str, ...]] = ("cpu", "paper")  # see the static methods of those names
+    PRESETS: ClassVar[tuple[str, ...]] = PRESET_NAMES  # see the static methods of those names
+    SIZED_PRESETS: ClassVar[tuple[str, ...]] = ("cpu",)  # sized to the scene (sized_for)
 
     # Fields declared with option() are flags of `n2f2 fit-gaussians`; their help lists each
     # preset's value.
@@ -150,6 +151,23 @@ class FitConfig(ConfigDict):
     def paper() -> "FitConfig":
         """The 30k-step schedule of the 3DGS paper (for GPU users)."""
         return FitConfig()
+
+    @classmethod
+    def for_scene(
+        cls,
+        name: str,
+        scene: Scene,
+        steps: Optional[int] = None,
+        init: Union[None, str, Gaussians] = None,
+        seed: int = 0,
+    ) -> "FitConfig":
+        """Preset ``name`` for ``scene``: a preset in ``SIZED_PRESETS`` sizes its schedule to the
+        scene (:meth:`sized_for`), the paper's is 3DGS's as it stands; ``steps`` sets the step
+        count (a sized schedule keeps its fractions of the run)."""
+        config = replace(cls.preset(name), seed=seed)
+        if name in cls.SIZED_PRESETS:
+            config = config.sized_for(scene, steps=steps, init=init)
+        return config if steps is None else replace(config, steps=steps)
 
     def sized_for(
         self, scene: Scene, steps: Optional[int] = None, init: Union[None, str, Gaussians] = None

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from n2f2.render.numba_backend import _LOCK, _threads
+from n2f2.render.numba_runtime import KERNEL_LOCK, numba_threads
 
 try:  # optional at import time, as in the rasterizer's kernels
     import numba
@@ -76,7 +76,7 @@ def adam_update(
     else:
         rate = np.full(r, lr / bc1, dtype=np.float32)
     f32 = np.float32
-    with _LOCK:
+    with KERNEL_LOCK:
         _update(
             p_rows,
             g_rows,
@@ -89,13 +89,13 @@ def adam_update(
             f32(1 - b2),
             f32(np.sqrt(bc2)),
             f32(eps),
-            _threads(),
+            numba_threads(),
         )
 
 
 def warm_up() -> None:
     """Compile (or load from the cache) the update with the argument types a fit step passes
-    (:func:`n2f2.render.numba_backend.compile_in_background` runs this)."""
+    (:func:`n2f2.render.numba_runtime.compile_in_background` runs this)."""
     if numba is not None:
         p, g = torch.zeros(2, 3), torch.ones(2, 3)
         adam_update(p, g, torch.zeros(2, 3), torch.zeros(2, 3), 0.1, (0.9, 0.999), 1, 1e-15)

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from n2f2.render.numba_backend import _LOCK, _threads
+from n2f2.render.numba_runtime import KERNEL_LOCK, numba_threads
 
 try:  # optional at import time, as in the rasterizer's kernels
     import numba
@@ -64,8 +64,8 @@ def _run(x: Tensor, g: Tensor) -> Tensor:  # [K, H, W], [S] -> [K, H, W]
     x = x.detach().contiguous()
     out = torch.empty_like(x)
     kernel = g.detach().to(x.dtype).contiguous().numpy()
-    with _LOCK:
-        _blur(x.numpy(), kernel, out.numpy(), _threads())
+    with KERNEL_LOCK:
+        _blur(x.numpy(), kernel, out.numpy(), numba_threads())
     return out
 
 
@@ -94,7 +94,7 @@ def blur_numba(
 
 def warm_up() -> None:
     """Compile (or load from the cache) the blur with the argument types a fit step passes
-    (:func:`n2f2.render.numba_backend.compile_in_background` runs this)."""
+    (:func:`n2f2.render.numba_runtime.compile_in_background` runs this)."""
     if numba is not None:
         maps = torch.rand(2, 5, 6, requires_grad=True)
         blur_numba(maps, torch.ones(3) / 3).sum().backward()

@@ -1,7 +1,7 @@
-"""The pipeline layer between the stages and the command line: the stages as typed functions
-(:mod:`.stages`), the content-keyed stage cache (:mod:`.cache`), the named presets of every
-stage's settings (:mod:`.presets`), ``n2f2 run`` / ``demo`` (:mod:`.run`) and ``run-many``
-(:mod:`.many`); their options are in :mod:`.commands`."""
+"""The pipeline layer between the stages and the command line: the content-keyed stage cache
+(:mod:`.cache`), the named presets of every stage's settings (:mod:`.presets`), ``n2f2 run`` /
+``demo`` (:mod:`.run`, each stage through its own runner, e.g. :func:`n2f2.gaussians.stage.run_fit`)
+and ``run-many`` (:mod:`.many`); their options are in :mod:`.commands`."""
 
 from __future__ import annotations
 

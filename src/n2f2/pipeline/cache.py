@@ -15,6 +15,7 @@ from typing import Callable
 from ..io import commit_outputs, write_json
 
 STAGES_FILE = "stages.json"
+UNFINISHED = "unfinished"  # in a stage's record while it runs
 
 
 def file_digest(path: Path, _chunk: int = 1 << 20) -> str:
@@ -63,15 +64,25 @@ class StageCache:
     def fresh(self, name: str, key: str, outputs: list[Path]) -> bool:
         """Stage ``name`` already ran with ``key`` and its outputs exist."""
         rec = self.records.get(name)
-        return bool(rec and rec.get("key") == key and all(p.exists() for p in outputs))
+        return bool(rec and rec.get("key") == key and not rec.get(UNFINISHED) and all(p.exists() for p in outputs))
+
+    def interrupted(self, name: str, key: str) -> bool:
+        """Stage ``name`` was started with ``key`` and did not finish: what it kept (a
+        checkpoint, bank records) belongs to the same inputs and may be continued."""
+        rec = self.records.get(name)
+        return bool(rec and rec.get("key") == key and rec.get(UNFINISHED))
 
     def run(self, name: str, key: str, outputs: list[Path], fn: Callable[[], object], log=print) -> bool:
         """Run ``fn`` unless stage ``name`` already ran with ``key`` and its outputs exist (what
-        ``fn`` returns is dropped). Returns True when the stage ran."""
+        ``fn`` returns is dropped). The start is recorded first and kept whatever happens, so
+        that a run stopped in the middle of the stage can continue it (:meth:`interrupted`,
+        asked before this call). Returns True when the stage ran."""
         if self.fresh(name, key, outputs):
             log(f"[{name}] up to date (key {key}), skipped")
             return False
-        log(f"[{name}] running")
+        log(f"[{name}] {'continuing' if self.interrupted(name, key) else 'running'}")
+        self.records[name] = {"key": key, UNFINISHED: True}
+        write_json(self.run_dir / STAGES_FILE, self.records, keep=True)
         start = time.perf_counter()
         fn()
         self.records[name] = {

@@ -7,16 +7,17 @@ import argparse
 import time
 from pathlib import Path
 
-from ..config import add_config_options, config_overrides
+from ..config import add_config_options, add_preset_option, config_overrides
 from ..distributed import add_executor_options
 from ..errors import InputError
 from ..field.model import FieldConfig
 from ..gaussians.fit import FitConfig
+from ..segments.encoders import ENCODER_NAMES
 from ..segments.lifting import LiftSettings
 from ..segments.segmenters import SEGMENTER_NAMES
 from ..train.trainer import TrainConfig
 from ..validate import add_device_option, nonneg_int, positive_float, positive_int
-from .presets import DEFAULT_PRESET, PRESETS
+from .presets import PRESETS
 from .run import DEFAULT_MODES, DemoScene, RunOptions
 
 # The stage settings `run` can change: {Preset attribute: (its config class, {field: flag})}.
@@ -48,7 +49,7 @@ def _add_run_options(p: argparse.ArgumentParser, per_scene_inputs: bool = True) 
     )
     p.add_argument(
         "--encoder",
-        choices=["clip", "captions"],
+        choices=ENCODER_NAMES,
         default=None,
         help="encoder (default: captions = ground-truth captions embedded by all-MiniLM-L6-v2, an "
         "offline stand-in for CLIP, on the demo scene; else clip). With --langsplat-features: "
@@ -72,12 +73,7 @@ def _add_run_options(p: argparse.ArgumentParser, per_scene_inputs: bool = True) 
         p.add_argument(
             "--labels", metavar="DIR", default=None, help="LangSplat-format labels (default: DATA/label when it exists)"
         )
-    p.add_argument(
-        "--preset",
-        choices=list(PRESETS),
-        default=DEFAULT_PRESET,
-        help="settings of every stage, n2f2.pipeline.presets (default %(default)s)",
-    )
+    add_preset_option(p, "settings of every stage, n2f2.pipeline.presets")
     for stage in ("fit", "train", "field"):  # None: the --preset's value
         _add_stage_options(p, stage)
     p.add_argument(

@@ -10,21 +10,26 @@ training (:class:`TrainConfig`).
 * ``paper``: the paper's settings (3DGS's 30k-step fit, eigenvalue scales, D = 512 with
   TriPlane 512^2 x 64, 30k training steps).
 
-``n2f2 run`` / ``demo`` / ``run-many`` and ``n2f2 bench`` read their defaults from here; the
-stage commands (``fit-gaussians``, ``segments``, ``train``) use each stage's own preset
-constructors, which these presets are built from.
+``n2f2 run`` / ``demo`` / ``run-many`` and ``n2f2 bench`` read their defaults from here. The
+names, the default (:func:`n2f2.config.default_preset`: ``paper`` on CUDA, else ``cpu``) and
+each stage's part of a preset live with that stage's config (``FitConfig.cpu``,
+``FitConfig.for_scene`` for the sizing rule, ``TrainConfig.paper`` ...), so that a stage's
+runner builds its config without importing the pipeline; these presets are built from them.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
-from typing import Callable, Optional
+from dataclasses import dataclass
+from typing import Callable
 
+from ..config import DEFAULT_PRESET, PRESET_NAMES, default_preset
 from ..errors import InputError
 from ..field.model import FieldConfig
 from ..gaussians.fit import FitConfig
 from ..segments.lifting import LiftSettings
 from ..train.trainer import TrainConfig
+
+__all__ = ["DEFAULT_PRESET", "PRESETS", "PRESET_NAMES", "Preset", "default_preset", "get_preset"]
 
 
 @dataclass(frozen=True)
@@ -32,33 +37,16 @@ class Preset:
     """Every stage's settings under one name."""
 
     name: str
-    fit: FitConfig  # before sizing to a scene (see sized_fit)
-    sized_fit: bool  # derive the fit's steps, Gaussian cap and schedule from the scene
+    fit: FitConfig  # before sizing to a scene (FitConfig.for_scene)
     lift: LiftSettings
     field: FieldConfig
     train: TrainConfig
-
-    def fit_config(
-        self,
-        scene,
-        steps: Optional[int] = None,
-        seed: int = 0,  # scene: n2f2.data.Scene
-        device: str = "cpu",
-    ) -> FitConfig:
-        """The fit settings for ``scene``; ``steps`` overrides the step count (a sized schedule
-        keeps its fractions of the run)."""
-        config = replace(self.fit, seed=seed)
-        if self.sized_fit:
-            config = config.sized_for(scene, steps=steps)
-        config = replace(config, device=device)
-        return replace(config, steps=steps) if steps is not None else config
 
 
 def cpu() -> Preset:
     return Preset(
         name="cpu",
         fit=FitConfig.cpu(),
-        sized_fit=True,
         lift=LiftSettings(scale_measure="area"),
         field=FieldConfig.cpu(),
         train=TrainConfig.cpu(),
@@ -69,7 +57,6 @@ def paper() -> Preset:
     return Preset(
         name="paper",
         fit=FitConfig.paper(),
-        sized_fit=False,
         lift=LiftSettings(),
         field=FieldConfig.paper(),
         train=TrainConfig.paper(),
@@ -77,7 +64,7 @@ def paper() -> Preset:
 
 
 PRESETS: dict[str, Callable[[], Preset]] = {"cpu": cpu, "paper": paper}
-DEFAULT_PRESET = "cpu"
+assert tuple(PRESETS) == PRESET_NAMES  # every stage's config has a constructor of each name
 
 
 def get_preset(name: str) -> Preset:

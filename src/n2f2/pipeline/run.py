@@ -1,5 +1,5 @@
 """``n2f2 run`` and ``n2f2 demo``: the stages in data-flow order (fit Gaussians -> segment bank ->
-nested field -> evaluation), each run through :mod:`.stages` under the stage cache of the run
+nested field -> evaluation), each through its stage's runner under the stage cache of the run
 folder (:mod:`.cache`), with the settings of a named preset (:mod:`.presets`)."""
 
 from __future__ import annotations
@@ -10,10 +10,13 @@ from pathlib import Path
 from typing import Callable, TypedDict
 
 from ..errors import InputError
+from ..eval.stage import EvalJob, run_eval
+from ..gaussians.stage import FitJob, run_fit
 from ..io import claim_out_dir
-from . import stages
+from ..segments.stage import BankJob, run_bank
+from ..train.stage import TrainJob, run_train
 from .cache import StageCache, file_digest, scene_digest, stage_key, tree_digest
-from .presets import DEFAULT_PRESET, get_preset
+from .presets import Preset, default_preset, get_preset
 
 DEFAULT_MODES = ("composite", "explicit", "soft", "oracle")
 # Modules with numba kernels beyond the rasterizer's, compiled in the background
@@ -26,13 +29,12 @@ BACKGROUND_KERNELS = {
 
 
 class _StageOptions(TypedDict):
-    """The keyword settings every stage of a run shares."""
+    """The keyword settings every stage job of a run shares."""
 
     downscale: float
     skip_missing: bool
     device: str
     progress: bool
-    log: Callable[[str], None]
 
 
 @dataclass
@@ -49,7 +51,7 @@ class RunOptions:
     sam_model: str | None = None
     langsplat_features: Path | None = None
     labels: Path | None = None
-    preset: str = DEFAULT_PRESET
+    preset: str | None = None  # None: config.default_preset(device)
     fit_steps: int | None = None
     train_steps: int | None = None
     dim: int | None = None  # feature-field dims D (None: the preset's)
@@ -71,6 +73,7 @@ def is_demo_scene(data: Path) -> bool:
 def resolve_defaults(opt: RunOptions) -> RunOptions:
     """Fill in the scene-dependent defaults:
 
+    * preset: :func:`n2f2.config.default_preset` of the device;
     * segmenter: ``ground-truth`` on a demo scene, else ``sam`` (the paper's);
     * scale measure: the preset's (:mod:`.presets`);
     * encoder: with ``langsplat_features``, the encoder an n2f2 export recorded beside them
@@ -87,8 +90,9 @@ def resolve_defaults(opt: RunOptions) -> RunOptions:
         encoder = recorded["name"] if recorded else "clip"
     if encoder is None:
         encoder = "captions" if demo else "clip"
-    scale_measure = opt.scale_measure or get_preset(opt.preset).lift.scale_measure
-    return replace(opt, segmenter=segmenter, encoder=encoder, scale_measure=scale_measure)
+    preset = opt.preset or default_preset(opt.device)
+    scale_measure = opt.scale_measure or get_preset(preset).lift.scale_measure
+    return replace(opt, preset=preset, segmenter=segmenter, encoder=encoder, scale_measure=scale_measure)
 
 
 def run_pipeline(opt: RunOptions, log: Callable[[str], None] = print) -> dict:
@@ -99,10 +103,44 @@ def run_pipeline(opt: RunOptions, log: Callable[[str], None] = print) -> dict:
     the fitted Gaussians' rendered depth (``depth_source="render"``, the default), and with
     ``langsplat_features`` the bank is imported from LangSplat-format files instead of
     segmenting. Evaluation runs on ``labels`` (default ``DATA/label``) when they exist; query
-    types (simple / compound) come from ``DATA/queries.json`` when the scene has one."""
+    types (simple / compound) come from ``DATA/queries.json`` when the scene has one. A stage
+    stopped in the middle (its start is recorded in ``stages.json``) is continued by the next
+    run with the same inputs: the fit and the training from their checkpoints, the bank from
+    its finished images."""
+    from ..data.sfm import posed_scene_path
+
     opt = resolve_defaults(opt)
-    preset = get_preset(opt.preset)
-    data, out = Path(opt.data), Path(opt.out)
+    _check_inputs(opt)
+    out = Path(opt.out)
+    claim_out_dir(out, ())  # writable, with room, and ours alone until the command ends
+    if opt.device == "cpu":  # compile the rasterizer while the scene is read; the first render waits
+        from ..render.numba_backend import compile_in_background
+
+        compile_in_background(**BACKGROUND_KERNELS)
+    progress = not opt.quiet
+    data = posed_scene_path(Path(opt.data), out / "sfm", progress=progress, log=log)  # photos: pose them first
+    labels = Path(opt.labels) if opt.labels else (data / "label" if (data / "label").is_dir() else None)
+    if labels is not None:  # every label file read now: a bad one stops the run in seconds, not after training
+        from ..data.labels import read_label_dir
+
+        read_label_dir(labels)
+    assert opt.preset is not None  # resolve_defaults chose it
+    run = _Run(opt, get_preset(opt.preset), data, out, StageCache.open(out), scene_digest(data), log)
+    ply = _gaussians_stage(run)
+    bank = _segments_stage(run, ply)
+    _train_stage(run, ply, bank)
+    eval_json = None if labels is None else _eval_stage(run, labels, bank)
+    return {
+        "run_dir": str(out),
+        "stages": run.cache.records,
+        "ran": list(run.cache.ran),
+        "eval": None if eval_json is None else str(eval_json),
+    }
+
+
+def _check_inputs(opt: RunOptions) -> None:
+    """Refuse missing folders and impossible options before any work."""
+    data = Path(opt.data)
     if not data.is_dir():
         raise InputError(data, "scene folder does not exist")
     if opt.depth_source == "gt" and not (is_demo_scene(data) and (data / "depth").is_dir()):
@@ -115,111 +153,93 @@ def run_pipeline(opt: RunOptions, log: Callable[[str], None] = print) -> dict:
         raise InputError(opt.langsplat_features, "LangSplat features folder does not exist")
     if opt.labels is not None and not Path(opt.labels).is_dir():
         raise InputError(opt.labels, "labels folder does not exist")
-    claim_out_dir(out, ())  # writable, with room, and ours alone until the command ends
-    if opt.device == "cpu":  # compile the rasterizer while the scene is read; the first render waits
-        from ..render.numba_backend import compile_in_background
 
-        compile_in_background(**BACKGROUND_KERNELS)
-    cache = StageCache.open(out)
-    progress = not opt.quiet
-    common = _StageOptions(
-        downscale=opt.downscale, skip_missing=opt.skip_missing, device=opt.device, progress=progress, log=log
-    )
-    from ..data.sfm import posed_scene_path
 
-    data = posed_scene_path(data, out / "sfm", progress=progress, log=log)  # photos: pose them first
-    sdig = scene_digest(data)
-    labels = Path(opt.labels) if opt.labels else (data / "label" if (data / "label").is_dir() else None)
-    if labels is not None:  # every label file read now: a bad one stops the run in seconds, not after training
-        from ..data.labels import read_label_dir
+@dataclass
+class _Run:
+    """What every stage of one ``run_pipeline`` call shares."""
 
-        read_label_dir(labels)
+    opt: RunOptions
+    preset: Preset
+    data: Path  # the posed scene
+    out: Path
+    cache: StageCache
+    scene_digest: str
+    log: Callable[[str], None]
 
-    # 1. Gaussians: fitted here, or given.
+    def common(self) -> _StageOptions:
+        o = self.opt
+        return _StageOptions(downscale=o.downscale, skip_missing=o.skip_missing, device=o.device, progress=not o.quiet)
+
+
+def _gaussians_stage(run: _Run) -> Path:
+    """The Gaussians' PLY: given, or fitted into RUN/gaussians."""
+    opt = run.opt
     if opt.gaussians is not None:
         ply = Path(opt.gaussians)
         if ply.is_dir():
             ply = ply / "gaussians.ply"
         if not ply.is_file():
             raise InputError(ply, "Gaussians file does not exist")
-    else:
-        fit_dir = out / "gaussians"
-        ply = fit_dir / "gaussians.ply"
-        fit_key = ["--preset", opt.preset] + (["--steps", opt.fit_steps] if opt.fit_steps else [])
-        cache.run(
-            "fit-gaussians",
-            stage_key(scene=sdig, args=fit_key, downscale=opt.downscale),
-            [ply],
-            lambda: stages.fit_gaussians(data, fit_dir, preset, opt.fit_steps, **common),
-            log,
-        )
-    gdig = file_digest(ply)
+        return ply
+    fit_dir = run.out / "gaussians"
+    ply = fit_dir / "gaussians.ply"
+    fit_key = ["--preset", opt.preset] + (["--steps", opt.fit_steps] if opt.fit_steps else [])
+    key = stage_key(scene=run.scene_digest, args=fit_key, downscale=opt.downscale)
+    job = FitJob(
+        run.data,
+        fit_dir,
+        preset=opt.preset,
+        overrides={"steps": opt.fit_steps} if opt.fit_steps else {},
+        **_continued(run.cache.interrupted("fit-gaussians", key)),
+        **run.common(),
+    )
+    run.cache.run("fit-gaussians", key, [ply], lambda: run_fit(job, log=run.log), run.log)
+    return ply
 
-    # 2. Segment bank.
-    bank = out / "bank"
-    lift = replace(preset.lift, scale_measure=opt.scale_measure)
+
+def _segments_stage(run: _Run, ply: Path) -> Path:
+    """The segment bank RUN/bank: segmented and embedded, or imported from LangSplat's files."""
+    opt = run.opt
+    bank = run.out / "bank"
+    common = dict(scene=run.scene_digest, gaussians=file_digest(ply), depth=opt.depth_source, model=opt.model)
     if opt.langsplat_features is not None:
         feats = Path(opt.langsplat_features)
-        seg_key = stage_key(
-            scene=sdig,
-            gaussians=gdig,
-            features=tree_digest(feats),
-            args=["--encoder", opt.encoder, "--scale-measure", opt.scale_measure],
-            depth=opt.depth_source,
-            model=opt.model,
-        )
-
-        def build() -> None:
-            stages.import_langsplat_bank(
-                data,
-                bank,
-                ply,
-                feats,
-                encoder=opt.encoder,
-                lift=lift,
-                model=opt.model,
-                depth_source=opt.depth_source,
-                **common,
-            )
+        args = ["--encoder", opt.encoder, "--scale-measure", opt.scale_measure]
+        key = stage_key(**common, features=tree_digest(feats), args=args)
+        source: dict = dict(encoder=opt.encoder, features=feats)
     else:
-        seg_key = stage_key(
-            scene=sdig,
-            gaussians=gdig,
-            args=["--segmenter", opt.segmenter, "--encoder", opt.encoder, "--scale-measure", opt.scale_measure],
-            depth=opt.depth_source,
-            model=opt.model,
-            **({"sam_model": opt.sam_model} if opt.sam_model else {}),  # keys of earlier runs unchanged
-        )
-
-        def build() -> None:
-            # resolve_defaults filled in both.
-            assert opt.segmenter is not None and opt.encoder is not None
-            stages.build_segment_bank(
-                data,
-                bank,
-                ply,
-                segmenter=opt.segmenter,
-                encoder=opt.encoder,
-                lift=lift,
-                model=opt.model,
-                sam_model=opt.sam_model,
-                depth_source=opt.depth_source,
-                **common,
-            )
-
-    def build_bank() -> None:
-        if bank.exists():  # inputs changed: a resumed extraction would mix old and new records
-            shutil.rmtree(bank)
-        build()
-
-    cache.run("segments", seg_key, [bank / "bank.json"], build_bank, log)
-
-    # 3. Nested feature field.
-    field_over = {k: v for k, v in (("dim", opt.dim), ("variant", opt.variant)) if v}
-    field_config = replace(preset.field, **field_over)
-    train_config = replace(
-        preset.train, seed=0, device=opt.device, **({"iterations": opt.train_steps} if opt.train_steps else {})
+        args = ["--segmenter", opt.segmenter, "--encoder", opt.encoder, "--scale-measure", opt.scale_measure]
+        sam = {"sam_model": opt.sam_model} if opt.sam_model else {}  # keys of earlier runs unchanged
+        key = stage_key(**common, args=args, **sam)
+        assert opt.segmenter is not None  # resolve_defaults filled it in
+        source = dict(segmenter=opt.segmenter, encoder=opt.encoder, sam_model=opt.sam_model)
+    job = BankJob(
+        run.data,
+        bank,
+        ply,
+        lift=replace(run.preset.lift, scale_measure=opt.scale_measure),
+        model=opt.model,
+        depth_source=opt.depth_source,
+        force=True,
+        # A bank this stage left unfinished with the same inputs is finished; any other bank goes.
+        keep_unfinished=run.cache.interrupted("segments", key),
+        **source,
+        **run.common(),
     )
+
+    def build() -> None:
+        if bank.exists() and not job.keep_unfinished:  # other inputs: records must not mix
+            shutil.rmtree(bank)
+        run_bank(job, log=run.log)
+
+    run.cache.run("segments", key, [bank / "bank.json"], build, run.log)
+    return bank
+
+
+def _train_stage(run: _Run, ply: Path, bank: Path) -> None:
+    """The nested feature field in RUN (field.pt, train_report.json, ...)."""
+    opt = run.opt
     train_key = ["--preset", opt.preset]  # the settings as the key has always named them
     if opt.train_steps:
         train_key += ["--iterations", opt.train_steps]
@@ -227,66 +247,62 @@ def run_pipeline(opt: RunOptions, log: Callable[[str], None] = print) -> dict:
         train_key += ["--dim", opt.dim]
     if opt.variant:
         train_key += ["--variant", opt.variant]
-
-    def train() -> None:
-        for stale in ("checkpoint.pt", "field.pt"):  # inputs changed: start from scratch
-            (out / stale).unlink(missing_ok=True)
-        stages.train_field(
-            data,
-            ply,
-            bank,
-            out,
-            field_config=field_config,
-            train_config=train_config,
-            downscale=opt.downscale,
-            skip_missing=opt.skip_missing,
-            progress=progress,
-            log=log,
-        )
-
-    cache.run(
-        "train",
-        stage_key(scene=sdig, gaussians=gdig, bank=file_digest(bank / "bank.json"), args=train_key),
-        [out / "field.pt"],
-        train,
-        log,
+    key = stage_key(
+        scene=run.scene_digest, gaussians=file_digest(ply), bank=file_digest(bank / "bank.json"), args=train_key
+    )
+    resume = run.cache.interrupted("train", key)
+    job = TrainJob(
+        run.data,
+        ply,
+        bank,
+        run.out,
+        preset=opt.preset,
+        field_overrides={k: v for k, v in (("dim", opt.dim), ("variant", opt.variant)) if v},
+        train_overrides={"iterations": opt.train_steps} if opt.train_steps else {},
+        **_continued(resume),
+        **run.common(),
     )
 
-    # 4. Evaluation, when labels exist.
-    eval_json = None
-    if labels is not None:
-        from ..query.engine import DEFAULT_RENDER
+    def train() -> None:
+        if not resume:  # other inputs: start from scratch
+            for stale in ("checkpoint.pt", "field.pt"):
+                (run.out / stale).unlink(missing_ok=True)
+        run_train(job, log=run.log)
 
-        eval_dir = out / "eval"
-        eval_json = eval_dir / "eval.json"
-        cache.run(
-            "eval",
-            stage_key(
-                field=file_digest(out / "field.pt"),
-                labels=tree_digest(labels),
-                modes=list(opt.modes),
-                render=DEFAULT_RENDER,  # an evaluation cached with per-Gaussian views is redone
-            ),
-            [eval_json],
-            lambda: stages.evaluate(
-                out,
-                labels,
-                eval_dir,
-                scene=data,
-                bank=bank,
-                modes=opt.modes,
-                device=opt.device,
-                progress=progress,
-                log=log,
-            ),
-            log,
-        )
-    return {
-        "run_dir": str(out),
-        "stages": cache.records,
-        "ran": list(cache.ran),
-        "eval": None if eval_json is None else str(eval_json),
-    }
+    run.cache.run("train", key, [run.out / "field.pt"], train, run.log)
+
+
+def _eval_stage(run: _Run, labels: Path, bank: Path) -> Path:
+    """The evaluation on ``labels`` in RUN/eval; returns its eval.json."""
+    from ..query.engine import DEFAULT_RENDER
+
+    opt = run.opt
+    eval_dir = run.out / "eval"
+    job = EvalJob(
+        run.out,
+        labels,
+        eval_dir,
+        scene=run.data,
+        bank=bank,
+        modes=opt.modes,
+        force=True,
+        device=opt.device,
+        progress=not opt.quiet,
+    )
+    key = stage_key(
+        field=file_digest(run.out / "field.pt"),
+        labels=tree_digest(labels),
+        modes=list(opt.modes),
+        render=DEFAULT_RENDER,  # an evaluation cached with per-Gaussian views is redone
+    )
+    run.cache.run("eval", key, [eval_dir / "eval.json"], lambda: run_eval(job, log=run.log), run.log)
+    return eval_dir / "eval.json"
+
+
+def _continued(resume: bool) -> dict:
+    """A stage's output folder: continued when the stage was interrupted with the same inputs
+    (its checkpoint was kept), else replaced."""
+    return {"resume": True} if resume else {"force": True}
 
 
 # ----------------------------------------------------------------------------- demo
@@ -313,7 +329,7 @@ def cached_demo_scene(
     """Generate the demo scene ``spec`` into ``scene_dir`` unless ``cache`` holds it (keyed on
     its settings and the generator's version). Returns True when it was generated."""
     from ..data.scene import SCENE_META_NAME
-    from ..data.synthetic import GENERATOR_VERSION
+    from ..data.synthetic import GENERATOR_VERSION, generate_demo_scene
 
     key = stage_key(
         views=spec.views,
@@ -327,14 +343,14 @@ def cached_demo_scene(
         "demo-scene",
         key,
         [scene_dir / SCENE_META_NAME, scene_dir / "regions.json"],
-        lambda: stages.generate_demo_scene(
+        lambda: generate_demo_scene(
             scene_dir,
-            views=spec.views,
+            num_views=spec.views,
             width=spec.width,
             height=spec.height,
             seed=spec.seed,
             layout=spec.layout,
-            progress=progress,
+            show_progress=progress,
         ),
         log,
     )
@@ -367,9 +383,11 @@ def demo_queries(
     """A few relevancy PNGs for a person to look at (raw .npy beside each) in ``out/queries``,
     answered afresh each run: the layout's demo queries in its first two labelled views."""
     from ..data.scene import read_scene_meta
+    from ..query.stage import QueryJob, run_query
 
     views = [int(v) for v in read_scene_meta(scene_dir).get("labelled_views", [0])[:2]]
-    stages.answer_queries(
-        run_dir, DEMO_QUERIES[layout], views, out / "queries", device=device, progress=progress, log=log
+    job = QueryJob(
+        run_dir, DEMO_QUERIES[layout], out / "queries", views=views, force=True, device=device, progress=progress
     )
+    run_query(job, log=log)
     return out / "queries"

@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import argparse
 
+from ..config import add_config_options
 from ..validate import (
     add_device_option,
-    composite_temperature,
     finite_float,
     nonneg_int,
     unit_interval,
@@ -15,38 +15,19 @@ from ..validate import (
 
 
 def add_render_option(p: argparse.ArgumentParser) -> None:
-    """``--render``: how 2D views get their features (``QueryConfig.render``)."""
-    from .engine import DEFAULT_RENDER, RENDERS
+    """``--render``: how 2D views get their features (``QueryConfig.render``; default its own)."""
+    from .engine import QueryConfig
 
-    p.add_argument(
-        "--render",
-        choices=RENDERS,
-        default=DEFAULT_RENDER,
-        help="2D views: deferred = rasterize the backbone's features and run the MLP per pixel, as the field was "
-        "trained (default); gaussians = the MLP per Gaussian, the paper's test-time form",
-    )
+    add_config_options(p, QueryConfig, ["render"], field_defaults=True)
 
 
 def add_composite_options(p: argparse.ArgumentParser) -> None:
-    """``--composite-weights`` and ``--temperature``: composite's weights over the scales
-    (``QueryConfig.composite_weights`` and ``.temperature``; read back by :func:`composite_config`)."""
-    from .composite import COMPOSITE_WEIGHTS, DEFAULT_WEIGHTS
+    """``--composite-weights`` (default QueryConfig's) and ``--temperature`` (None: QueryConfig's):
+    composite's weights over the scales, read back by :func:`composite_config`."""
+    from .engine import QueryConfig
 
-    p.add_argument(
-        "--composite-weights",
-        choices=COMPOSITE_WEIGHTS,
-        default=DEFAULT_WEIGHTS,
-        help="composite's weights over the scales: unit = the mean of the normalised scale features "
-        "(default); eq6 = the paper's Eq. 6 at --temperature",
-    )
-    p.add_argument(
-        "--temperature",
-        type=composite_temperature,
-        default=None,
-        metavar="T",
-        help="T of --composite-weights eq6, gamma = softmax(score / T): 'paper' (T = 1, default), "
-        "'uniform' (T = infinity: the plain mean of the scale features) or a number > 0",
-    )
+    add_config_options(p, QueryConfig, ["composite_weights"], field_defaults=True)
+    add_config_options(p, QueryConfig, ["temperature"])
 
 
 def composite_config(args: argparse.Namespace) -> dict:
@@ -75,7 +56,8 @@ def _box_size(value: str):
 
 
 def register(subparsers) -> None:
-    from .engine import MODES
+    from .engine import MODES, QueryConfig
+    from .modes import QUERY_MODES
     from .soft import SOFT_TEMPERATURE
 
     p = subparsers.add_parser(
@@ -99,7 +81,7 @@ def register(subparsers) -> None:
     )
     p.add_argument(
         "--mode",
-        choices=[m for m in MODES if m != "oracle"],
+        choices=[m for m in MODES if not QUERY_MODES[m].needs_truth],
         default="composite",
         help="composite (default, paper), explicit (best of the D/k scales per query, "
         "LERF/LangSplat), levels (3-level baseline field), soft (every scale weighted by "
@@ -137,20 +119,8 @@ def register(subparsers) -> None:
     )
     add_composite_options(p)
     add_render_option(p)
-    p.add_argument(
-        "--canonical",
-        nargs="+",
-        default=None,
-        metavar="PHRASE",
-        help="canonical phrases of gamma (default: object stuff thing part texture)",
-    )
-    p.add_argument(
-        "--selection",
-        choices=["smoothed", "max"],
-        default="smoothed",
-        help="explicit/levels scale choice: max of the protocol-smoothed map "
-        "(LangSplat, default) or of the raw map (LERF)",
-    )
+    add_config_options(p, QueryConfig, ["canonical"])  # None: QueryConfig's phrases
+    add_config_options(p, QueryConfig, ["selection"], field_defaults=True)
     p.add_argument(
         "--force",
         action="store_true",
@@ -161,63 +131,32 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-# Query texts longer than this are shortened on the console; query.json keeps them whole.
-SHOWN_TEXT_CHARS = 80
-
-
-def shown(text: str, limit: int = SHOWN_TEXT_CHARS) -> str:
-    """``text`` for a console line: at most ``limit`` characters, the length said when cut."""
-    return text if len(text) <= limit else f"{text[: limit - 25]}... ({len(text)} characters)"
-
-
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from ..errors import InputError
-    from .answer import answer_queries
-    from .maps import LANGSPLAT_BOX_SIZE, LANGSPLAT_THRESHOLD
-    from .relevancy import check_texts
+    from .stage import QueryJob, run_query
 
-    texts = check_texts(args.texts)
     composite = composite_config(args)
-    mask_threshold = LANGSPLAT_THRESHOLD if args.mask_threshold is None else args.mask_threshold
-    if not 0.0 <= mask_threshold < 1.0:
-        raise InputError(None, f"--mask-threshold must be in [0, 1), got {mask_threshold}")
-    box = LANGSPLAT_BOX_SIZE if args.box_size is None else args.box_size
-    out = Path(args.out)
-    summary = answer_queries(
-        args.run_dir,
-        texts,
-        args.views,
-        out,
-        mode=args.mode,
-        scene=args.scene,
-        three_d=args.three_d,
-        threshold=args.threshold,
-        mask_threshold=mask_threshold,
-        box_size=box,
-        **composite,
-        render=args.render,
-        canonical=tuple(args.canonical) if args.canonical else None,
-        selection=args.selection,
-        force=args.force,
-        device=args.device,
-        progress=not args.quiet,
-    )
-    for v in summary["views"]:
-        for r in v["queries"]:
-            loc = r["localization"]
-            print(
-                f"{v['view']}  {shown(r['query'])!r}: max relevancy {r['relevancy_max']:.3f} at "
-                f"({loc['x']}, {loc['y']}), mask {r['mask_area_px']} px"
-                + (f", scale {r['chosen_scale']}" if r["chosen_scale"] else "")
-            )
-    sel3d = summary.get("selection_3d")
-    for t, s in (sel3d["selections"] if sel3d else {}).items():
-        assert sel3d is not None  # the loop runs over sel3d's selections only
-        print(
-            f"3D {shown(t)!r}: {s['count']} of {sel3d['num_gaussians']} Gaussians"
-            + (f" -> {out / s['ply']}" if s["ply"] else " (empty selection, no PLY written)")
+    run_query(
+        QueryJob(
+            run_dir=Path(args.run_dir),
+            texts=args.texts,
+            out=Path(args.out),
+            views=args.views,
+            mode=args.mode,
+            scene=None if args.scene is None else Path(args.scene),
+            three_d=args.three_d,
+            threshold=args.threshold,
+            mask_threshold=args.mask_threshold,
+            box_size=args.box_size,
+            composite_weights=composite["composite_weights"],
+            temperature=composite.get("temperature"),
+            render=args.render,
+            canonical=tuple(args.canonical) if args.canonical else None,
+            selection=args.selection,
+            force=args.force,
+            device=args.device,
+            progress=not args.quiet,
         )
-    print(f"query: {len(texts)} queries x {len(summary['views'])} views ({args.mode}) -> {out}")
+    )
     return 0

@@ -1,6 +1,6 @@
 """The query engine: per-view caches, the five modes, and 3D queries on the Gaussians.
 
-Modes (all scored by :mod:`n2f2.query.relevancy`, the one relevancy definition):
+Modes (:mod:`n2f2.query.modes`; all scored by :mod:`n2f2.query.relevancy`, the one relevancy definition):
 
 * ``composite`` (default, paper Sec. 3.3): one relevancy map per query from the composite
   embedding ``W Theta~``. ``Theta~`` (premultiplied by ``revcumsum(gamma^3D)``) is computed once
@@ -59,9 +59,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..config import option
 from ..errors import InputError
 from ..field.variants import LEVEL_NAMES, FieldVariant, get_variant
 from ..segments.bins import supervised_dims
+from ..validate import composite_temperature
 from .caches import (
     LinearCache,
     PrefixCache,
@@ -83,37 +85,63 @@ from .maps import (
     segmentation_mask,
     smoothed_relevancy,
 )
+from .modes import COMPOSITE_CACHE, PREFIX_CACHE, QUERY_MODES, QueryMode, get_mode
+from .modes import MODES as MODES
 from .relevancy import DEFAULT_NEGATIVES, check_texts
 from .soft import soft_relevancy
 
 if TYPE_CHECKING:
     from ..cameras import Camera
 
-MODES = ("composite", "explicit", "levels", "soft", "oracle")
 SELECTIONS = ("smoothed", "max")
 RENDERS = ("deferred", "gaussians")  # how a 2D view gets its pixels' features (QueryConfig.render)
 DEFAULT_RENDER = "deferred"  # since n2f2 rendered test views per Gaussian: part of cached stage keys
 
 # (view index, relevancy at every scale [S, H, W] for one query, query index) -> scores [S]
 OracleScorer = Callable[[Tensor, int], Union[Tensor, np.ndarray, Sequence[float]]]
+# A mode's answer: relevancy [Q, H, W] or [Q, N], the chosen scale per query (None: no one
+# scale), and the [Q, S] scores it chose by (None: composite).
+Answer = tuple[Tensor, list[Optional[int]], Optional[Tensor]]
 
 
 @dataclass
 class QueryConfig:
-    """Settings of the query stage (the defaults are the paper's and LERF/LangSplat's)."""
+    """Settings of the query stage (the defaults are the paper's and LERF/LangSplat's). Fields
+    declared with option() are flags of `n2f2 query` and `n2f2 eval` (query/commands.py)."""
 
-    canonical: tuple[str, ...] = DEFAULT_CANONICAL  # phrases of gamma^3D (paper Eq. 6)
+    canonical: tuple[str, ...] = option(
+        DEFAULT_CANONICAL, help="canonical phrases of gamma, paper Eq. 6", metavar="PHRASE", nargs="+"
+    )
     negatives: tuple[str, ...] = DEFAULT_NEGATIVES  # negatives of the relevancy (LERF)
-    # composite's weights over the scales (query/composite.py): "unit" = the mean of the normalised
-    # scale features (n2f2's default); "eq6" = paper Eq. 6, gamma = softmax(score / T)
-    composite_weights: str = DEFAULT_WEIGHTS
-    temperature: float = PAPER_TEMPERATURE  # T of "eq6": 1 = the paper, inf = the plain mean
-    selection: str = "smoothed"  # explicit/levels 2D scale choice: "smoothed" (LangSplat) | "max"
+    # composite's weights over the scales (query/composite.py)
+    composite_weights: str = option(
+        DEFAULT_WEIGHTS,
+        help="composite's weights over the scales: unit = the mean of the normalised scale features; "
+        "eq6 = the paper's Eq. 6 at --temperature",
+        choices=COMPOSITE_WEIGHTS,
+    )
+    temperature: float = option(
+        PAPER_TEMPERATURE,
+        help="T of --composite-weights eq6, gamma = softmax(score / T): 'paper' (T = 1), "
+        "'uniform' (T = infinity: the plain mean of the scale features) or a number > 0",
+        type=composite_temperature,
+        metavar="T",
+    )
+    selection: str = option(
+        "smoothed",
+        help="explicit/levels scale choice: max of the protocol-smoothed map (LangSplat) or of the raw map (LERF)",
+        choices=SELECTIONS,
+    )
     box_size: Optional[BoxSize] = None  # protocol mean filter (px) or "scaled"; None = protocol's
     # 2D views (see the module docstring): "deferred" rasterizes the backbone's features and runs
     # the MLP per pixel, the form the field was trained in; "gaussians" (the paper's test time)
     # runs it per Gaussian and rasterizes Theta (and composite's Theta~ of Eq. 7 per Gaussian).
-    render: str = DEFAULT_RENDER
+    render: str = option(
+        DEFAULT_RENDER,
+        help="2D views: deferred = rasterize the backbone's features and run the MLP per pixel, as the field "
+        "was trained; gaussians = the MLP per Gaussian, the paper's test-time form",
+        choices=RENDERS,
+    )
     chunk: int = 65536  # points per block when building caches (bounds [chunk, E] memory)
 
     def __post_init__(self) -> None:
@@ -281,21 +309,19 @@ class QueryEngine:
         """Modes this field supports."""
         return self.kind.modes
 
-    def _check_mode(self, mode: str) -> None:
-        if mode not in MODES:
-            raise InputError(None, f"unknown query mode {mode!r}; choose one of {', '.join(MODES)}")
+    def _check_mode(self, mode: str) -> QueryMode:
+        """The mode named ``mode``, if this field answers it (else an InputError saying why)."""
+        query_mode = get_mode(mode)
         if mode not in self.modes():
             raise InputError(
                 self.run_dir / "field.pt" if self.run_dir else None,
                 f"mode {mode!r} does not apply to this {self.variant!r} field ({self.kind.other_modes_hint})",
             )
+        return query_mode
 
     def _cache_kind(self, mode: str) -> str:
-        """The score cache of ``mode``: composite, levels, or prefix (explicit); oracle and soft
-        read what the field answers with (its prefixes or its level blocks)."""
-        if mode in ("oracle", "soft"):
-            return self.kind.answers_with
-        return mode if mode in ("composite", "levels") else "prefix"
+        """The score cache of ``mode`` on this field (:meth:`n2f2.query.modes.QueryMode.cache_for`)."""
+        return get_mode(mode).cache_for(self.kind)
 
     @torch.no_grad()
     def encode(self, texts: Sequence[str]) -> Tensor:  # -> [Q, E] unit vectors
@@ -353,9 +379,9 @@ class QueryEngine:
     def _build_cache(self, kind: str, points: Tensor) -> ScoreCache:
         """``points`` is Theta~ for "composite" and raw Theta otherwise ([P, D])."""
         negs = self.encode(self.config.negatives)
-        if kind == "composite":
+        if kind == COMPOSITE_CACHE:
             return build_composite_cache(points, self.W, negs, self.config.chunk)
-        if kind == "prefix":
+        if kind == PREFIX_CACHE:
             return build_prefix_cache(points, self.W, negs, self.step, self.config.chunk)
         return build_linear_cache(points, self.level_maps(), negs, LEVEL_NAMES, self.config.chunk)
 
@@ -393,8 +419,8 @@ class QueryEngine:
         cam, index, name = self.camera(view)
         kinds = list(dict.fromkeys(self._cache_kind(m) for m in modes))
         # Composite needs Theta~, the other kinds raw Theta: one rasterization of both.
-        parts = (["tilde"] if "composite" in kinds else []) + (
-            ["theta"] if any(k != "composite" for k in kinds) else []
+        parts = (["tilde"] if COMPOSITE_CACHE in kinds else []) + (
+            ["theta"] if any(k != COMPOSITE_CACHE for k in kinds) else []
         )
         self.encode(self.config.negatives)  # loads the encoder on first use: not render time
         if "tilde" in parts:
@@ -419,7 +445,7 @@ class QueryEngine:
         t1 = time.perf_counter()
         caches = {}
         for k in kinds:
-            j = parts.index("tilde" if k == "composite" else "theta")
+            j = parts.index("tilde" if k == COMPOSITE_CACHE else "theta")
             caches[k] = self._build_cache(k, flat[:, j * D : (j + 1) * D])
         t2 = time.perf_counter()
         image = None
@@ -481,11 +507,11 @@ class QueryEngine:
         item = self.theta.element_size()
         floats = P * (1 + (3 if rgb else 0))
         for k in dict.fromkeys(self._cache_kind(m) for m in modes):
-            if k == "prefix":
+            if k == PREFIX_CACHE:
                 S = len(self.scale_dims)
                 floats += P * (S * self.step + 2 * S)
             else:
-                S = 1 if k == "composite" else 3
+                S = 1 if k == COMPOSITE_CACHE else 3
                 floats += P * (self.dim + 2 * S)
         return floats * item
 
@@ -503,48 +529,74 @@ class QueryEngine:
         Oracle mode needs ``gt_masks`` (``[Q, H, W]`` bool, scored by protocol IoU at every scale)
         or ``scorer(relevancy_per_scale [S, H, W], query_index) -> [S]`` (higher is better)."""
         texts = check_texts(texts)
-        self._check_mode(mode)
-        kind = self._cache_kind(mode)
+        query_mode = self._check_mode(mode)
+        kind = query_mode.cache_for(self.kind)
         if kind not in view.caches:
             raise InputError(
                 None, f"view {view.name} was not rendered for mode {mode!r}: render_view(..., modes=[{mode!r}])"
             )
-        if mode == "oracle" and gt_masks is None and scorer is None:
-            raise InputError(None, "oracle mode needs ground-truth masks or a scorer")
+        if query_mode.needs_truth and gt_masks is None and scorer is None:
+            raise InputError(None, f"{mode} mode needs ground-truth masks or a scorer")
         t0 = time.perf_counter()
         emb = self.encode(texts)
         cache = view.caches[kind]
-        H, W_ = view.height, view.width
-        if kind == "composite":
-            rel = cache.relevancy(emb)[0].view(len(texts), H, W_)
-            return QueryResult(texts, mode, rel, cache.labels, [None] * len(texts), seconds=time.perf_counter() - t0)
+        answer = getattr(self, query_mode.view_query)
+        rel, chosen, scores = answer(cache, emb, view.height, view.width, gt_masks, scorer)
+        return QueryResult(texts, mode, rel, cache.labels, chosen, scores, time.perf_counter() - t0)
+
+    def _view_composite(
+        self, cache: ScoreCache, emb: Tensor, height: int, width: int, gt_masks: Any, scorer: Optional[OracleScorer]
+    ) -> Answer:
+        """Composite mode on a view: the cache's one map per query."""
+        return cache.relevancy(emb)[0].view(len(emb), height, width), [None] * len(emb), None
+
+    def _view_soft(
+        self, cache: ScoreCache, emb: Tensor, height: int, width: int, gt_masks: Any, scorer: Optional[OracleScorer]
+    ) -> Answer:
+        """Soft mode on a view: every scale's map weighted by its peak (:func:`soft_relevancy`)."""
         S = len(cache.labels)
-        out = emb.new_empty(len(texts), H, W_)
-        scores = emb.new_empty(len(texts), S)
+        out = emb.new_empty(len(emb), height, width)
+        scores = emb.new_empty(len(emb), S)
+        group = _query_group(S, height, width)
+        for a in range(0, len(emb), group):
+            soft, peaks = soft_relevancy(cache.relevancy(emb[a : a + group]))  # [q, H W], [q, S]
+            out[a : a + len(peaks)] = soft.view(-1, height, width)
+            scores[a : a + len(peaks)] = peaks
+        return out, [None] * len(emb), scores
+
+    def _view_selected(
+        self, cache: ScoreCache, emb: Tensor, height: int, width: int, gt_masks: Any, scorer: Optional[OracleScorer]
+    ) -> Answer:
+        """Explicit / levels mode on a view: per query the scale with the highest selection score."""
+        return self._view_best(cache, emb, height, width, lambda rel, qi: self._selection_scores(rel, image=True))
+
+    def _view_oracle(
+        self, cache: ScoreCache, emb: Tensor, height: int, width: int, gt_masks: Any, scorer: Optional[OracleScorer]
+    ) -> Answer:
+        """Oracle mode on a view: per query the scale that scores best against ``gt_masks`` or by ``scorer``."""
+        return self._view_best(
+            cache, emb, height, width, lambda rel, qi: _oracle_scores(rel, qi, gt_masks, scorer, self.config)
+        )
+
+    def _view_best(
+        self, cache: ScoreCache, emb: Tensor, height: int, width: int, score: Callable[[Tensor, int], Tensor]
+    ) -> Answer:
+        """Per query the map of the scale with the highest ``score(relevancy [S, H, W], query index) -> [S]``."""
+        S = len(cache.labels)
+        out = emb.new_empty(len(emb), height, width)
+        scores = emb.new_empty(len(emb), S)
         chosen: list[Optional[int]] = []
-        # Queries in groups so the [S, q, H, W] block stays near 4M floats (cache-friendlier
-        # than one big block: measured faster per query on the demo view).
-        group = max(1, (1 << 22) // max(1, S * H * W_))
-        if mode == "soft":
-            for a in range(0, len(texts), group):
-                soft, peaks = soft_relevancy(cache.relevancy(emb[a : a + group]))  # [q, H W], [q, S]
-                out[a : a + len(peaks)] = soft.view(-1, H, W_)
-                scores[a : a + len(peaks)] = peaks
-            chosen = [None] * len(texts)
-            return QueryResult(texts, mode, out, cache.labels, chosen, scores, time.perf_counter() - t0)
-        for a in range(0, len(texts), group):
-            rel = cache.relevancy(emb[a : a + group]).view(S, -1, H, W_)  # [S, q, H, W]
+        group = _query_group(S, height, width)
+        for a in range(0, len(emb), group):
+            rel = cache.relevancy(emb[a : a + group]).view(S, -1, height, width)  # [S, q, H, W]
             for j in range(rel.shape[1]):
                 qi = a + j
-                if mode == "oracle":
-                    s = _oracle_scores(rel[:, j], qi, gt_masks, scorer, self.config)
-                else:
-                    s = self._selection_scores(rel[:, j], image=True)
+                s = score(rel[:, j], qi)
                 scores[qi] = s
                 best = int(torch.argmax(s))
                 chosen.append(best)
                 out[qi] = rel[best, j]
-        return QueryResult(texts, mode, out, cache.labels, chosen, scores, time.perf_counter() - t0)
+        return out, chosen, scores
 
     def _selection_scores(self, rel: Tensor, image: bool) -> Tensor:  # [S, ...] -> [S]
         """Per-scale selection score (see module docstring)."""
@@ -560,7 +612,7 @@ class QueryEngine:
         self._check_mode(mode)
         kind = self._cache_kind(mode)
         if kind not in self._gaussian_caches:
-            pts = self.theta_tilde if kind == "composite" else self.theta
+            pts = self.theta_tilde if kind == COMPOSITE_CACHE else self.theta
             with torch.no_grad():
                 self._gaussian_caches[kind] = self._build_cache(kind, pts)
         return self._gaussian_caches[kind]
@@ -571,21 +623,29 @@ class QueryEngine:
         mode), without rendering. Explicit / levels pick per query the scale with the highest
         maximum over the Gaussians; soft weighs every scale by those maxima."""
         texts = check_texts(texts)
-        if mode == "oracle":
-            raise InputError(
-                None, "oracle mode is a 2D evaluation bound; use composite, explicit, soft or levels in 3D"
-            )
+        query_mode = get_mode(mode)
+        if query_mode.gaussian_query is None:
+            in_3d = [m.name for m in QUERY_MODES.values() if m.in_3d]
+            raise InputError(None, f"{mode} mode has no 3D query; use {', '.join(in_3d)} in 3D")
         t0 = time.perf_counter()
         cache = self.gaussian_cache(mode)
         emb = self.encode(texts)
-        if mode == "composite":
-            rel = cache.relevancy(emb)  # [1, Q, N]
-            return QueryResult(texts, mode, rel[0], cache.labels, [None] * len(texts), seconds=time.perf_counter() - t0)
-        if mode == "soft":
-            out, peaks = soft_scales(cast(PrefixCache, cache), emb)
-            return QueryResult(texts, mode, out, cache.labels, [None] * len(texts), peaks, time.perf_counter() - t0)
+        rel, chosen, scores = getattr(self, query_mode.gaussian_query)(cache, emb)
+        return QueryResult(texts, mode, rel, cache.labels, chosen, scores, time.perf_counter() - t0)
+
+    def _gaussians_composite(self, cache: ScoreCache, emb: Tensor) -> Answer:
+        """Composite mode over the Gaussians: the cache's one map per query."""
+        return cache.relevancy(emb)[0], [None] * len(emb), None  # [1, Q, N] -> [Q, N]
+
+    def _gaussians_soft(self, cache: ScoreCache, emb: Tensor) -> Answer:
+        """Soft mode over the Gaussians (:func:`soft_scales`)."""
+        out, peaks = soft_scales(cast(PrefixCache, cache), emb)
+        return out, [None] * len(emb), peaks
+
+    def _gaussians_selected(self, cache: ScoreCache, emb: Tensor) -> Answer:
+        """Explicit / levels mode over the Gaussians: the scale with the highest maximum (:func:`select_scale`)."""
         chosen, scores, out = select_scale(cast(Union[PrefixCache, LinearCache], cache), emb)
-        return QueryResult(texts, mode, out, cache.labels, chosen.tolist(), scores, time.perf_counter() - t0)
+        return out, chosen.tolist(), scores
 
     def select(self, text: str, threshold: Optional[float] = None, mode: str = "composite") -> Tensor:
         """Boolean ``[N]`` selection of the Gaussians relevant to ``text``.
@@ -636,6 +696,12 @@ def _oracle_scores(
     maps = rel.float().cpu().numpy()
     ious = [mask_iou(segmentation_mask(m, box_size=size), gt) if gt.any() else 0.0 for m in maps]
     return torch.tensor(ious, dtype=torch.float32, device=rel.device)
+
+
+def _query_group(num_scales: int, height: int, width: int) -> int:
+    """Queries per block of a view's answer, so that the ``[S, q, H, W]`` block stays near 4M
+    floats (cache-friendlier than one big block: measured faster per query on the demo view)."""
+    return max(1, (1 << 22) // max(1, num_scales * height * width))
 
 
 def _box(config: QueryConfig) -> BoxSize:

@@ -16,12 +16,11 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Optional, Sequence, Union
+from typing import TYPE_CHECKING, Any, Sequence, Union
 
 import torch
 from torch import Tensor
 
-from ..errors import InputError
 from ..field.lift import LIFT_LEVELS, LevelBlocks, Lift, lift_features, load_lift
 from ..field.variants import NUM_LEVELS, LevelsVariant
 from .caches import LinearCache
@@ -161,28 +160,3 @@ def run_lift(run_dir: Any, engine: QueryEngine, bank: Any, progress: bool = Fals
         return load_lift(path, num_gaussians=N), True
     views = engine.meta.get("train_views") or list(range(len(engine.scene.cameras)))
     return build_lift(engine.gaussians, engine.scene, bank, views, progress=progress), False
-
-
-def lift_run(
-    run_dir: Any,
-    *,
-    scene: Any = None,
-    bank: Any = None,
-    config: Any = None,
-    device: Any = "cpu",
-    encoder: Any = None,
-    progress: bool = False,
-) -> LiftEngine:
-    """The lift of a trained run's Gaussians (:func:`run_lift`) as a query engine
-    (``engine.lift`` holds the features and the build time)."""
-    from ..segments.bank import SegmentBank
-
-    base = QueryEngine.from_run(run_dir, device=device, scene=scene, config=config, encoder=encoder)
-    if base.scene is None:
-        raise InputError(run_dir, "the run does not record its scene folder: pass --scene DIR")
-    bank_path: Optional[Any] = bank if bank is not None else base.meta.get("bank")
-    if not bank_path or not Path(bank_path).is_dir():
-        raise InputError(run_dir, "the lift needs the run's segment bank: pass --bank DIR")
-    lift, _ = run_lift(run_dir, base, SegmentBank.open(bank_path), progress=progress)
-    meta = {**base.meta, "bank": str(bank_path)}
-    return lift_engine(lift, base.gaussians, encoder, meta, base.config, device, base.scene, Path(run_dir))

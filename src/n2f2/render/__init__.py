@@ -166,7 +166,7 @@ def rasterize(
         if gsplat_usable(means.device):
             backend = "gsplat"
         else:
-            from n2f2.render.numba_backend import numba_usable
+            from n2f2.render.numba_runtime import numba_usable
 
             backend = "numba" if means.device.type == "cpu" and numba_usable() else "torch"
     if backend == "gsplat":

@@ -38,9 +38,9 @@ written by the one thread that owns the tile (no race).
 numba ships its compiler in its wheel, so nothing is built at install time. Kernels are
 compiled on first use (about 20 s on 2 cores) and cached on disk beside this file, or in numba's
 user cache when that folder is read-only; ``n2f2 demo`` and ``n2f2 run`` start that compile in a
-child process while they make or read the scene (:func:`compile_in_background`). Calls are
-serialised by a lock: the thread pool used here does not allow two Python threads inside a
-parallel region at once.
+child process while they make or read the scene
+(:func:`n2f2.render.numba_runtime.compile_in_background`). Calls are serialised by
+:data:`n2f2.render.numba_runtime.KERNEL_LOCK`.
 
 torch's OpenMP threads must not spin-wait through these kernels (with OpenMP's default spin
 count a render took 25x longer on 2 cores): the ``n2f2`` command sets ``GOMP_SPINCOUNT`` (see
@@ -54,17 +54,23 @@ function share one tile layout and one bit-mask format, and are read together.)
 from __future__ import annotations
 
 import math
-import os
-import subprocess
-import sys
-import threading
-from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
 
 import numpy as np
 import torch
 from torch import Tensor
 
+from n2f2.render.numba_bins import bin_gaussians_numba
+from n2f2.render.numba_pairs import pair_coefficients_numba
+from n2f2.render.numba_project import project_gaussians_numba
+from n2f2.render.numba_runtime import (
+    FASTMATH,
+    KERNEL_LOCK,
+    compile_in_background,  # noqa: F401 - re-exported: the pipeline imports it from here
+    kernel_threads,  # noqa: F401 - re-exported: the fit imports it from here
+    numba_threads,
+    torch_on_one_thread,  # noqa: F401 - re-exported: the fit imports it from here
+    wait_for_background_compile,
+)
 from n2f2.render.torch_backend import Bins, CompositeConfig, rasterize_torch
 
 try:  # optional at import time: the "auto" backend falls back to torch without it
@@ -72,26 +78,11 @@ try:  # optional at import time: the "auto" backend falls back to torch without 
     from llvmlite import ir
     from numba import njit, prange, types
     from numba.core import cgutils
-    from numba.core import config as numba_config
     from numba.extending import intrinsic
 except ImportError:  # pragma: no cover - numba is a declared dependency
     numba = None
-else:
-    # numba's OpenMP layer leaves its threads spinning after each kernel, which slows the torch
-    # operations around it several times over; the plain thread pool does not spin.
-    if "NUMBA_THREADING_LAYER" not in os.environ:
-        # numba fills its config module from the environment at import time, so stubs lack the names.
-        numba_config.THREADING_LAYER = "workqueue"  # pyright: ignore[reportAttributeAccessIssue]
 
-_LOCK = threading.Lock()
 _LN2 = math.log(2.0)
-# Reassociation lets the loops over channels vectorise; no flag that assumes finite values.
-_FAST = {"reassoc", "contract", "nsz", "arcp"}
-
-
-def numba_usable() -> bool:
-    """True when the kernels can run here (numba imports)."""
-    return numba is not None
 
 
 # Gaussians per step of a tile's list: their feature rows are gathered into a per-thread
@@ -142,7 +133,7 @@ if numba is not None:
             _prefetch(arr, i, j)  # pyright: ignore[reportCallIssue]
         _prefetch(arr, i, D - 1)  # pyright: ignore[reportCallIssue]
 
-    @njit(parallel=True, fastmath=_FAST, cache=True, nogil=True)
+    @njit(parallel=True, fastmath=FASTMATH, cache=True, nogil=True)
     def _forward_kernel(
         kp,  # [M, 6] log2 alpha polynomial of each pair, relative to its tile's centre
         gid,  # [M] int64 Gaussian of each pair
@@ -238,7 +229,7 @@ if numba is not None:
                     if n_live == 0:
                         break
 
-    @njit(parallel=True, fastmath=_FAST, cache=True, nogil=True)
+    @njit(parallel=True, fastmath=FASTMATH, cache=True, nogil=True)
     def _backward_kernel(
         kp,  # [M, 6]
         gid,  # [M] int64
@@ -509,46 +500,6 @@ def _pixel_basis(tile_size: int, dtype: np.dtype) -> np.ndarray:  # [5, p]
     return np.ascontiguousarray(np.stack([u, v, u * u, u * v, v * v]).astype(dtype))
 
 
-_KERNEL_THREADS: int | None = None  # the kernels' threads while torch_on_one_thread() runs
-
-
-def kernel_threads() -> int:
-    """The threads the compiled kernels run on: torch's thread count, or the count torch had
-    when :func:`torch_on_one_thread` began."""
-    return _KERNEL_THREADS or torch.get_num_threads()
-
-
-@contextmanager
-def torch_on_one_thread() -> Iterator[None]:
-    """torch's own operations on one thread meanwhile, the compiled kernels on the threads torch
-    had. A loop that alternates many small torch operations with the kernels (a fit step: about
-    30 of them around the render and its backward) otherwise has two thread pools taking turns
-    on the same cores: torch's OpenMP threads spin after each operation (``GOMP_SPINCOUNT``)
-    while the kernels' threads start (timings: ``docs/measurements.md``, "The fit's torch
-    operations on one thread")."""
-    global _KERNEL_THREADS
-    if numba is None:  # the render is torch's own operations then: they keep torch's threads
-        yield
-        return
-    before, torch_threads = _KERNEL_THREADS, torch.get_num_threads()
-    _KERNEL_THREADS = kernel_threads()
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(torch_threads)
-        _KERNEL_THREADS = before
-
-
-def _threads() -> int:
-    assert numba is not None  # only called beside the kernels, which exist only when numba imports
-    # NUMBA_NUM_THREADS is set in numba's config module from the environment at import time.
-    n_numba = numba_config.NUMBA_NUM_THREADS  # pyright: ignore[reportAttributeAccessIssue]
-    n = max(1, min(kernel_threads(), n_numba))
-    numba.set_num_threads(n)
-    return n
-
-
 def _forward(
     kp: Tensor,  # [6, M]
     aug: Tensor,  # [N, D]
@@ -569,8 +520,8 @@ def _forward(
     out = np.zeros((n_tiles, P, aug_np.shape[1]), dtype=np_dtype)
     stop = np.zeros((n_tiles, P), dtype=np.int64)
     blend = np.zeros((kp_np.shape[0] if record else 0, -(-P // 64)), dtype=np.uint64)
-    with _LOCK:
-        nthreads = _threads()
+    with KERNEL_LOCK:
+        nthreads = numba_threads()
         _forward_kernel(
             kp_np,
             bins.pair_gid.numpy(),
@@ -615,8 +566,8 @@ class _NumbaComposite(torch.autograd.Function):
         N, D = aug_np.shape
         g_kp = np.zeros_like(kp_np)
         g_aug = np.empty_like(aug_np)  # every row is written: by the kernel, or zeroed after it
-        with _LOCK:
-            nthreads = _threads()
+        with KERNEL_LOCK:
+            nthreads = numba_threads()
             tiles, bounds, walked, dest, n_spill, touched = _backward_schedule(gid, tile_start, stop, nthreads, N)
             g_spill = np.empty((n_spill, D), dtype=np_dtype)
             _backward_kernel(
@@ -674,12 +625,7 @@ def rasterize_numba(
 def compiled_steps() -> dict:
     """The CPU renderer's projection, binning and pair coefficients, compiled (each falls back to
     its torch reference for inputs it does not take), as :func:`rasterize_torch` takes them;
-    whatever must blend with the renderer's weights uses these too. Imported here: those modules
-    import this one."""
-    from n2f2.render.numba_bins import bin_gaussians_numba
-    from n2f2.render.numba_pairs import pair_coefficients_numba
-    from n2f2.render.numba_project import project_gaussians_numba
-
+    whatever must blend with the renderer's weights uses these too."""
     return {"binning": bin_gaussians_numba, "project": project_gaussians_numba, "coefficients": pair_coefficients_numba}
 
 
@@ -708,71 +654,3 @@ def count_pairs(
 
     rasterize_numba(means, quats, scales, opacities, features, viewmat, K, width, height, composite=composite, **kw)
     return counts[0], counts[1]
-
-
-# ------------------------------------------------------------------------------ compiling ahead
-# Compiling the kernels takes ~20 s on 2 cores, once per install (then they load from the disk
-# cache in under a second). A pipeline starts that compile in a child process while it does
-# work that does not render (generating or reading the scene), and its first render waits until
-# the child has compiled what the fit uses, so the kernels are compiled once and the compile
-# overlaps that work; the child goes on with the later stages' kernels while the fit runs.
-_BACKGROUND: subprocess.Popen | None = None
-_STARTED = False  # a process starts at most one child (run-many calls the pipeline per scene)
-
-
-def warm_up() -> None:
-    """Compile (or load from the cache) every kernel a pipeline uses: a tiny render with
-    gradients (the fit) and one without (the trainer's blend weights, queries, evaluation)."""
-    from n2f2.cameras import Camera
-    from n2f2.render import eval_sh, rasterize, rasterize_in_bands
-
-    gen = torch.Generator().manual_seed(0)
-    n = 32
-    means = (torch.rand(n, 3, generator=gen) - 0.5) + torch.tensor([0.0, 0.0, 3.0])
-    quats, scales, opacities = torch.randn(n, 4, generator=gen), torch.full((n, 3), 0.05), torch.full((n,), 0.5)
-    camera = Camera(fx=40.0, fy=40.0, cx=8.0, cy=8.0, width=16, height=16)
-    features = torch.rand(n, 4, generator=gen, requires_grad=True)
-    out = rasterize(means.requires_grad_(), quats, scales, opacities, features, camera, backend="numba")
-    (out.features.sum() + out.depth.sum()).backward()
-    sh = torch.randn(n, 16, 3, generator=gen, requires_grad=True)  # the fit's colours (numba_sh)
-    eval_sh(sh, means - torch.tensor(camera.center, dtype=torch.float32), 3).sum().backward()
-    with torch.no_grad():
-        rasterize_in_bands(means.detach(), quats, scales, opacities, features.detach(), camera, backend="numba")
-
-
-_READY = b"rasterizer compiled"  # the child's line once the first render may go on
-
-
-def compile_in_background(first: Sequence[str] = (), later: Sequence[str] = ()) -> None:
-    """Start :func:`warm_up` in a child process, once per process (nothing without numba), then
-    the ``warm_up()`` of each module in ``first`` (dotted names: kernels the first renders' stage
-    uses too, such as the fit's optimiser), then of each in ``later`` (kernels of later stages).
-    The first compiled render waits until the child has compiled ``first``
-    (:func:`wait_for_background_compile`), not for ``later``, which the child compiles meanwhile
-    so that those stages find their kernels cached."""
-    global _BACKGROUND, _STARTED
-    if _STARTED or numba is None:
-        return
-    _STARTED = True
-    steps = [f"import {m}; {m}.warm_up()" for m in ("n2f2.render.numba_backend", *first)]
-    steps += [f"print({_READY.decode()!r}, flush=True)"] + [f"import {m}; {m}.warm_up()" for m in later]
-    try:
-        _BACKGROUND = subprocess.Popen(
-            [sys.executable, "-c", "; ".join(steps)], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL
-        )
-    except OSError:  # no child process here: the first render compiles, as without this
-        _BACKGROUND = None
-
-
-def wait_for_background_compile() -> int | None:
-    """Wait until the child of :func:`compile_in_background` has compiled the rasterizer (and its
-    ``first`` modules): 0 then, the child's exit code when it ended before (a failed child only
-    means this process compiles what it needs itself), None when no child runs."""
-    global _BACKGROUND
-    child, _BACKGROUND = _BACKGROUND, None
-    if child is None:
-        return None
-    assert child.stdout is not None  # started with a pipe
-    with child.stdout:  # the child prints nothing after its one line
-        ready = child.stdout.readline().strip() == _READY
-    return 0 if ready else child.wait()

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from n2f2.render.numba_backend import _LOCK, _threads
+from n2f2.render.numba_runtime import KERNEL_LOCK, numba_threads
 from n2f2.render.torch_backend import Bins, pair_coefficients
 
 try:  # optional at import time, as in the compositing kernels
@@ -101,8 +101,8 @@ class _NumbaPairCoefficients(torch.autograd.Function):
         m2d, con, op = (t.detach().contiguous().numpy() for t in (means2d, conics, opacities))
         gid_np, tile_np = gid.contiguous().numpy(), tile.contiguous().numpy()
         out = np.empty((6, gid_np.shape[0]), m2d.dtype)
-        with _LOCK:
-            _forward_kernel(m2d, con, op, gid_np, tile_np, tiles_x, tile_size, float(row0), out, _threads())
+        with KERNEL_LOCK:
+            _forward_kernel(m2d, con, op, gid_np, tile_np, tiles_x, tile_size, float(row0), out, numba_threads())
         ctx.saved = ((m2d, con, op), gid_np, tile_np, tiles_x, tile_size, float(row0))
         return torch.from_numpy(out)
 
@@ -112,7 +112,7 @@ class _NumbaPairCoefficients(torch.autograd.Function):
         n = op.shape[0]
         g_m2d, g_con, g_op = np.zeros((n, 2)), np.zeros((3, n)), np.zeros(n)
         grad_np = grad.detach().to(torch.from_numpy(m2d).dtype).contiguous().numpy()
-        with _LOCK:
+        with KERNEL_LOCK:
             _backward_kernel(m2d, con, op, gid, tile, tiles_x, tile_size, row0, grad_np, g_m2d, g_con, g_op)
         dtype = m2d.dtype
         out = (torch.from_numpy(g_m2d.astype(dtype)), torch.from_numpy(g_con.astype(dtype)))

@@ -19,7 +19,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from n2f2.render.numba_backend import _FAST, _LOCK, _threads
+from n2f2.render.numba_runtime import FASTMATH, KERNEL_LOCK, numba_threads
 from n2f2.render.torch_backend import Projection, project_gaussians
 
 try:  # optional at import time, as in the compositing kernels
@@ -42,14 +42,14 @@ if numba is not None:
         rot[2, 1] = 2 * (qy * qz + qw * qx)
         rot[2, 2] = 1 - 2 * (qx * qx + qy * qy)
 
-    @njit(fastmath=_FAST, cache=True, nogil=True)
+    @njit(fastmath=FASTMATH, cache=True, nogil=True)
     def _to_camera(cam, mx, my, mz):  # world point -> camera space (cam [4, 4] world-to-camera)
         x = cam[0, 0] * mx + cam[0, 1] * my + cam[0, 2] * mz + cam[0, 3]
         y = cam[1, 0] * mx + cam[1, 1] * my + cam[1, 2] * mz + cam[1, 3]
         z = cam[2, 0] * mx + cam[2, 1] * my + cam[2, 2] * mz + cam[2, 3]
         return x, y, z
 
-    @njit(parallel=True, fastmath=_FAST, cache=True, nogil=True)
+    @njit(parallel=True, fastmath=FASTMATH, cache=True, nogil=True)
     def _forward_kernel(
         means,  # [N, 3]
         quats,  # [N, 4] wxyz, any length
@@ -108,7 +108,7 @@ if numba is not None:
                 half_extent[0, n] = math.sqrt(level * ca)
                 half_extent[1, n] = math.sqrt(level * cc)
 
-    @njit(parallel=True, fastmath=_FAST, cache=True, nogil=True)
+    @njit(parallel=True, fastmath=FASTMATH, cache=True, nogil=True)
     def _backward_kernel(
         means,
         quats,
@@ -289,7 +289,7 @@ class _NumbaProjection(torch.autograd.Function):
         depths = np.empty(N, np_dtype)
         half_extent = np.empty((2, N), np_dtype)
         valid = np.empty(N, np.bool_)
-        with _LOCK:
+        with KERNEL_LOCK:
             _forward_kernel(
                 arrays[0],
                 arrays[1],
@@ -302,7 +302,7 @@ class _NumbaProjection(torch.autograd.Function):
                 depths,
                 half_extent,
                 valid,
-                _threads(),
+                numba_threads(),
             )
         ctx.saved = (arrays[:3], cam, intr, dtype)
         out_he, out_valid = torch.from_numpy(half_extent), torch.from_numpy(valid)
@@ -320,7 +320,7 @@ class _NumbaProjection(torch.autograd.Function):
         g_means = np.empty_like(means)
         g_quats = np.empty_like(quats)
         g_scales = np.empty_like(scales)
-        with _LOCK:
+        with KERNEL_LOCK:
             _backward_kernel(
                 means,
                 quats,
@@ -333,7 +333,7 @@ class _NumbaProjection(torch.autograd.Function):
                 g_means,
                 g_quats,
                 g_scales,
-                _threads(),
+                numba_threads(),
             )
         return torch.from_numpy(g_means), torch.from_numpy(g_quats), torch.from_numpy(g_scales), None, None, None
 

@@ -16,8 +16,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from n2f2.render.numba_backend import _FAST, numba_usable
-from n2f2.render.sh import SH_C0, SH_C1, SH_C2, SH_C3
+from n2f2.render.numba_runtime import FASTMATH, numba_usable
+from n2f2.render.sh_constants import SH_C0, SH_C1, SH_C2, SH_C3
 
 try:  # optional at import time, as in the compositing kernels
     import numba
@@ -33,7 +33,7 @@ if numba is not None:
     B0, B1, B2, B3, B4 = SH_C2
     D0, D1, D2, D3, D4, D5, D6 = SH_C3
 
-    @njit(fastmath=_FAST, cache=True, nogil=True)
+    @njit(fastmath=FASTMATH, cache=True, nogil=True)
     def _basis(x, y, z, K, out):  # out [K]: the 3DGS basis at the unit direction (x, y, z)
         out[0] = A0
         if K > 1:
@@ -56,7 +56,7 @@ if numba is not None:
                 out[14] = D5 * z * (xx - yy)
                 out[15] = D6 * x * (xx - 3 * yy)
 
-    @njit(fastmath=_FAST, cache=True, nogil=True)
+    @njit(fastmath=FASTMATH, cache=True, nogil=True)
     def _basis_grad(x, y, z, K, gb):  # gb [K] dL/dB_k -> dL/d(x, y, z) of the unit direction
         gx = -A1 * gb[3] if K > 1 else 0.0
         gy = -A1 * gb[1] if K > 1 else 0.0
@@ -96,7 +96,7 @@ if numba is not None:
 
     # One thread: a kernel takes a few hundred microseconds for a fit's Gaussians, and handing it
     # to the thread pool between torch's operations cost more than it saved (a fit step measured).
-    @njit(fastmath=_FAST, cache=True, nogil=True)
+    @njit(fastmath=FASTMATH, cache=True, nogil=True)
     def _forward_kernel(sh, dirs, out):  # sh [N, K, 3], dirs [N, 3] -> out [N, 3]
         K = sh.shape[1]
         b = np.empty(K, dtype=np.float64)
@@ -113,7 +113,7 @@ if numba is not None:
             out[n, 1] = max(s1, 0.0)
             out[n, 2] = max(s2, 0.0)
 
-    @njit(fastmath=_FAST, cache=True, nogil=True)
+    @njit(fastmath=FASTMATH, cache=True, nogil=True)
     def _backward_kernel(sh, dirs, g_out, g_sh, g_dirs):  # g_out [N, 3] -> g_sh [N, K, 3], g_dirs [N, 3]
         K = sh.shape[1]
         b = np.empty(K, dtype=np.float64)

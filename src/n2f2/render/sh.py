@@ -6,18 +6,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-SH_C0 = 0.28209479177387814
-SH_C1 = 0.4886025119029199
-SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
-SH_C3 = (
-    -0.5900435899266435,
-    2.890611442640554,
-    -0.4570457994644658,
-    0.3731763325901154,
-    -0.4570457994644658,
-    1.445305721320277,
-    -0.5900435899266435,
-)
+from n2f2.render.sh_constants import SH_C0, SH_C1, SH_C2, SH_C3
 
 
 def num_sh_bases(degree: int) -> int:
@@ -67,7 +56,7 @@ def eval_sh(
         raise ValueError(f"SH degree must be 0..3, got {degree}")
     if sh.shape[-2] < k:
         raise ValueError(f"SH degree {degree} needs {k} coefficients per channel, got {sh.shape[-2]}")
-    from . import numba_sh  # here: it imports this module's constants
+    from . import numba_sh  # here: numba loads with the first colours, not with n2f2.render
 
     if numba_sh.usable(sh, dirs):
         return numba_sh.sh_colors(sh[:, :k], dirs)

@@ -299,6 +299,15 @@ def scene_fingerprint(scene) -> dict:
     }
 
 
+def _earlier_timing(meta_path: Path) -> dict:
+    """``{stem: seconds by part}`` an unfinished ``bank.json`` recorded (empty when unreadable)."""
+    try:
+        per_image = json.loads(meta_path.read_text()).get("timing", {}).get("per_image", {})
+    except (OSError, ValueError, AttributeError):
+        return {}
+    return per_image if isinstance(per_image, dict) else {}
+
+
 def _record_dir(root: Path, stem: str) -> Path:
     return root / stem
 
@@ -485,15 +494,22 @@ def build_bank(
     source.prepare(stems)
     header = bank_header(scene, source, depth_source, lift)
     meta_path = out / "bank.json"
+    earlier: dict = {}  # seconds by part of the images an interrupted run finished
     if meta_path.exists():
         _check_resume(meta_path, header)
+        earlier = _earlier_timing(meta_path)
     for stale in out.glob(".*.tmp-*"):  # leftovers of an interrupted record write
         shutil.rmtree(stale, ignore_errors=True)
-    # Resumable state, kept if the command fails: --resume checks the settings against it.
-    write_json(meta_path, {**header, "complete": False, "source": str(scene.root)}, keep=True)
-
     todo = [i for i, s in enumerate(stems) if not _record_complete(out, s)]
-    times, per_image = [], {}
+    times, per_image = [], {s: earlier[s] for s in stems if s in earlier and _record_complete(out, s)}
+
+    def unfinished() -> None:
+        """Resumable state, kept if the command fails: --resume checks the settings against it,
+        and a resumed run reports the timing of every image."""
+        meta = {**header, "complete": False, "source": str(scene.root), "timing": {"per_image": per_image}}
+        write_json(meta_path, meta, keep=True)
+
+    unfinished()
     # The bar's rate and ETA come from the images of this run (a resumed run starts at its count).
     bar = tqdm(total=len(stems), initial=len(stems) - len(todo), desc="segments", unit="img", disable=not progress)
 
@@ -501,6 +517,7 @@ def build_bank(
         _write_record(out, stems[i], arrays, captions)
         times.append(parts["total"])
         per_image[stems[i]] = parts
+        unfinished()
         bar.set_postfix_str(_parts_line(parts), refresh=False)
         bar.update(1)
 
@@ -566,8 +583,9 @@ def build_bank(
     timing = {
         "images_extracted_now": len(times),
         "seconds": float(sum(times)),
-        "seconds_per_image": float(np.mean(times)) if times else None,
-        # Mean seconds per image of each part, and each image's own (this run's images).
+        "seconds_per_image": float(np.mean([p["total"] for p in per_image.values()])) if per_image else None,
+        # Mean seconds per image of each part, and each image's own (also those of an
+        # interrupted run this one finished).
         "seconds_per_image_by_part": {
             k: float(np.mean([p.get(k, 0.0) for p in per_image.values()])) for k in part_names
         },

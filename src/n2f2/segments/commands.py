@@ -14,9 +14,10 @@ from pathlib import Path
 from ..config import add_config_options, config_overrides
 from ..distributed import add_executor_options
 from ..validate import add_device_option, positive_float
+from .encoders import ENCODER_NAMES
 from .lifting import LiftSettings
 from .segmenters import SEGMENTER_NAMES, SEGMENTERS
-from .setup import SegmentsSetup
+from .stage import BankJob, run_bank
 
 
 def segmenter_help() -> str:
@@ -77,7 +78,7 @@ def register(subparsers) -> None:
     )
     p.add_argument(
         "--encoder",
-        choices=["clip", "captions"],
+        choices=ENCODER_NAMES,
         default="clip",
         help="clip: CLIP image encoder on masked segments (paper, default); captions: ground-truth "
         "captions embedded by all-MiniLM-L6-v2 (offline stand-in, needs --segmenter ground-truth)",
@@ -118,7 +119,7 @@ def register(subparsers) -> None:
     )
     q.add_argument(
         "--encoder",
-        choices=["clip", "captions"],
+        choices=ENCODER_NAMES,
         default=None,
         help="text encoder the features are aligned with: clip (LangSplat's OpenCLIP ViT-B/16 "
         "laion2b_s34b_b88k) or captions (ground-truth captions embedded by all-MiniLM-L6-v2, "
@@ -157,85 +158,37 @@ def register(subparsers) -> None:
     x.set_defaults(func=run_export_langsplat)
 
 
-def _claim_bank(args: argparse.Namespace) -> list[str]:
-    """Open ``--out``: a folder already holding a bank (bank.json or records) is refused
-    without --resume or --force. Returns what is there (for --force to remove)."""
-    from ..io import claim_out_dir
-    from .bank import RECORD_FILES
-
-    out = Path(args.out)
-    records = (
-        [d.name for d in out.iterdir() if d.is_dir() and any((d / f).is_file() for f in RECORD_FILES)]
-        if out.is_dir()
-        else []
+def job_from_args(args: argparse.Namespace, **kw) -> BankJob:
+    return BankJob(
+        data=Path(args.data),
+        out=Path(args.out),
+        gaussians=None if args.gaussians is None else Path(args.gaussians),
+        lift=LiftSettings(**config_overrides(args, LiftSettings)),
+        model=args.model,
+        depth_source=args.depth_source,
+        downscale=args.downscale,
+        skip_missing=args.skip_missing,
+        device=args.device,
+        resume=args.resume,
+        force=args.force,
+        progress=not args.quiet,
+        **kw,
     )
-    return claim_out_dir(out, ["bank.json", *sorted(records)], resume=args.resume, force=args.force)
-
-
-def _finish(report: dict) -> int:
-    from .setup import report_lines
-
-    for line in report_lines(report):
-        print(line)
-    return 0
-
-
-def _lift_settings(args: argparse.Namespace) -> LiftSettings:
-    return LiftSettings(**config_overrides(args, LiftSettings))
 
 
 def run_segments(args: argparse.Namespace) -> int:
     from ..distributed import executor_from_args
-    from ..io import remove_results
-    from .bank import build_bank
 
-    present = _claim_bank(args)
+    job = job_from_args(args, segmenter=args.segmenter, encoder=args.encoder, sam_model=args.sam_model)
     executor = executor_from_args(args, gpu=str(args.device).startswith("cuda"))  # Ray missing: fail first
-    setup = SegmentsSetup.from_args(args)
-    scene, source, depth = setup.build()
-    if args.force:  # the inputs are read: now the old bank goes
-        remove_results(args.out, present)
-    with executor:
-        report = build_bank(
-            scene,
-            source,
-            depth,
-            args.out,
-            depth_source=args.depth_source,
-            lift=_lift_settings(args),
-            progress=not args.quiet,
-            executor=executor,
-            worker_setup=setup.for_ray_worker(),
-        )
-    return _finish(report)
+    run_bank(job, executor=executor)
+    return 0
 
 
 def run_from_langsplat(args: argparse.Namespace) -> int:
-    from ..io import remove_results
-    from .bank import build_bank
-    from .setup import depth_provider, langsplat_source, load_bank_scene
-
-    present = _claim_bank(args)
     features = Path(args.features) if args.features else Path(args.data) / "language_features"
-    source = langsplat_source(features, args.encoder, args.model)  # before the scene and Gaussians: fail fast
-    scene = load_bank_scene(args.data, args.downscale, args.skip_missing)
-    depth = depth_provider(scene, args.depth_source, args.gaussians, args.device)
-    # Every file checked and hashed before the bank is touched.
-    source.prepare(scene.image_names, [(c.height, c.width) for c in scene.cameras])
-    if args.resume:
-        source.check_resumed_bank(args.out)
-    if args.force:
-        remove_results(args.out, present)
-    report = build_bank(
-        scene,
-        source,
-        depth,
-        args.out,
-        depth_source=args.depth_source,
-        lift=_lift_settings(args),
-        progress=not args.quiet,
-    )
-    return _finish(report)
+    run_bank(job_from_args(args, encoder=args.encoder, features=features))
+    return 0
 
 
 def run_export_langsplat(args: argparse.Namespace) -> int:

@@ -19,7 +19,8 @@ from __future__ import annotations
 
 import os
 import time
-from typing import Optional, Protocol, Sequence, Union
+from dataclasses import dataclass
+from typing import Callable, Optional, Protocol, Sequence, Union
 
 import numpy as np
 import torch
@@ -30,7 +31,6 @@ from ..errors import InputError, MissingModelError, N2F2Error
 
 DEFAULT_CLIP_MODEL = "laion/CLIP-ViT-B-16-laion2B-s34B-b88K"
 MINILM_MODEL_ID = "sentence-transformers/all-MiniLM-L6-v2"
-ENCODER_NAMES = ("clip", "captions")
 
 # Texts go through the text models one at a time: padded to a batch's longest text, the same
 # text's embedding differs by float rounding from batch to batch, and a query's relevancy map
@@ -337,6 +337,34 @@ class CaptionEncoder:
 
 
 # ----------------------------------------------------------------------------- factory
+@dataclass(frozen=True)
+class EncoderKind:
+    """One choice of ``--encoder``: how to build it from a bank's ``encoder`` spec."""
+
+    name: str
+    description: str  # for --help
+    build: Callable[[dict, Union[str, torch.device]], "Encoder"]  # (spec, device) -> encoder
+
+
+ENCODERS: dict[str, EncoderKind] = {
+    k.name: k
+    for k in (
+        EncoderKind(
+            "clip",
+            "CLIP image encoder on masked segments (paper)",
+            lambda spec, device: ClipEncoder.from_pretrained(spec.get("model_id") or DEFAULT_CLIP_MODEL, device=device),
+        ),
+        EncoderKind(
+            "captions",
+            "ground-truth captions embedded by all-MiniLM-L6-v2 (offline stand-in for CLIP, needs the "
+            "demo scene's ground-truth segments)",
+            lambda spec, device: CaptionEncoder.from_package(device=device),
+        ),
+    )
+}
+ENCODER_NAMES = tuple(ENCODERS)
+
+
 def get_encoder(spec: Union[dict, str], device: str | torch.device = "cpu") -> Encoder:
     """Build an encoder from a name (``"clip"``, ``"captions"``) or from the ``encoder`` dict a
     segment bank stores (``{"name", "model_id", "embed_dim", ...}``), so a bank's queries use
@@ -344,12 +372,9 @@ def get_encoder(spec: Union[dict, str], device: str | torch.device = "cpu") -> E
     if isinstance(spec, str):
         spec = {"name": spec}
     name = spec.get("name")
-    if name == "clip":
-        enc = ClipEncoder.from_pretrained(spec.get("model_id") or DEFAULT_CLIP_MODEL, device=device)
-    elif name == "captions":
-        enc = CaptionEncoder.from_package(device=device)
-    else:
+    if name not in ENCODERS:
         raise InputError(None, f"unknown encoder {name!r}; choose one of {', '.join(ENCODER_NAMES)}")
+    enc = ENCODERS[name].build(spec, device)
     want = spec.get("embed_dim")
     if want is not None and int(want) != enc.dim:
         raise InputError(

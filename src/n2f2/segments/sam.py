@@ -2,7 +2,7 @@
 point grid, predicted-IoU threshold 0.7, min region area 100) through ``transformers.SamModel``,
 with SAM's preprocessing and mask post-processing re-implemented in torch (``transformers``' SAM
 image processor needs torchvision, which has no CPU build here) and a vectorised version of
-LangSplat's mask NMS (:func:`n2f2.segments.segmenters.mask_nms`).
+LangSplat's mask NMS (:func:`n2f2.segments.masks.mask_nms`).
 
 The mask decoder runs through :class:`FastSamDecoder` by default: the same masks as
 ``SamModel``'s forward (kept as :func:`reference_decode`, ``SamSettings.fast_decoder=False``)
@@ -25,7 +25,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from .encoders import device_autocast, device_sync
-from .segmenters import SegmentSet, check_image, greedy_mask_nms, mask_nms, remove_small_regions
+from .masks import SegmentSet, check_image, greedy_mask_nms, mask_nms, remove_small_regions
 
 DEFAULT_SAM_MODEL = "facebook/sam-vit-huge"
 

@@ -5,7 +5,6 @@ build them here; a Ray worker builds them once from :class:`SegmentsSetup`."""
 
 from __future__ import annotations
 
-import argparse
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Optional
@@ -65,21 +64,6 @@ class SegmentsSetup:
     sam_model: Optional[str]
     device: str
 
-    @staticmethod
-    def from_args(args: argparse.Namespace) -> "SegmentsSetup":
-        return SegmentsSetup(
-            data=str(args.data),
-            downscale=float(args.downscale),
-            skip_missing=bool(args.skip_missing),
-            depth_source=args.depth_source,
-            gaussians=None if args.gaussians is None else str(args.gaussians),
-            segmenter=args.segmenter,
-            encoder=args.encoder,
-            model=args.model,
-            sam_model=args.sam_model,
-            device=str(args.device),
-        )
-
     def for_ray_worker(self) -> "SegmentsSetup":
         """A Ray task sees only the GPU Ray gave it, as device ``cuda``."""
         return replace(self, device="cuda") if self.device.startswith("cuda") else self
@@ -87,16 +71,13 @@ class SegmentsSetup:
     def build(self) -> tuple:
         """(scene, source, depth provider), checking the inputs before loading models."""
         from .bank import SegmentAndEncode
-        from .encoders import DEFAULT_CLIP_MODEL, ClipEncoder, get_encoder
+        from .encoders import get_encoder
         from .segmenters import get_segmenter
 
         scene = load_bank_scene(self.data, self.downscale, self.skip_missing)
         depth = depth_provider(scene, self.depth_source, self.gaussians, self.device)  # a missing PLY: before models
         segmenter = get_segmenter(self.segmenter, scene=scene, model_id=self.sam_model, device=self.device)
-        if self.encoder == "clip":
-            encoder = ClipEncoder.from_pretrained(self.model or DEFAULT_CLIP_MODEL, device=self.device)
-        else:
-            encoder = get_encoder("captions", device=self.device)
+        encoder = get_encoder({"name": self.encoder, "model_id": self.model}, device=self.device)
         return scene, SegmentAndEncode(segmenter, encoder), depth
 
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..config import add_config_options, config_overrides, option_flag
+from ..config import add_config_options, add_preset_option, config_overrides, field_default
 from ..validate import add_device_option, nonneg_int, positive_float
 
 
@@ -34,12 +34,8 @@ def register(subparsers) -> None:
     p.add_argument("--gaussians", required=True, metavar="PLY", help="fitted 3DGS (gaussians.ply or its folder)")
     p.add_argument("--segments", required=True, metavar="BANK", help="segment bank folder (`n2f2 segments`)")
     p.add_argument("--out", required=True, metavar="DIR", help="run folder")
-    p.add_argument(
-        "--preset",
-        choices=["cpu", "paper"],
-        default=None,
-        help=f"cpu: small field, {_preset_summary('cpu')} (default without CUDA); paper: the paper's "
-        f"field, {_preset_summary('paper')} (default with --device cuda)",
+    add_preset_option(
+        p, f"cpu: small field, {_preset_summary('cpu')}; paper: the paper's field, {_preset_summary('paper')}"
     )
     # Every option() field of the two configs (n2f2.config); None keeps the preset's (or the
     # checkpoint's) value.
@@ -64,7 +60,8 @@ def register(subparsers) -> None:
         action="store_true",
         help="drop views whose image file is missing (default: a missing image is an error)",
     )
-    p.add_argument("--seed", type=nonneg_int, default=0, help="random seed (default 0)")
+    seed = field_default(TrainConfig, "seed")
+    p.add_argument("--seed", type=nonneg_int, default=seed, help=f"random seed (default {seed})")
     add_device_option(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run_train)
@@ -90,83 +87,29 @@ def register(subparsers) -> None:
     e.set_defaults(func=run_eval_field)
 
 
-def _gaussians_path(path: str) -> Path:
-    from ..errors import InputError
-
-    p = Path(path)
-    if p.is_dir():
-        p = p / "gaussians.ply"
-    if not p.is_file():
-        raise InputError(p, "Gaussians file does not exist (run `n2f2 fit-gaussians` first)")
-    return p
-
-
 def run_train(args: argparse.Namespace) -> int:
-    from dataclasses import replace
-
-    from ..data import load_scene
-    from ..errors import InputError
     from ..field.model import FieldConfig
-    from ..gaussians import read_ply
-    from ..io import claim_out_dir, remove_results
-    from ..segments import SegmentBank
-    from .trainer import RESULT_NAMES, TrainConfig, field_preset, saved_configs, train_field
+    from .stage import TrainJob, run_train
+    from .trainer import TrainConfig
 
-    device = args.device
-    preset = args.preset or ("paper" if str(device).startswith("cuda") else "cpu")
-    field_over = config_overrides(args, FieldConfig)
-    train_over = config_overrides(args, TrainConfig)
-    for cls, over in ((FieldConfig, field_over), (TrainConfig, train_over)):
-        for name, value in over.items():
-            if isinstance(value, (int, float)) and not isinstance(value, bool) and value < 0:
-                raise InputError(None, f"{option_flag(cls, name)} must be >= 0, got {value}")
-    if args.downscale <= 0:
-        raise InputError(None, f"--downscale must be > 0, got {args.downscale}")
-
-    present = claim_out_dir(args.out, RESULT_NAMES, resume=args.resume, force=args.force)
-    saved = saved_configs(args.out) if args.resume else None
-    try:
-        if saved is not None:  # a resumed run keeps the checkpoint's settings; flags may change them
-            field_config = replace(saved[0], **field_over)
-            config = saved[1]
-        else:
-            field_config = field_preset(preset, **field_over)
-            config = replace(TrainConfig.preset(preset), seed=args.seed)
-        config = replace(config, device=device, **train_over)
-        if args.train_on_all:
-            config = replace(config, holdout=False)
-    except ValueError as e:
-        raise InputError(None, str(e)) from None
-
-    gpath = _gaussians_path(args.gaussians)
-    scene = load_scene(args.data, downscale=args.downscale, skip_missing=args.skip_missing)
-    bank = SegmentBank.open(args.segments)
-    gaussians = read_ply(gpath)
-    if args.force:  # the inputs are read and match: now the old results go
-        bank.validate_against(scene)
-        remove_results(args.out, present)
-    report = train_field(
-        scene,
-        gaussians,
-        bank,
-        args.out,
-        field_config=field_config,
-        config=config,
-        resume=args.resume,
-        progress=not args.quiet,
-        paths={
-            "scene": str(Path(args.data).resolve()),
-            "gaussians": str(gpath.resolve()),
-            "bank": str(Path(args.segments).resolve()),
-        },
-    )
-    print(
-        f"train: {report['steps']} steps ({field_config.variant}, D={field_config.dim}, "
-        f"{'deferred' if config.deferred else 'non-deferred'}), final loss {report['final_loss']:.5f}, "
-        f"{report['time_per_iteration_s'] * 1000:.0f} ms/step, peak RSS {report['peak_rss_mb']:.0f} MB "
-        f"-> {args.out}"
-        if report["time_per_iteration_s"]
-        else f"train: already at step {report['steps']} -> {args.out}"
+    run_train(
+        TrainJob(
+            data=Path(args.data),
+            gaussians=Path(args.gaussians),
+            bank=Path(args.segments),
+            out=Path(args.out),
+            preset=args.preset,
+            field_overrides=config_overrides(args, FieldConfig),
+            train_overrides=config_overrides(args, TrainConfig),
+            train_on_all=args.train_on_all,
+            seed=args.seed,
+            downscale=args.downscale,
+            skip_missing=args.skip_missing,
+            device=args.device,
+            resume=args.resume,
+            force=args.force,
+            progress=not args.quiet,
+        )
     )
     return 0
 
@@ -179,6 +122,7 @@ def run_eval_field(args: argparse.Namespace) -> int:
     from ..io import write_json
     from ..segments import SegmentBank
     from .evaluate import evaluate_cosine_by_level
+    from .stage import gaussians_path
     from .trainer import FIELD_NAME
 
     run = Path(args.run)
@@ -196,7 +140,7 @@ def run_eval_field(args: argparse.Namespace) -> int:
         raise InputError(
             bank_path, f"bank embeddings are {bank.embed_dim}-d but the field was trained for E = {field.embed_dim}"
         )
-    gaussians = read_ply(_gaussians_path(meta.get("gaussians") or str(run)))
+    gaussians = read_ply(gaussians_path(meta.get("gaussians") or str(run)))
     views = {
         "heldout": meta.get("heldout_views") or [],
         "train": meta.get("train_views") or [],

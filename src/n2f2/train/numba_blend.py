@@ -65,7 +65,7 @@ def available() -> bool:
 
 def warm_up() -> None:
     """Compile (or load from the cache) the request kernel, with the argument types a training
-    step passes (:func:`n2f2.render.numba_backend.compile_in_background` runs this)."""
+    step passes (:func:`n2f2.render.numba_runtime.compile_in_background` runs this)."""
     if numba is not None:
         crow = torch.tensor([0, 1, 2])
         request(crow, torch.tensor([0, 1], dtype=torch.int32), torch.ones(2), torch.tensor([1, 0]), 2, True)

@@ -141,7 +141,7 @@ def prefix_sum(
 
 def warm_up() -> None:
     """Compile (or load from the cache) the four kernels with a training step's argument types
-    (:func:`n2f2.render.numba_backend.compile_in_background` runs this)."""
+    (:func:`n2f2.render.numba_runtime.compile_in_background` runs this)."""
     if numba is not None:
         theta = torch.ones(2, 3, requires_grad=True)
         u = torch.ones(1, 3, requires_grad=True)

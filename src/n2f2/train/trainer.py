@@ -615,7 +615,7 @@ def train_field(
         ids, index = torch.unique(batch.pooled, return_inverse=True)
         targets = pool.embeddings[ids].to(device)
         scale, index = scale.to(device), index.to(device)
-        if config.every_segment and field.variant != "levels":  # weighted rows, prefix masks
+        if config.every_segment and field.kind.prefix:  # weighted rows, prefix masks
             rows, weight = batch.row.to(device), batch.weight.to(device)
             loss, l2, cos = prefix_projected_loss(
                 theta, rows, field.dims_for_scale(scale), field.W, targets, index, config.cos_weight, weight

@@ -10,13 +10,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Optional
 
-from ..validate import nonneg_float, port_number, positive_int
+from ..config import add_config_options, config_overrides, field_default
+from ..validate import nonneg_float, port_number
+from .settings import API_PORT, HOST, VIEWER_PORT, ViewerLimits
 
 if TYPE_CHECKING:
     from .server import Viewer
     from .splats import SplatViewer
 
 LOCAL_HOSTS = ("127.0.0.1", "localhost", "::1")
+LIMIT_FLAGS = ("max_queries", "max_body_bytes")  # the ViewerLimits fields that are flags of `n2f2 view`
 
 
 @dataclass
@@ -64,9 +67,9 @@ def _url_host(host: str) -> str:
 def launch(
     run_dir: str | Path,
     *,
-    host: str = "127.0.0.1",
-    port: int = 7007,
-    api_port: Optional[int] = 7008,
+    host: str = HOST,
+    port: int = VIEWER_PORT,
+    api_port: Optional[int] = API_PORT,
     scene: Optional[str] = None,
     limits: Any = None,
     export_dir: Optional[str | Path] = None,
@@ -78,7 +81,7 @@ def launch(
 
     from ..errors import InputError
     from ..query.engine import QueryEngine
-    from .server import Viewer, ViewerLimits, api_server
+    from .server import Viewer, api_server
     from .splats import SplatViewer
 
     engine = QueryEngine.from_run(run_dir, scene=scene)
@@ -110,15 +113,13 @@ def launch(
 
 
 def _cmd_view(args: argparse.Namespace) -> int:
-    from .server import ViewerLimits
-
     if args.host not in LOCAL_HOSTS:
         print(
             f"warning: serving on {args.host}: the viewer has no authentication; "
             "anyone who can reach this address can query the scene"
         )
     limits = ViewerLimits(
-        max_body_bytes=args.max_body_bytes, max_queries=args.max_queries, render_cache_bytes=int(args.cache_mb * 2**20)
+        **config_overrides(args, ViewerLimits, LIMIT_FLAGS), render_cache_bytes=int(args.cache_mb * 2**20)
     )
     running = launch(
         args.run_dir,
@@ -157,19 +158,24 @@ def register(subparsers) -> None:
     )
     p.add_argument("run_dir", help="a trained run folder (field.pt, gaussians.ply)")
     p.add_argument(
-        "--port", type=port_number, default=7007, help="3D viewer port (default: 7007; the next free one if taken)"
+        "--port",
+        type=port_number,
+        default=VIEWER_PORT,
+        help=f"3D viewer port (default: {VIEWER_PORT}; the next free one if taken)",
     )
-    p.add_argument("--api-port", type=port_number, default=7008, help="JSON API and 2D page port (default: 7008)")
+    p.add_argument(
+        "--api-port", type=port_number, default=API_PORT, help=f"JSON API and 2D page port (default: {API_PORT})"
+    )
     p.add_argument("--no-api", action="store_true", help="serve only the 3D viewer")
-    p.add_argument("--host", default="127.0.0.1", help="bind address of both (default: 127.0.0.1, this machine only)")
+    p.add_argument("--host", default=HOST, help=f"bind address of both (default: {HOST}, this machine only)")
     p.add_argument("--scene", default=None, help="scene folder, if not the one recorded in the run")
     p.add_argument("--export-dir", default=None, help="where 'Export selection' writes (default: the run folder)")
+    cache_mb = field_default(ViewerLimits, "render_cache_bytes") / 2**20
     p.add_argument(
         "--cache-mb",
         type=nonneg_float,
-        default=512,
-        help="memory for cached renders, least recently used out first (default: 512; 0: none)",
+        default=cache_mb,
+        help=f"memory for cached renders, least recently used out first (default: {cache_mb:g}; 0: none)",
     )
-    p.add_argument("--max-queries", type=positive_int, default=8, help="queries per request (default: 8)")
-    p.add_argument("--max-body-bytes", type=positive_int, default=16384, help="request size cap (default: 16384)")
+    add_config_options(p, ViewerLimits, LIMIT_FLAGS)  # None: ViewerLimits' own value
     p.set_defaults(func=_cmd_view)

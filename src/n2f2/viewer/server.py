@@ -24,7 +24,8 @@ as are the number and length of queries; nothing in a request is ever used as a 
 malformed request gets a JSON error with a 4xx status, also those the HTTP parser refuses before
 the app sees them (a non-numeric Content-Length, a garbled request line: see
 :func:`json_error_protocol`). Renders are cached per camera in an LRU bounded in bytes
-(``ViewerLimits.render_cache_bytes``, ``n2f2 view --cache-mb``; :mod:`n2f2.viewer.cache`).
+(``ViewerLimits.render_cache_bytes`` in :mod:`n2f2.viewer.settings`, ``n2f2 view --cache-mb``;
+:mod:`n2f2.viewer.cache`).
 """
 
 from __future__ import annotations
@@ -47,26 +48,10 @@ from ..cameras import Camera, look_at
 from ..errors import InputError, N2F2Error
 from ..heap import return_freed_blocks
 from .cache import ByteLRU, compact_tensors, tensor_bytes
+from .settings import API_PORT, HOST, ViewerLimits
 
 STATIC_DIR = Path(__file__).parent / "static"
 VIEWER_MODES = ("composite", "explicit")
-
-
-@dataclass(frozen=True)
-class ViewerLimits:
-    max_body_bytes: int = 16 * 1024
-    max_queries: int = 8
-    max_query_chars: int = 200
-    # Bytes of cached renders (LRU), the render in flight included: before a view is rendered,
-    # old entries make room for what it will keep plus ``render_transient_bytes``. One 640x480
-    # view of a D = 128 field keeps ~160 MB in composite mode and ~470 MB in explicit mode; a
-    # render larger than the bound is not cached.
-    render_cache_bytes: int = 512 * 2**20
-    # Working memory of one render and its answer beyond what the view keeps: the rasterizer's
-    # bands (``rasterize_in_bands``, ~16 MB), the score cache's blocks (~32 MB) and the
-    # per-query maps and PNGs (measured on a 640x480 view, D = 128: ~60 MB rendering, ~30 MB
-    # answering one query; see docs/measurements.md).
-    render_transient_bytes: int = 96 * 2**20
 
 
 class ApiError(Exception):
@@ -481,7 +466,7 @@ def json_error_protocol() -> type:
     return JsonErrorH11Protocol
 
 
-def api_server(viewer: Viewer, host: str = "127.0.0.1", port: int = 7008) -> Any:
+def api_server(viewer: Viewer, host: str = HOST, port: int = API_PORT) -> Any:
     """A ``uvicorn.Server`` for the JSON API (and the 2D page) of ``viewer``; ``server.run()``
     blocks, so callers run it in a thread beside the 3D viewer."""
     import uvicorn

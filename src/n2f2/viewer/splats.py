@@ -50,6 +50,7 @@ import numpy as np
 
 from ..cameras import Camera
 from ..errors import InputError
+from ..query.modes import QUERY_MODES
 from .splat_colors import (
     SELECTION_THRESHOLD,
     dimmed,
@@ -174,7 +175,7 @@ class SplatViewer:
         self.export_dir = Path(export_dir) if export_dir is not None else Path(run_dir or ".")
         self.scene = viewer.scene
         # 3D queries need no image: "levels" fields (the 3-level baseline) work here too.
-        self.modes = [m for m in ("composite", "explicit", "levels") if m in self.engine.modes()]
+        self.modes = [m.name for m in QUERY_MODES.values() if m.viewer and m.name in self.engine.modes()]
         self.up = scene_up(self.scene, viewer.orbit.up)
         self._work = threading.Lock()  # one recolour / query at a time
         self._gen_lock = threading.Lock()
