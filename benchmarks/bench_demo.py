@@ -75,7 +75,7 @@ def train_floor(run: Path) -> float:
     distinct target; a step's pixels sample a few hundred segments). With every covering segment
     per pixel (``every_segment``), the loss runs on the run's mean rows per step."""
     from n2f2.field.model import prefix_mask
-    from n2f2.train.trainer import prefix_projected_loss, projected_loss
+    from n2f2.train.losses import prefix_projected_loss, projected_loss
 
     report = json.loads((run / "train_report.json").read_text())
     f, t = report["field_config"], report["train_config"]

@@ -8,9 +8,11 @@ and after into two folders, then
 Every file must exist on both sides and hold the same data:
 - JSON: equal after dropping values whose key names a timing (seconds, time, elapsed, ETA,
   rates, dates, the host), at any depth; absolute paths inside BEFORE/AFTER are compared
-  relative to the folder;
+  relative to the folder; ``stages.json``'s stage keys are left out (they hash files that hold
+  timings and absolute paths);
 - .npy / .npz: the same dtype, shape and values (NaN equal to NaN);
-- .pt: the same structure, every tensor equal in dtype, shape and values;
+- .pt: the same structure, every tensor equal in dtype, shape and values (timing keys and
+  paths as for JSON);
 - .png: the same pixels; .ply and other binary files: the same bytes;
 - Markdown and text: reported when they differ but not counted, since their tables hold
   timings (their numbers are in the JSON beside them).
@@ -39,6 +41,14 @@ TIMING_KEY = re.compile(
 # Files that are locks, logs or caches, not outputs.
 SKIP_NAME = re.compile(r"(^\.n2f2\.lock$|\.log$|^__pycache__$|\.n2f2-old-\d+$)")
 TEXT_SUFFIXES = {".md", ".txt", ".csv", ".html"}
+STAGES_FILE = "stages.json"
+
+
+def _without_keys(records):
+    """A stage cache's records without their keys (hashes of files with timings in them)."""
+    if not isinstance(records, dict):
+        return records
+    return {k: ({f: v for f, v in r.items() if f != "key"} if isinstance(r, dict) else r) for k, r in records.items()}
 
 
 def _files(root: Path) -> set[str]:
@@ -102,7 +112,9 @@ def _arrays_equal(a: np.ndarray, b: np.ndarray) -> str | None:
     return "values differ"
 
 
-def _torch_diff(a, b, where: str = "") -> list[str]:
+def _torch_diff(a, b, where: str = "", roots: tuple[str, ...] = ()) -> list[str]:
+    """Differences between two loaded ``.pt`` objects: tensors exactly, timing keys dropped,
+    the compared folders' paths made relative (as for JSON)."""
     import torch
 
     if isinstance(a, torch.Tensor) and isinstance(b, torch.Tensor):
@@ -110,16 +122,20 @@ def _torch_diff(a, b, where: str = "") -> list[str]:
         return [] if why is None else [f"{where or '/'}: {why}"]
     if isinstance(a, dict) and isinstance(b, dict):
         if set(a) != set(b):
-            return [f"{where or '/'}: keys {sorted(set(a) ^ set(b))} on one side only"]
-        return [d for k in sorted(a, key=str) for d in _torch_diff(a[k], b[k], f"{where}/{k}")]
+            return [f"{where or '/'}: keys {sorted(set(a) ^ set(b), key=str)} on one side only"]
+        keys = [k for k in sorted(a, key=str) if not TIMING_KEY.search(str(k))]
+        return [d for k in keys for d in _torch_diff(a[k], b[k], f"{where}/{k}", roots)]
     if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
         if len(a) != len(b):
             return [f"{where}: {len(a)} items vs {len(b)}"]
-        return [d for i, (x, y) in enumerate(zip(a, b)) for d in _torch_diff(x, y, f"{where}[{i}]")]
+        return [d for i, (x, y) in enumerate(zip(a, b)) for d in _torch_diff(x, y, f"{where}[{i}]", roots)]
     if isinstance(a, dict) or isinstance(a, (list, tuple)) or isinstance(a, torch.Tensor):
         return [f"{where or '/'}: {type(a).__name__} vs {type(b).__name__}"]
+    if isinstance(a, str) and isinstance(b, str):
+        a, b = _strip(a, roots), _strip(b, roots)
     if isinstance(a, str) or isinstance(a, (int, float, bool)) or a is None:
-        return [] if a == b or (isinstance(a, float) and math.isnan(a) and math.isnan(b)) else [f"{where}: {a!r} vs {b!r}"]
+        same = a == b or (isinstance(a, float) and isinstance(b, float) and math.isnan(a) and math.isnan(b))
+        return [] if same else [f"{where}: {a!r} vs {b!r}"]
     return []  # other pickled objects are not outputs anyone reads
 
 
@@ -129,6 +145,8 @@ def compare_file(before: Path, after: Path, roots: tuple[str, ...]) -> tuple[lis
     if suffix == ".json":
         a = _strip(json.loads(before.read_text()), roots)
         b = _strip(json.loads(after.read_text()), roots)
+        if before.name == STAGES_FILE:  # a stage key hashes files that hold timings and paths
+            a, b = _without_keys(a), _without_keys(b)
         return _json_diff(a, b), True
     if suffix == ".npy":
         why = _arrays_equal(np.load(before, allow_pickle=False), np.load(after, allow_pickle=False))
@@ -148,7 +166,7 @@ def compare_file(before: Path, after: Path, roots: tuple[str, ...]) -> tuple[lis
 
         a = torch.load(before, map_location="cpu", weights_only=False)
         b = torch.load(after, map_location="cpu", weights_only=False)
-        return _torch_diff(a, b), True
+        return _torch_diff(a, b, roots=roots), True
     if suffix == ".png":
         from PIL import Image
 

@@ -123,7 +123,7 @@ def test_every_numeric_option_of_the_configs_has_a_validating_type():
     from n2f2.field.model import FieldConfig
     from n2f2.gaussians.fit import FitConfig
     from n2f2.segments.lifting import LiftSettings
-    from n2f2.train.trainer import TrainConfig
+    from n2f2.train.config import TrainConfig
 
     for cls in (FieldConfig, TrainConfig, FitConfig, LiftSettings):
         for name, (f, spec) in option_specs(cls).items():
@@ -133,7 +133,7 @@ def test_every_numeric_option_of_the_configs_has_a_validating_type():
 
 def test_train_help_shows_each_presets_value(capsys):
     from n2f2.field.model import FieldConfig
-    from n2f2.train.trainer import TrainConfig
+    from n2f2.train.config import TrainConfig
 
     text = command_help(capsys, "train")
     cpu, paper = FieldConfig.cpu().plane_resolution, FieldConfig.paper().plane_resolution
@@ -166,7 +166,7 @@ def test_fit_and_run_help_show_each_presets_value(capsys):
 
 def test_train_flags_reach_the_configs():
     from n2f2.field.model import FieldConfig
-    from n2f2.train.trainer import TrainConfig
+    from n2f2.train.config import TrainConfig
 
     base = ["train", "DATA", "--gaussians", "G", "--segments", "S", "--out", "O"]
     args = build_parser().parse_args(base)

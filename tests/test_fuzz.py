@@ -715,7 +715,7 @@ def train_inputs(base):
 
 def _tiny_train(**over):
     from n2f2.field import FieldConfig
-    from n2f2.train.trainer import TrainConfig
+    from n2f2.train.config import TrainConfig
 
     field = FieldConfig(dim=12, plane_resolution=16, plane_channels=4, hidden=32)
     config = TrainConfig(iterations=over.pop("iterations", 12), pixels_per_step=128, blend_cache=True,

@@ -21,12 +21,12 @@ from n2f2.segments.bank import SegmentAndEncode, SegmentBank, build_bank
 from n2f2.segments.bins import scale_to_dims
 from n2f2.segments.lifting import gt_depth_provider
 from n2f2.segments.segmenters import GroundTruthSegmenter
+from n2f2.train.config import CHECKPOINT_NAME, FIELD_NAME, REPORT_NAME, TrainConfig
 from n2f2.train.evaluate import evaluate_cosine_by_level, match_regions_to_segments
-from n2f2.train.sampling import (SegmentPool, ViewSegments, covering_probabilities, sample_segments,
-                                 segment_weights)
-from n2f2.train.trainer import (CHECKPOINT_NAME, FIELD_NAME, REPORT_NAME, TrainConfig, bank_cameras,
-                                frozen_geometry, hierarchical_loss, jitter_scales, prefix_projected_loss,
-                                projected_loss, render_features, train_field)
+from n2f2.train.geometry import bank_cameras, frozen_geometry, render_features
+from n2f2.train.losses import hierarchical_loss, prefix_projected_loss, projected_loss
+from n2f2.train.sampling import SegmentPool, ViewSegments, covering_probabilities, sample_segments, segment_weights
+from n2f2.train.trainer import jitter_scales, train_field
 
 FIELD = FieldConfig(dim=12, plane_resolution=16, plane_channels=4, hidden=32)
 
@@ -461,8 +461,8 @@ def test_deferred_gather_matches_full_render(setup):
     whether rasterized each step or taken from the blend-weight cache."""
     from n2f2.field import NestedField
     from n2f2.train.blend import build_blend_cache
+    from n2f2.train.geometry import pixel_theta
     from n2f2.train.sampling import PixelBatch
-    from n2f2.train.trainer import pixel_theta
 
     scene, bank = setup["scene"], setup["banks"][16]
     torch.manual_seed(0)

@@ -311,12 +311,33 @@ def _at(d: Mapping, k: int) -> Any:  # K-keyed dicts have int keys in memory, st
 
 def markdown_report(result: Mapping, deltas: Optional[Mapping] = None, reference: str = "") -> str:
     """``eval.md`` from an ``eval.json`` dict (and optional :func:`compare_evals` output)."""
-    from ..query.soft import SOFT_TEMPERATURE
-
     boxes = list(result["boxes"])
     title = {b: box_title(result, b) for b in boxes}
-    radii = {b: _radii(result, b) for b in boxes}
-    modes = result["modes"]
+    out = _report_header(result, title)
+    out += _scores_section(result, boxes, title)
+    if result.get("protocol3d"):
+        from .protocol3d import protocol3d_markdown
+
+        out.append(protocol3d_markdown(result["protocol3d"]))
+    out += _split_section(result, boxes, title)
+    if result.get("kinds"):
+        out += _kinds_section(result, boxes, title)
+    if result.get("budget"):
+        from .budget import budget_markdown
+
+        out.append(budget_markdown(result["budget"]))
+    out += _retrieval_section(result, boxes, title)
+    out += _per_query_section(result, boxes, title)
+    if deltas:
+        out += _deltas_section(deltas, reference, title)
+    return "".join(out)
+
+
+def _report_header(result: Mapping, title: Mapping[str, str]) -> list[str]:
+    """The run, labels, field, teacher and protocol, and what each mode is."""
+    from ..query.soft import SOFT_TEMPERATURE
+
+    radii = {b: _radii(result, b) for b in title}
     out = [
         f"# n2f2 eval: {result['scene']}\n",
         f"- run: `{result['run_dir']}`\n- labels: `{result['label_dir']}`\n"
@@ -339,12 +360,17 @@ def markdown_report(result: Mapping, deltas: Optional[Mapping] = None, reference
         "localizes): an upper bound of the explicit choice, not of composite; with many "
         "scales the localization bound is loose",
     }
-    for m in modes:
+    for m in result["modes"]:
         out.append(f"- mode {m}: {about[m]}\n")
     for note in result.get("notes", []):
         out.append(f"- note: {note}\n")
+    return out
 
-    out.append("\n## Localization and segmentation, and mAP\n\n")
+
+def _scores_section(result: Mapping, boxes: list[str], title: Mapping[str, str]) -> list[str]:
+    """Localization, mIoU and mAP per mode and box, and the scene's pair counts."""
+    modes = result["modes"]
+    out = ["\n## Localization and segmentation, and mAP\n\n"]
     first = result["scores"][modes[0]]
     ap = result.get("ap") or {}
     rows = []
@@ -381,15 +407,17 @@ def markdown_report(result: Mapping, deltas: Optional[Mapping] = None, reference
         f"{len(first['exact']['skipped_frames'])}, objects outside the image: "
         f"{first['exact']['skipped_objects']}, empty pairs: {first['exact']['skipped_categories']}.\n"
     )
-    if result.get("protocol3d"):
-        from .protocol3d import protocol3d_markdown
+    return out
 
-        out.append(protocol3d_markdown(result["protocol3d"]))
 
-    out.append("\n## Simple vs compound queries (paper Table 7)\n\n")
-    out.append(f"Query types from {result['query_types_source']}.\n\n")
+def _split_section(result: Mapping, boxes: list[str], title: Mapping[str, str]) -> list[str]:
+    """Simple vs compound queries (paper Table 7)."""
+    out = [
+        "\n## Simple vs compound queries (paper Table 7)\n\n",
+        f"Query types from {result['query_types_source']}.\n\n",
+    ]
     rows = []
-    for m in modes:
+    for m in result["modes"]:
         for b in boxes:
             sp = result["split"][m][b]
             rows.append(
@@ -415,68 +443,73 @@ def markdown_report(result: Mapping, deltas: Optional[Mapping] = None, reference
             ["l", "l"] + ["r"] * 7,
         )
     )
+    return out
 
-    if result.get("kinds"):
-        out.append("\n## By query kind\n\n")
-        out.append(f"Query kinds from {result.get('query_kinds_source')}.\n\n")
-        shown = [k for k in QUERY_KINDS if any(result["kinds"][m][b][k]["pairs"] for m in modes for b in boxes)]
-        rows = []
-        for m in modes:
-            for b in boxes:
-                kd = result["kinds"][m][b]
-                rows.append(
-                    [m, title[b]]
-                    + [f"{pct(kd[k]['miou'])} / {pct(kd[k]['loc_accuracy'])} / {pct(kd[k]['map'])}" for k in shown]
-                )
-        counts = ", ".join(f"{k} {result['kinds'][modes[0]]['exact'][k]['pairs']}" for k in shown)
-        out.append(
-            markdown_table(
-                ["mode", "box"] + [f"{k}: mIoU / loc. / mAP %" for k in shown], rows, ["l", "l"] + ["r"] * len(shown)
+
+def _kinds_section(result: Mapping, boxes: list[str], title: Mapping[str, str]) -> list[str]:
+    """mIoU, localization and mAP by query kind (part / object / group), the kinds with pairs."""
+    modes = result["modes"]
+    out = ["\n## By query kind\n\n", f"Query kinds from {result.get('query_kinds_source')}.\n\n"]
+    shown = [k for k in QUERY_KINDS if any(result["kinds"][m][b][k]["pairs"] for m in modes for b in boxes)]
+    rows = []
+    for m in modes:
+        for b in boxes:
+            kd = result["kinds"][m][b]
+            rows.append(
+                [m, title[b]]
+                + [f"{pct(kd[k]['miou'])} / {pct(kd[k]['loc_accuracy'])} / {pct(kd[k]['map'])}" for k in shown]
             )
-        )
-        out.append(f"\nPairs per kind: {counts}.\n")
-
-    if result.get("budget"):
-        from .budget import budget_markdown
-
-        out.append(budget_markdown(result["budget"]))
-
-    out.append("\n## Retrieval R@K over the segment pool\n\n")
-    if result["retrieval"]:
-        any_r = next(iter(next(iter(result["retrieval"].values())).values()))
-        ks = any_r["ks"]
-        out.append(
-            f"Pool: the segment bank's segments of each labelled view ({result['bank_dir']}); a segment "
-            f"matches when its IoU with the label mask is >= {any_r['iou_threshold']}; a pair is "
-            "retrieved at K when a matching segment ranks in the top K by mean relevancy (ties count "
-            "against it). Pairs with no matching segment are skipped and counted.\n\n"
-        )
-        rows = []
-        for m in modes:
-            for b in boxes:
-                r = result["retrieval"][m][b]
-                rows.append(
-                    [m, title[b] if m not in ONE_MAP_MODES else "any"]
-                    + [pct(_at(r["recall"], k)) for k in ks]
-                    + [_fmt_num(r["mean_first_rank"]), r["num_pairs"], len(r["skipped"])]
-                )
-                if m in ONE_MAP_MODES:
-                    break  # the composite and soft maps do not depend on the box
-        out.append(
-            markdown_table(
-                ["mode", "box"]
-                + [f"R@{k} %" for k in ks]
-                + ["mean first rank", "pairs", "skipped (no matching segment)"],
-                rows,
-                ["l", "l"] + ["r"] * (len(ks) + 3),
-            )
-        )
-    else:
-        out.append("Not computed (no segment bank).\n")
-
+    counts = ", ".join(f"{k} {result['kinds'][modes[0]]['exact'][k]['pairs']}" for k in shown)
     out.append(
-        "\n## Per query (IoU %, and AP % of the exact box's choice; mean over the frames a query is labelled in)\n\n"
+        markdown_table(
+            ["mode", "box"] + [f"{k}: mIoU / loc. / mAP %" for k in shown], rows, ["l", "l"] + ["r"] * len(shown)
+        )
     )
+    out.append(f"\nPairs per kind: {counts}.\n")
+    return out
+
+
+def _retrieval_section(result: Mapping, boxes: list[str], title: Mapping[str, str]) -> list[str]:
+    """R@K over the segment pool, or why it was not computed."""
+    out = ["\n## Retrieval R@K over the segment pool\n\n"]
+    if not result["retrieval"]:
+        out.append("Not computed (no segment bank).\n")
+        return out
+    any_r = next(iter(next(iter(result["retrieval"].values())).values()))
+    ks = any_r["ks"]
+    out.append(
+        f"Pool: the segment bank's segments of each labelled view ({result['bank_dir']}); a segment "
+        f"matches when its IoU with the label mask is >= {any_r['iou_threshold']}; a pair is "
+        "retrieved at K when a matching segment ranks in the top K by mean relevancy (ties count "
+        "against it). Pairs with no matching segment are skipped and counted.\n\n"
+    )
+    rows = []
+    for m in result["modes"]:
+        for b in boxes:
+            r = result["retrieval"][m][b]
+            rows.append(
+                [m, title[b] if m not in ONE_MAP_MODES else "any"]
+                + [pct(_at(r["recall"], k)) for k in ks]
+                + [_fmt_num(r["mean_first_rank"]), r["num_pairs"], len(r["skipped"])]
+            )
+            if m in ONE_MAP_MODES:
+                break  # the composite and soft maps do not depend on the box
+    out.append(
+        markdown_table(
+            ["mode", "box"] + [f"R@{k} %" for k in ks] + ["mean first rank", "pairs", "skipped (no matching segment)"],
+            rows,
+            ["l", "l"] + ["r"] * (len(ks) + 3),
+        )
+    )
+    return out
+
+
+def _per_query_section(result: Mapping, boxes: list[str], title: Mapping[str, str]) -> list[str]:
+    """Each query's IoU per mode and box and AP per mode, with its type, kind and frames."""
+    modes = result["modes"]
+    out = [
+        "\n## Per query (IoU %, and AP % of the exact box's choice; mean over the frames a query is labelled in)\n\n"
+    ]
     queries = sorted(result["query_types"], key=lambda q: (result["query_types"][q], q))
     rows = []
     for q in queries:
@@ -501,24 +534,24 @@ def markdown_report(result: Mapping, deltas: Optional[Mapping] = None, reference
             ["l", "l", "l"] + ["r"] * (1 + len(modes) * (len(boxes) + 1)),
         )
     )
+    return out
 
-    if deltas:
-        out.append(
-            "\n## Per-query IoU delta: this run - reference (paper Table 8: top and bottom 3)\n\n"
-            f"Reference: {reference}.\n"
-        )
-        for m, by in deltas.items():
-            for b, d in by.items():
-                out.append(
-                    f"\n### {m}, {title[b]}: mean delta {_signed(d.mean_delta)} points over "
-                    f"{len(d.deltas)} shared queries\n\n"
-                )
-                out.append(deltas_table(d, name_a="reference IoU %", name_b="this run IoU %"))
-                if d.only_a or d.only_b:
-                    out.append(
-                        f"\nQueries only in the reference: {len(d.only_a)}; only in this run: {len(d.only_b)}.\n"
-                    )
-    return "".join(out)
+
+def _deltas_section(deltas: Mapping, reference: str, title: Mapping[str, str]) -> list[str]:
+    """Per-query IoU deltas against a reference run (paper Table 8), per mode and box."""
+    out = [
+        f"\n## Per-query IoU delta: this run - reference (paper Table 8: top and bottom 3)\n\nReference: {reference}.\n"
+    ]
+    for m, by in deltas.items():
+        for b, d in by.items():
+            out.append(
+                f"\n### {m}, {title[b]}: mean delta {_signed(d.mean_delta)} points over "
+                f"{len(d.deltas)} shared queries\n\n"
+            )
+            out.append(deltas_table(d, name_a="reference IoU %", name_b="this run IoU %"))
+            if d.only_a or d.only_b:
+                out.append(f"\nQueries only in the reference: {len(d.only_a)}; only in this run: {len(d.only_b)}.\n")
+    return out
 
 
 def _fmt_num(v: Any) -> str:

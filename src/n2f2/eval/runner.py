@@ -541,6 +541,41 @@ def _per_query(
 
 
 # ------------------------------------------------------------------------------ the runner
+@dataclass
+class _Evaluation:
+    """What one evaluation reads (the engine, the settings, the labels' queries and the bank)
+    and what its pass over the labelled views fills in, view by view."""
+
+    engine: Any  # the query engine of the run (or the one given)
+    config: EvalConfig
+    run_dir: Path
+    label_dir: Path
+    scene: Any  # the engine's scene
+    modes: list[str]
+    protocols: dict[str, ProtocolConfig]
+    notes: list[str]
+    types: dict[str, str]  # query -> simple | compound
+    types_source: str
+    kinds: dict[str, str]  # query -> part | object | group | ...
+    kinds_source: str
+    exact: ExactMasks
+    bank: Any  # the opened SegmentBank for R@K, or None
+    bank_path: Optional[str]
+    all_categories: list[str]  # every labelled query, in order of first appearance
+    slugs: dict[str, str]  # query -> its relevancy file's name
+    npy_mode: Any  # the QueryMode whose maps are written as .npy, or None
+    one_map: list[str]  # modes answered by the engine directly
+    render_modes: list[str]  # what each view is rendered for
+    heldout: set[int]  # views held out from training
+    train_views: Optional[list]  # as the run records them; None: unknown
+    relevancy_dir: Optional[Path]
+    per_view: dict[int, _ViewMaps] = dc_field(default_factory=dict)
+    retrieval: dict[str, dict[str, _RetrievalAcc]] = dc_field(default_factory=dict)  # mode -> box -> R@K so far
+    ap_pairs: dict[str, dict[str, list[dict]]] = dc_field(default_factory=dict)  # mode -> box -> AP per pair
+    view_info: list[dict] = dc_field(default_factory=list)  # per labelled view: index, name, timings
+    relevancy_files: dict[str, dict[str, str]] = dc_field(default_factory=dict)  # frame -> query -> path
+
+
 def evaluate_run(
     run_dir: Union[str, Path],
     label_dir: Union[str, Path],
@@ -563,8 +598,6 @@ def evaluate_run(
     from tqdm import tqdm
 
     from ..data.labels import read_label_dir
-    from ..io import write_npy
-    from ..query.composite import temperature_name
     from ..query.engine import QueryEngine
     from ..query.outputs import unique_slugs
 
@@ -579,14 +612,7 @@ def evaluate_run(
         raise InputError(run_dir, "the run does not record its scene folder: pass --scene DIR")
     scene_obj = engine.scene
     num_views = len(scene_obj.cameras)
-    supported = list(engine.modes())
-    modes = list(dict.fromkeys(config.modes or supported))
-    for m in modes:
-        if m not in supported:
-            raise InputError(
-                run_dir / "field.pt",
-                f"mode {m!r} does not apply to this {engine.variant!r} field (it supports {', '.join(supported)})",
-            )
+    modes = _checked_modes(engine, config, run_dir)
     protocols = config.protocols()
     frames, skipped_frames = check_label_frames(labels, num_views, label_dir, config.missing_frames)
     notes: list[str] = []
@@ -595,30 +621,102 @@ def evaluate_run(
             f"{len(skipped_frames)} label frame(s) refer to views not in the scene and were "
             f"skipped: {', '.join(skipped_frames)}"
         )
+    types, types_source = _query_types(query_types, scene_obj)
+    kinds, kinds_source = _query_kinds(query_types, scene_obj)
+    exact = ExactMasks(scene_obj)
+    bank_obj, bank_path = _open_bank(bank, engine, scene_obj, notes)
 
-    # Query types: the scene's queries.json, a given file / mapping, else "unknown".
+    all_categories = list(dict.fromkeys(c for f in frames for c in f.categories))
+    one_map = [m for m in modes if not QUERY_MODES[m].from_scales]  # answered by the engine directly
+    ev = _Evaluation(
+        engine=engine,
+        config=config,
+        run_dir=run_dir,
+        label_dir=label_dir,
+        scene=scene_obj,
+        modes=modes,
+        protocols=protocols,
+        notes=notes,
+        types=types,
+        types_source=types_source,
+        kinds=kinds,
+        kinds_source=kinds_source,
+        exact=exact,
+        bank=bank_obj,
+        bank_path=bank_path,
+        all_categories=all_categories,
+        slugs=dict(zip(all_categories, unique_slugs(all_categories))),
+        npy_mode=next((QUERY_MODES[m] for m in MODES if m in modes and QUERY_MODES[m].writes_npy), None),
+        one_map=one_map,
+        # The modes made from every scale's maps share one pass: the oracle's scorer hook hands them over.
+        render_modes=one_map + ([ORACLE.name] if any(m in FROM_SCALES for m in modes) else []),
+        heldout=set(int(v) for v in engine.meta.get("heldout_views", []) or []),
+        train_views=engine.meta.get("train_views"),
+        relevancy_dir=None if relevancy_dir is None else Path(relevancy_dir),
+        retrieval={m: {b: _RetrievalAcc() for b in protocols} for m in modes},
+        ap_pairs={m: {b: [] for b in protocols} for m in modes},
+    )
+    frame_gt = _frame_targets(engine, frames, config.rescale_labels, label_dir)
+    if on_ready is not None:
+        on_ready()
+    for frame in tqdm(frames, desc="eval views", unit="view", disable=not config.progress):
+        if not frame.categories:
+            continue
+        _evaluate_view(ev, frame, frame_gt[frame.frame_name])
+
+    scores = _protocol_scores(ev, labels, num_views)
+    return _eval_result(ev, scores, encoder, t_start)
+
+
+def _checked_modes(engine: Any, config: EvalConfig, run_dir: Path) -> list[str]:
+    """The modes to score: ``config.modes`` (default: every mode the field supports), each one
+    the field supports (InputError otherwise)."""
+    supported = list(engine.modes())
+    modes = list(dict.fromkeys(config.modes or supported))
+    for m in modes:
+        if m not in supported:
+            raise InputError(
+                run_dir / "field.pt",
+                f"mode {m!r} does not apply to this {engine.variant!r} field (it supports {', '.join(supported)})",
+            )
+    return modes
+
+
+def _query_types(query_types: Optional[Union[str, Path, Mapping[str, str]]], scene: Any) -> tuple[dict[str, str], str]:
+    """(query -> type, where from): the given file or mapping, the scene's queries.json, else
+    none (every query "unknown")."""
     types: dict[str, str] = {}
     types_source = "none (all queries 'unknown')"
     if query_types is not None:
         types = dict(query_types) if isinstance(query_types, Mapping) else read_query_types(query_types)
         types_source = "given mapping" if isinstance(query_types, Mapping) else str(query_types)
-    elif (Path(scene_obj.root) / "queries.json").is_file():
-        types = read_query_types(Path(scene_obj.root) / "queries.json")
-        types_source = str(Path(scene_obj.root) / "queries.json")
-    # Query kinds (part / object / group): the same file's "kind" or region levels.
+    elif (Path(scene.root) / "queries.json").is_file():
+        types = read_query_types(Path(scene.root) / "queries.json")
+        types_source = str(Path(scene.root) / "queries.json")
+    return types, types_source
+
+
+def _query_kinds(query_types: Optional[Union[str, Path, Mapping[str, str]]], scene: Any) -> tuple[dict[str, str], str]:
+    """(query -> kind, where from): part / object / group from the first of the given types
+    file and the scene's queries.json that has any (a query's "kind" or its regions' levels)."""
     kinds: dict[str, str] = {}
     kinds_source = "none (all queries 'unknown')"
     for candidate in ([query_types] if isinstance(query_types, (str, Path)) else []) + [
-        Path(scene_obj.root) / "queries.json"
+        Path(scene.root) / "queries.json"
     ]:
         if Path(candidate).is_file():
             kinds = read_query_kinds(candidate)
             if kinds:
                 kinds_source = str(candidate)
                 break
-    exact = ExactMasks(scene_obj)
+    return kinds, kinds_source
 
-    # Segment bank for R@K: given, or the run's; none -> R@K skipped with a note (not zeros).
+
+def _open_bank(
+    bank: Optional[Union[str, Path]], engine: Any, scene: Any, notes: list[str]
+) -> tuple[Any, Optional[str]]:
+    """(the segment bank for R@K, its path): the given one or the run's, checked against the
+    scene; (None, None) with a note in ``notes`` when there is none."""
     bank_obj, bank_path = None, None
     bank_arg = bank if bank is not None else engine.meta.get("bank")
     if bank_arg:
@@ -628,141 +726,167 @@ def evaluate_run(
             notes.append(f"R@K not computed: the run's segment bank {bank_arg} does not exist (pass --bank)")
         else:
             bank_obj, bank_path = SegmentBank.open(bank_arg), str(bank_arg)
-            bank_obj.validate_against(scene_obj)
+            bank_obj.validate_against(scene)
     else:
         notes.append("R@K not computed: the run records no segment bank (pass --bank)")
+    return bank_obj, bank_path
 
-    all_categories = list(dict.fromkeys(c for f in frames for c in f.categories))
-    slugs = dict(zip(all_categories, unique_slugs(all_categories)))
-    npy_mode = next((QUERY_MODES[m] for m in MODES if m in modes and QUERY_MODES[m].writes_npy), None)
-    one_map = [m for m in modes if not QUERY_MODES[m].from_scales]  # answered by the engine directly
-    # The modes made from every scale's maps share one pass: the oracle's scorer hook hands them over.
-    render_modes = one_map + ([ORACLE.name] if any(m in FROM_SCALES for m in modes) else [])
-    heldout = set(int(v) for v in engine.meta.get("heldout_views", []) or [])
-    train_views = engine.meta.get("train_views")
 
-    per_view: dict[int, _ViewMaps] = {}
-    retrieval = {m: {b: _RetrievalAcc() for b in protocols} for m in modes}
-    ap_pairs: dict[str, dict[str, list[dict]]] = {m: {b: [] for b in protocols} for m in modes}
-    view_info: list[dict] = []
-    relevancy_files: dict[str, dict[str, str]] = {}
-    # Ground truth of every frame before any rendering, so a label of the wrong size fails fast.
+def _frame_targets(engine: Any, frames: Sequence[Any], rescale_labels: bool, label_dir: Path) -> dict[str, list]:
+    """Ground truth of every frame at its render size, before any rendering, so a label of the
+    wrong size fails fast (InputError naming the label file)."""
     frame_gt: dict[str, list] = {}
     for frame in frames:
         camera = engine.camera(frame.view_index)[0]
         try:
-            frame_gt[frame.frame_name] = frame_targets(frame, (camera.height, camera.width), config.rescale_labels)[0]
+            frame_gt[frame.frame_name] = frame_targets(frame, (camera.height, camera.width), rescale_labels)[0]
         except ValueError as e:
             raise InputError(
                 label_dir / f"{frame.frame_name}.json", f"{e} (render size; pass --rescale-labels to scale the labels)"
             ) from None
-    if on_ready is not None:
-        on_ready()
-    for frame in tqdm(frames, desc="eval views", unit="view", disable=not config.progress):
-        idx = frame.view_index
-        categories = frame.categories
-        if not categories:
-            continue
-        target_list = frame_gt[frame.frame_name]
-        targets = {t.category: t for t in target_list}
-        t0 = time.perf_counter()
-        view = engine.render_view(idx, modes=render_modes, rgb=False)
-        t1 = time.perf_counter()
-        maps: dict = {}
-        choices: dict = {}
-        for m in one_map:
-            rel = engine.query(view, categories, mode=m).relevancy.float().cpu().numpy()
-            maps[m] = {b: {"seg": rel, "loc": rel} for b in protocols}
-        all_scales = None
-        if any(m in FROM_SCALES for m in modes):
-            smaps, choices, all_scales = _scale_maps(
-                engine,
-                view,
-                categories,
-                targets,
-                modes,
-                protocols,
-                keep_all=(npy_mode is not None and npy_mode.per_scale and relevancy_dir is not None),
-            )
-            maps.update(smaps)
-        t2 = time.perf_counter()
-        per_view[idx] = _ViewMaps(frame.frame_name, categories, maps, choices)
+    return frame_gt
 
-        # AP of each scored pair against the exact mask (else the polygon mask).
-        exact_masks = exact.masks(idx, [c for c in categories if c in targets], (view.height, view.width))
-        for k, c in enumerate(categories):
-            if c not in targets:
-                continue
-            mask, kind = (
-                (exact_masks[c], "exact") if c in exact_masks and exact_masks[c].any() else (targets[c].mask, "polygon")
-            )
-            for m in modes:
-                done: dict[int, float] = {}  # the same map under both boxes is ranked once
-                for b in protocols:
-                    seg = maps[m][b]["seg"]
-                    key = id(seg)
-                    if key not in done:
-                        done[key] = average_precision(seg[k], mask)
-                    ap_pairs[m][b].append({"frame": frame.frame_name, "query": c, "ap": done[key], "mask": kind})
 
-        if relevancy_dir is not None and npy_mode is not None:
-            files = relevancy_files.setdefault(view.name, {})
-            for k, c in enumerate(categories):
-                path = Path(relevancy_dir) / view.name / f"{slugs[c]}.npy"
-                if not npy_mode.per_scale:
-                    arr = maps[npy_mode.name]["exact"]["seg"][k]
-                else:
-                    assert all_scales is not None  # a per-scale npy_mode with relevancy_dir: _scale_maps kept them
-                    arr = all_scales[k]
-                write_npy(path, np.ascontiguousarray(arr, dtype=np.float32))
-                files[c] = str(path)
-
-        if bank_obj is not None and target_list:
-            rec = bank_obj.record(bank_obj.index(scene_obj.image_names[idx]))
-            layers = np.asarray(rec.layers)
-            if layers.shape[1:] != (view.height, view.width):
-                assert bank_path is not None  # set together with bank_obj
-                raise InputError(
-                    Path(bank_path) / "bank.json",
-                    f"segments of {view.name} are {layers.shape[2]}x{layers.shape[1]} but the "
-                    f"render is {view.width}x{view.height}",
-                )
-            S = rec.num_segments
-            scored = [c for c in categories if c in targets]
-            positives = [
-                np.flatnonzero(segment_label_iou(layers, targets[c].mask, S) >= config.retrieval_iou).tolist()
-                for c in scored
-            ]
-            rows = [categories.index(c) for c in scored]
-            for m in modes:
-                for b in protocols:
-                    retrieval[m][b].add(
-                        frame.frame_name, maps[m][b]["seg"][rows], scored, positives, layers, S, config.ks
-                    )
-        view_info.append(
-            {
-                "view_index": idx,
-                "frame": frame.frame_name,
-                "name": view.name,
-                "heldout": (idx in heldout) if train_views is not None else None,
-                "categories": len(categories),
-                "render_s": t1 - t0,
-                "query_s": t2 - t1,
-            }
+def _evaluate_view(ev: _Evaluation, frame: Any, target_list: list) -> None:
+    """Render one labelled view, keep each mode's maps of its queries, and add its AP pairs,
+    relevancy files, retrieval ranks and timings to ``ev``."""
+    idx = frame.view_index
+    categories = frame.categories
+    targets = {t.category: t for t in target_list}
+    t0 = time.perf_counter()
+    view = ev.engine.render_view(idx, modes=ev.render_modes, rgb=False)
+    t1 = time.perf_counter()
+    maps: dict = {}
+    choices: dict = {}
+    for m in ev.one_map:
+        rel = ev.engine.query(view, categories, mode=m).relevancy.float().cpu().numpy()
+        maps[m] = {b: {"seg": rel, "loc": rel} for b in ev.protocols}
+    all_scales = None
+    if any(m in FROM_SCALES for m in ev.modes):
+        smaps, choices, all_scales = _scale_maps(
+            ev.engine,
+            view,
+            categories,
+            targets,
+            ev.modes,
+            ev.protocols,
+            keep_all=(ev.npy_mode is not None and ev.npy_mode.per_scale and ev.relevancy_dir is not None),
         )
+        maps.update(smaps)
+    t2 = time.perf_counter()
+    ev.per_view[idx] = _ViewMaps(frame.frame_name, categories, maps, choices)
+    _add_ap_pairs(ev, frame.frame_name, idx, view, categories, targets, maps)
+    if ev.relevancy_dir is not None and ev.npy_mode is not None:
+        _write_relevancy(ev, view, categories, maps, all_scales)
+    if ev.bank is not None and target_list:
+        _add_retrieval(ev, frame.frame_name, idx, view, categories, targets, maps)
+    ev.view_info.append(
+        {
+            "view_index": idx,
+            "frame": frame.frame_name,
+            "name": view.name,
+            "heldout": (idx in ev.heldout) if ev.train_views is not None else None,
+            "categories": len(categories),
+            "render_s": t1 - t0,
+            "query_s": t2 - t1,
+        }
+    )
 
-    # Protocol passes: segmentation maps -> IoU, localization maps -> hits, per mode and box.
+
+def _add_ap_pairs(
+    ev: _Evaluation, frame: str, idx: int, view: Any, categories: list[str], targets: dict, maps: dict
+) -> None:
+    """AP of each scored pair of the view against the exact mask (else the polygon mask)."""
+    exact_masks = ev.exact.masks(idx, [c for c in categories if c in targets], (view.height, view.width))
+    for k, c in enumerate(categories):
+        if c not in targets:
+            continue
+        mask, kind = (
+            (exact_masks[c], "exact") if c in exact_masks and exact_masks[c].any() else (targets[c].mask, "polygon")
+        )
+        for m in ev.modes:
+            done: dict[int, float] = {}  # the same map under both boxes is ranked once
+            for b in ev.protocols:
+                seg = maps[m][b]["seg"]
+                key = id(seg)
+                if key not in done:
+                    done[key] = average_precision(seg[k], mask)
+                ev.ap_pairs[m][b].append({"frame": frame, "query": c, "ap": done[key], "mask": kind})
+
+
+def _write_relevancy(
+    ev: _Evaluation, view: Any, categories: list[str], maps: dict, all_scales: Optional[np.ndarray]
+) -> None:
+    """The npy mode's map of each query of the view (every scale's for a per-scale mode) as a
+    float32 ``.npy`` in ``relevancy_dir/<view>/``."""
+    from ..io import write_npy
+
+    assert ev.relevancy_dir is not None and ev.npy_mode is not None  # the caller's condition
+    files = ev.relevancy_files.setdefault(view.name, {})
+    for k, c in enumerate(categories):
+        path = Path(ev.relevancy_dir) / view.name / f"{ev.slugs[c]}.npy"
+        if not ev.npy_mode.per_scale:
+            arr = maps[ev.npy_mode.name]["exact"]["seg"][k]
+        else:
+            assert all_scales is not None  # a per-scale npy_mode with relevancy_dir: _scale_maps kept them
+            arr = all_scales[k]
+        write_npy(path, np.ascontiguousarray(arr, dtype=np.float32))
+        files[c] = str(path)
+
+
+def _add_retrieval(
+    ev: _Evaluation, frame: str, idx: int, view: Any, categories: list[str], targets: dict, maps: dict
+) -> None:
+    """Rank the view's bank segments for each scored query, per mode and box (R@K)."""
+    rec = ev.bank.record(ev.bank.index(ev.scene.image_names[idx]))
+    layers = np.asarray(rec.layers)
+    if layers.shape[1:] != (view.height, view.width):
+        assert ev.bank_path is not None  # set together with the bank
+        raise InputError(
+            Path(ev.bank_path) / "bank.json",
+            f"segments of {view.name} are {layers.shape[2]}x{layers.shape[1]} but the "
+            f"render is {view.width}x{view.height}",
+        )
+    S = rec.num_segments
+    scored = [c for c in categories if c in targets]
+    positives = [
+        np.flatnonzero(segment_label_iou(layers, targets[c].mask, S) >= ev.config.retrieval_iou).tolist()
+        for c in scored
+    ]
+    rows = [categories.index(c) for c in scored]
+    for m in ev.modes:
+        for b in ev.protocols:
+            ev.retrieval[m][b].add(frame, maps[m][b]["seg"][rows], scored, positives, layers, S, ev.config.ks)
+
+
+def _protocol_scores(ev: _Evaluation, labels: Sequence[Any], num_views: int) -> dict[str, dict[str, SceneScores]]:
+    """Protocol passes over the kept maps, per mode and box: segmentation maps -> IoU,
+    localization maps -> hits, combined with the scales each mode chose."""
     scores: dict[str, dict[str, SceneScores]] = {}
-    for m in modes:
+    for m in ev.modes:
         scores[m] = {}
-        for b, cfg in protocols.items():
-            seg = evaluate_scene(_stored(per_view, m, b, "seg"), labels, num_views, cfg, label_dir, progress=False)
-            loc = evaluate_scene(_stored(per_view, m, b, "loc"), labels, num_views, cfg, label_dir, progress=False)
+        for b, cfg in ev.protocols.items():
+            seg = evaluate_scene(
+                _stored(ev.per_view, m, b, "seg"), labels, num_views, cfg, ev.label_dir, progress=False
+            )
+            loc = evaluate_scene(
+                _stored(ev.per_view, m, b, "loc"), labels, num_views, cfg, ev.label_dir, progress=False
+            )
             ch = None
             if m in SCALE_MODES:
-                ch = {(vm.frame, c): v for vm in per_view.values() for c, v in vm.choices[m][b].items()}
+                ch = {(vm.frame, c): v for vm in ev.per_view.values() for c, v in vm.choices[m][b].items()}
             scores[m][b] = _combine(seg, loc, ch)
+    return scores
 
+
+def _eval_result(
+    ev: _Evaluation, scores: dict[str, dict[str, SceneScores]], encoder: Any, t_start: float
+) -> EvalResult:
+    """The :class:`EvalResult` of the scores and what the pass collected, with the closing
+    notes (dropped objects, held-out views, the teacher)."""
+    from ..query.composite import temperature_name
+
+    engine, config, modes, protocols, notes = ev.engine, ev.config, ev.modes, ev.protocols, ev.notes
     any_scores = scores[modes[0]]
     boxes = {
         b: {
@@ -778,17 +902,17 @@ def evaluate_run(
             f"{ref.skipped_objects} labelled object(s) have a polygon outside the image and were "
             f"dropped; {ref.skipped_categories} (frame, category) pair(s) were left empty and not scored"
         )
-    held = [v for v in view_info if v["heldout"]]
-    if train_views is not None:
+    held = [v for v in ev.view_info if v["heldout"]]
+    if ev.train_views is not None:
         notes.append(
-            f"{len(held)} of {len(view_info)} labelled views were held out from field training "
+            f"{len(held)} of {len(ev.view_info)} labelled views were held out from field training "
             "(the others were training views)"
         )
     enc_spec = dict(engine.meta.get("encoder_spec") or {})
     description = (
         enc_spec.get("description")
         or getattr(encoder, "description", None)
-        or (bank_obj.encoder_spec.get("description") if bank_obj is not None else None)
+        or (ev.bank.encoder_spec.get("description") if ev.bank is not None else None)
         or "unknown"
     )
     if enc_spec.get("name") == "captions":
@@ -798,12 +922,13 @@ def evaluate_run(
             "the protocol is not tuned to hide it."
         )
     labels_of_scales = list(engine.scale_labels)
-    result = EvalResult(
-        scene=Path(scene_obj.root).name,
-        run_dir=str(run_dir),
-        scene_dir=str(scene_obj.root),
-        label_dir=str(label_dir),
-        bank_dir=bank_path,
+    types, kinds, ap_pairs = ev.types, ev.kinds, ev.ap_pairs
+    return EvalResult(
+        scene=Path(ev.scene.root).name,
+        run_dir=str(ev.run_dir),
+        scene_dir=str(ev.scene.root),
+        label_dir=str(ev.label_dir),
+        bank_dir=ev.bank_path,
         encoder={
             "name": enc_spec.get("name", getattr(encoder, "name", None)),
             "description": description,
@@ -829,27 +954,26 @@ def evaluate_run(
         retrieval=(
             {
                 m: {b: acc.summary(config.ks, config.retrieval_iou) for b, acc in by.items()}
-                for m, by in retrieval.items()
+                for m, by in ev.retrieval.items()
             }
-            if bank_obj is not None
+            if ev.bank is not None
             else {}
         ),
         per_query={
             m: {b: _per_query(s.pairs, types, ap_pairs[m][b]) for b, s in by.items()} for m, by in scores.items()
         },
-        query_types={c: types.get(c, "unknown") for c in all_categories},
-        query_types_source=types_source,
-        views=view_info,
-        relevancy_files=relevancy_files,
-        relevancy_mode=npy_mode.name if relevancy_dir is not None and npy_mode is not None else None,
+        query_types={c: types.get(c, "unknown") for c in ev.all_categories},
+        query_types_source=ev.types_source,
+        views=ev.view_info,
+        relevancy_files=ev.relevancy_files,
+        relevancy_mode=ev.npy_mode.name if ev.relevancy_dir is not None and ev.npy_mode is not None else None,
         ap={m: {b: ap_summary(v) for b, v in by.items()} for m, by in ap_pairs.items()},
         kinds={m: {b: kind_scores(s.pairs, ap_pairs[m][b], kinds) for b, s in by.items()} for m, by in scores.items()},
-        query_kinds={c: kinds.get(c, "unknown") for c in all_categories},
-        query_kinds_source=kinds_source,
+        query_kinds={c: kinds.get(c, "unknown") for c in ev.all_categories},
+        query_kinds_source=ev.kinds_source,
         notes=notes,
         seconds=time.perf_counter() - t_start,
     )
-    return result
 
 
 def ap_summary(pairs: Sequence[Mapping]) -> dict:

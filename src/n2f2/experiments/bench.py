@@ -42,7 +42,7 @@ import shutil
 import time
 from dataclasses import asdict, replace
 from pathlib import Path
-from typing import Callable, Mapping, Optional, Sequence, Union
+from typing import Any, Callable, Mapping, Optional, Sequence, Union
 
 from ..errors import InputError
 from ..pipeline.presets import get_preset
@@ -185,21 +185,9 @@ def run_bench(
     """Run every requested variant (see the module docstring); writes ``OUT/bench.json``,
     ``OUT/bench.md`` and ``OUT/*.png`` and returns the bench.json content."""
     from ..io import claim_out_dir, write_json, write_text
-    from ..query.composite import temperature_name
     from .claims import evaluate_claims
-    from .evaluate import (
-        MemoEncoder,
-        cosine_variant,
-        evaluate_lift,
-        evaluate_lift_3d,
-        evaluate_variant,
-        evaluate_variant_3d,
-        gamma_statistics,
-    )
-    from .memory import field_parameter_count
+    from .evaluate import MemoEncoder
     from .report import markdown_bench, method_rows, protocol3d_rows, write_plots
-    from .timing import timing_breakdown
-    from .training import lift_variant, train_variant
 
     config = config or BenchConfig()
     out = Path(out)
@@ -215,6 +203,50 @@ def run_bench(
 
     # One text encoder for every evaluation (each engine would load its own and re-encode).
     encoder = MemoEncoder(get_encoder(SegmentBank.open(data.bank_dir).encoder_spec, device=config.device))
+
+    runs, variant_runs = _train_variants(out, config, data, log, stage_s)
+    _build_lifts(out, config, data, runs, variant_runs, log, stage_s)
+    _evaluate_runs(out, config, data, runs, variant_runs, encoder, log, stage_s)
+    gamma = _temperature_sweep(out, config, data, runs, variant_runs, encoder, log, stage_s)
+    main_name = variant_runs.get("nested")
+
+    paper_params = None
+    if "mlp" in variant_runs and main_name is not None:
+        from ..field import FieldConfig
+        from .memory import field_parameter_count
+
+        E = int(encoder_dim(data))
+        paper_params = {b: field_parameter_count(FieldConfig.paper(backbone=b), E) for b in ("triplane", "mlp")}
+
+    timing = None
+    if main_name is not None:
+        from .timing import timing_breakdown
+
+        t0 = time.perf_counter()
+        log("[bench] timing breakdown (Table 4)")
+        levels_dir = out / "runs" / variant_runs["levels"] if "levels" in variant_runs else None
+        timing = timing_breakdown(out / "runs" / main_name, levels_dir, data, config, encoder)
+        stage_s["timing"] = time.perf_counter() - t0
+
+    result = _bench_result(config, data, runs, variant_runs, gamma, timing, paper_params, stage_s, load_start)
+    result["claims"] = evaluate_claims(result, runs, variant_runs)
+    result["methods"] = method_rows(result, runs, variant_runs)
+    result["protocol3d"] = protocol3d_rows(runs)
+    result["seconds"] = time.perf_counter() - t_start
+    plots = write_plots(out, result, runs, variant_runs)
+    result["plots"] = {k: str(v) for k, v in plots.items()}
+    write_text(out / "bench.md", markdown_bench(result, runs, variant_runs))
+    write_json(out / "bench.json", {**result, "evals": {n: e["evals"] for n, e in runs.items()}})
+    log(f"[bench] done in {result['seconds']:.0f} s -> {out / 'bench.md'}")
+    return result
+
+
+def _train_variants(
+    out: Path, config: BenchConfig, data: BenchData, log: Callable[[str], None], stage_s: dict[str, float]
+) -> tuple[dict[str, dict], dict[str, str]]:
+    """(run name -> its entry, variant -> run name): one entry per run of the requested
+    variants (variants sharing a run share the entry), each field trained into ``OUT/runs/``."""
+    from .training import train_variant
 
     specs = [VARIANTS[v] for v in config.variants]
     runs: dict[str, dict] = {}  # run name -> {"train", "evals", "cosine"}
@@ -241,7 +273,22 @@ def run_bench(
             t0 = time.perf_counter()
             entry["train"] = train_variant(spec, data, run_dir, config, log)
             stage_s[f"train {name}"] = time.perf_counter() - t0
-    # The lift after the fields: a trained run's training writes it from its blend cache.
+    return runs, variant_runs
+
+
+def _build_lifts(
+    out: Path,
+    config: BenchConfig,
+    data: BenchData,
+    runs: dict[str, dict],
+    variant_runs: Mapping[str, str],
+    log: Callable[[str], None],
+    stage_s: dict[str, float],
+) -> None:
+    """The training-free runs, after the fields: a trained run's training writes the lift from
+    its blend cache."""
+    from .training import lift_variant
+
     for name, entry in runs.items():
         if entry["training_free"]:
             source = _lift_source(runs, variant_runs)
@@ -255,6 +302,22 @@ def run_bench(
                 log,
             )
             stage_s[f"build {name}"] = time.perf_counter() - t0
+
+
+def _evaluate_runs(
+    out: Path,
+    config: BenchConfig,
+    data: BenchData,
+    runs: dict[str, dict],
+    variant_runs: Mapping[str, str],
+    encoder: Any,
+    log: Callable[[str], None],
+    stage_s: dict[str, float],
+) -> None:
+    """Every run's 2D evaluation (the N2F2 run's also with the paper's test-time rendering),
+    held-out cosines where wanted, and 3D evaluation, into its entry."""
+    from .evaluate import cosine_variant, evaluate_lift, evaluate_lift_3d, evaluate_variant, evaluate_variant_3d
+
     for name, entry in runs.items():
         run_dir = out / "runs" / name
         t0 = time.perf_counter()
@@ -281,7 +344,22 @@ def run_bench(
         entry["eval3d"] = evaluate_variant_3d(run_dir, data, run_dir / "eval3d", config, log, encoder)
         stage_s[f"eval 3D {name}"] = time.perf_counter() - t0
 
-    # Composite temperature on the k = 1 nested TriPlane run.
+
+def _temperature_sweep(
+    out: Path,
+    config: BenchConfig,
+    data: BenchData,
+    runs: dict[str, dict],
+    variant_runs: Mapping[str, str],
+    encoder: Any,
+    log: Callable[[str], None],
+    stage_s: dict[str, float],
+) -> list[dict]:
+    """Composite's temperature on the k = 1 nested TriPlane run: gamma's statistics at each
+    temperature, composite evaluated at each one but T = 1 (already done) and with n2f2's
+    default weights; nothing without that run."""
+    from .evaluate import evaluate_variant, gamma_statistics
+
     gamma: list[dict] = []
     main_name = variant_runs.get("nested")
     if main_name is not None:
@@ -303,23 +381,24 @@ def run_bench(
             main_dir, data, ["composite"], main_dir / f"eval_{UNIT}", config, 1.0, log, encoder, weights="unit"
         )
         stage_s["temperature"] = time.perf_counter() - t0
+    return gamma
 
-    paper_params = None
-    if "mlp" in variant_runs and main_name is not None:
-        from ..field import FieldConfig
 
-        E = int(encoder_dim(data))
-        paper_params = {b: field_parameter_count(FieldConfig.paper(backbone=b), E) for b in ("triplane", "mlp")}
+def _bench_result(
+    config: BenchConfig,
+    data: BenchData,
+    runs: Mapping[str, dict],
+    variant_runs: dict[str, str],
+    gamma: list[dict],
+    timing: Optional[dict],
+    paper_params: Optional[dict],
+    stage_s: dict[str, float],
+    load_start: Sequence[float],
+) -> dict:
+    """``bench.json``'s content before the claims, methods, 3D rows, seconds and plots."""
+    from ..query.composite import temperature_name
 
-    timing = None
-    if main_name is not None:
-        t0 = time.perf_counter()
-        log("[bench] timing breakdown (Table 4)")
-        levels_dir = out / "runs" / variant_runs["levels"] if "levels" in variant_runs else None
-        timing = timing_breakdown(out / "runs" / main_name, levels_dir, data, config, encoder)
-        stage_s["timing"] = time.perf_counter() - t0
-
-    result = {
+    return {
         "format": "n2f2-bench-v1",
         # JSON has no infinity: the uniform temperature is recorded by its name (query/composite.py).
         "config": {**asdict(config), "temperatures": [temperature_name(T) for T in config.temperatures]},
@@ -348,16 +427,6 @@ def run_bench(
         "stage_seconds": stage_s,
         "load_average": {"start": list(load_start), "end": list(os.getloadavg())},
     }
-    result["claims"] = evaluate_claims(result, runs, variant_runs)
-    result["methods"] = method_rows(result, runs, variant_runs)
-    result["protocol3d"] = protocol3d_rows(runs)
-    result["seconds"] = time.perf_counter() - t_start
-    plots = write_plots(out, result, runs, variant_runs)
-    result["plots"] = {k: str(v) for k, v in plots.items()}
-    write_text(out / "bench.md", markdown_bench(result, runs, variant_runs))
-    write_json(out / "bench.json", {**result, "evals": {n: e["evals"] for n, e in runs.items()}})
-    log(f"[bench] done in {result['seconds']:.0f} s -> {out / 'bench.md'}")
-    return result
 
 
 def encoder_dim(data: BenchData) -> int:

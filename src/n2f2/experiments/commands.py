@@ -18,7 +18,7 @@ def _stage_configs() -> dict[type, tuple[str, ...]]:
     """Settings of the cpu preset's stages the bench can change in every run (BenchConfig fields
     of the same names), by config class: their help, type and choices are the fields' own
     (n2f2.config.option)."""
-    from ..train.trainer import TrainConfig
+    from ..train.config import TrainConfig
 
     return {LiftSettings: ("scale_measure",), TrainConfig: ("scale_jitter",)}
 

@@ -36,7 +36,9 @@ def train_variant(
     from ..io import write_json
     from ..pipeline.presets import get_preset
     from ..segments.bank import SegmentBank
-    from ..train.trainer import CHECKPOINT_NAME, FIELD_NAME, REPORT_NAME, saved_configs, train_field
+    from ..train.checkpoint import saved_configs
+    from ..train.config import CHECKPOINT_NAME, FIELD_NAME, REPORT_NAME
+    from ..train.trainer import train_field
 
     field_config = variant_field_config(spec, config.dim)
     train_config = replace(
@@ -128,14 +130,14 @@ def train_variant(
 def _checkpoint_step(run_dir: Path) -> int:
     """The step of ``run_dir``'s checkpoint (what a resumed run continues from)."""
     from ..io import load_torch
-    from ..train.trainer import CHECKPOINT_NAME
+    from ..train.config import CHECKPOINT_NAME
 
     return int(load_torch(run_dir / CHECKPOINT_NAME)["step"])
 
 
 def _same_inputs(run_dir: Path, paths: Mapping[str, str]) -> bool:
     """The run's recorded scene / bank / Gaussians are the ones of this bench."""
-    from ..train.trainer import REPORT_NAME
+    from ..train.config import REPORT_NAME
 
     report = run_dir / REPORT_NAME
     if not report.is_file():  # an interrupted first session: the checkpoint's meta decides
@@ -228,7 +230,7 @@ def lift_variant(
 
 
 def _train_report(run_dir: Path) -> Optional[dict]:
-    from ..train.trainer import REPORT_NAME
+    from ..train.config import REPORT_NAME
 
     path = run_dir / REPORT_NAME
     return json.loads(path.read_text()) if path.is_file() else None
@@ -252,7 +254,7 @@ def _build_lift(
     from ..pipeline.presets import get_preset
     from ..query.lifted import build_lift
     from ..segments.bank import SegmentBank
-    from ..train.trainer import split_views
+    from ..train.geometry import split_views
 
     scene = load_scene(data.scene_dir)
     bank = SegmentBank.open(data.bank_dir)

@@ -20,7 +20,7 @@ import math
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Optional, Sequence, Union
+from typing import Any, Optional, Sequence, Union
 
 import numpy as np
 import torch
@@ -348,6 +348,36 @@ def fit_gaussians(
         return _fit_gaussians(scene, config, out_dir, resume, init, progress, stop_after)
 
 
+@dataclass
+class _Fit:
+    """One fit: what it reads (the scene, its training images, the settings) and what its loop
+    carries from step to step, most of which a checkpoint saves."""
+
+    scene: Scene
+    config: FitConfig
+    ck_path: Path
+    extent: float
+    device: torch.device
+    progress: bool
+    g: Gaussians
+    adam: GaussianAdam
+    stats: DensifyStats  # view-space gradients since the last densification
+    generator: torch.Generator  # every random draw of the fit
+    sampler: _ViewSampler
+    env: Optional[Environment]  # the learned background, if any
+    env_adam: Optional[torch.optim.Adam]  # its optimiser, created with it
+    loss_curve: list  # (step, loss) every log_every steps
+    skipped: int  # steps skipped for a non-finite loss, gradient or update
+    train_time: float
+    targets: dict[int, Tensor] = field(default_factory=dict)  # training view -> image [H, W, 3]
+    k: int = 0  # SH coefficients per channel at the start
+    t_train: float = 0.0  # when train_time was last brought up to date
+    ema: Optional[float] = None  # of the loss, for the progress bar
+    bad_run: int = 0  # skipped steps in a row: MAX_BAD_STEPS of them stop the fit
+    coarse_targets: dict[tuple[int, float], Tensor] = field(default_factory=dict)  # (view, factor) -> image
+    step_times: list[float] = field(default_factory=list)
+
+
 def _fit_gaussians(
     scene: Scene,
     config: FitConfig,
@@ -358,8 +388,6 @@ def _fit_gaussians(
     stop_after: Optional[int],
 ) -> FitReport:
     from tqdm.auto import tqdm
-
-    from ..render.numba_backend import kernel_threads
 
     t_start = time.perf_counter()
     out_dir = Path(out_dir)
@@ -384,6 +412,37 @@ def _fit_gaussians(
     if ck is None and config.background_from_images:
         config = replace(config, background=border_color(scene, train_views), background_from_images=False)
 
+    f, start = _initial_fit(scene, config, init, train_views, ck, ck_path, extent, device, progress)
+    f.targets = {i: torch.from_numpy(scene.image(i)).to(device) for i in train_views}
+    f.k = f.g.sh.shape[1]
+    end = config.steps if stop_after is None else min(config.steps, stop_after)
+    bar = tqdm(total=config.steps, initial=start, disable=not progress, desc="fit-gaussians", dynamic_ncols=True)
+    f.t_train = time.perf_counter()
+    step = start
+    for step in range(start + 1, end + 1):
+        _fit_step(f, step, bar)
+    bar.close()
+    if f.step_times and f.bad_run == len(f.step_times):
+        raise _fit_stopped(step, f"all {f.bad_run} steps of this run")
+    f.train_time += time.perf_counter() - f.t_train
+    final = max(step, start)
+    _save_fit_checkpoint(f, final)
+    return _fit_report(f, final, train_views, test_views, depth_views, out_dir, ck, t_start)
+
+
+def _initial_fit(
+    scene: Scene,
+    config: FitConfig,
+    init: Union[None, str, Gaussians],
+    train_views: list[int],
+    ck: Optional[dict],
+    ck_path: Path,
+    extent: float,
+    device: torch.device,
+    progress: bool,
+) -> tuple[_Fit, int]:
+    """(the fit's state, the step it starts after): new Gaussians (``init``), optimiser and
+    background seeded with ``config.seed``, or the checkpoint ``ck``'s state."""
     generator = torch.Generator().manual_seed(config.seed)
     sampler = _ViewSampler(train_views, generator)
     adam = GaussianAdam(eps=config.adam_eps)
@@ -410,134 +469,172 @@ def _fit_gaussians(
             with torch.no_grad():
                 env.sh.copy_(ck["environment"]["sh"])
             env_adam.load_state_dict(ck["environment"]["optimizer"])
+    fit = _Fit(
+        scene=scene,
+        config=config,
+        ck_path=ck_path,
+        extent=extent,
+        device=device,
+        progress=progress,
+        g=g,
+        adam=adam,
+        stats=stats,
+        generator=generator,
+        sampler=sampler,
+        env=env,
+        env_adam=env_adam,
+        loss_curve=loss_curve,
+        skipped=skipped,
+        train_time=train_time,
+    )
+    return fit, start
 
-    targets = {i: torch.from_numpy(scene.image(i)).to(device) for i in train_views}
-    k = g.sh.shape[1]
 
-    def save_checkpoint(step: int) -> None:
-        if _state_finite(g, adam) and (
-            env is None or bool(torch.isfinite(env.sh).all())
-        ):  # never persist a broken state
-            state = _checkpoint(step, g, adam, stats, config, generator, sampler, loss_curve, skipped, train_time)
-            if env is not None:
-                assert env_adam is not None  # created together with env
-                state["environment"] = {"sh": env.sh.detach().cpu().clone(), "optimizer": env_adam.state_dict()}
-            save_torch(ck_path, state, keep=True)  # resumable state: kept if the command fails
-
-    end = config.steps if stop_after is None else min(config.steps, stop_after)
-    bar = tqdm(total=config.steps, initial=start, disable=not progress, desc="fit-gaussians", dynamic_ncols=True)
-    t_train = time.perf_counter()
-    ema = None
-    step = start
-    bad_run = 0  # skipped steps in a row: MAX_BAD_STEPS of them stop the fit
-    coarse_targets: dict[tuple[int, float], Tensor] = {}
-    step_times: list[float] = []
-    for step in range(start + 1, end + 1):
-        t_step = time.perf_counter()
-        if step % config.sh_degree_interval == 0 and g.sh_degree < g.max_sh_degree:
-            g.sh_degree += 1
-        view = sampler.next()
-        camera = scene.cameras[view]
-        target = targets[view]
-        factor = resolution_factor(config, step)
-        if factor != 1.0:
-            camera = camera.downscaled(factor)
-            if (view, factor) not in coarse_targets:
-                coarse_targets[(view, factor)] = downsample_image(target, camera.height, camera.width)
-            target = coarse_targets[(view, factor)]
-        elif coarse_targets:
-            coarse_targets.clear()  # the schedule has ended
-        if config.depth_spread_weight > 0:
-            out, spread = _render_with_depth_spread(g, camera, config, extent, env)
-            image = out.features[..., :3]
-        else:
-            out, spread = _render(g, camera, config, env), None
-            image = out.features  # not clamped: 3DGS trains on the raw composite
-        out.means2d.retain_grad()
-        loss = photometric_loss(image, target, config.lambda_dssim)
-        if spread is not None:
-            loss = loss + config.depth_spread_weight * depth_spread_penalty(spread)
-        g.zero_grad(set_to_none=True)
-        if env is not None:
-            assert env_adam is not None  # created together with env
-            env_adam.zero_grad(set_to_none=True)
-        loss.backward()
-        # Parameter gradients are checked by the optimiser; it refuses non-finite steps.
-        grads_ok = bool(torch.isfinite(loss)) and (
-            out.means2d.grad is None or bool(torch.isfinite(out.means2d.grad).all())
+def _save_fit_checkpoint(f: _Fit, step: int) -> None:
+    """Write the checkpoint of ``step``, unless the state holds a non-finite value (never persist
+    a broken state)."""
+    if _state_finite(f.g, f.adam) and (f.env is None or bool(torch.isfinite(f.env.sh).all())):
+        state = _checkpoint(
+            step, f.g, f.adam, f.stats, f.config, f.generator, f.sampler, f.loss_curve, f.skipped, f.train_time
         )
-        env_ok = env is None or (env.sh.grad is not None and bool(torch.isfinite(env.sh.grad).all()))
-        ok = grads_ok and env_ok and adam.step(g.params(), learning_rates(config, step, extent, k, device))
-        if ok and env is not None:
-            assert env_adam is not None  # created together with env
-            env_adam.step()
-        g.zero_grad(set_to_none=True)
-        if not ok:
-            skipped += 1
-            bad_run += 1
-            if bad_run >= MAX_BAD_STEPS:
-                bar.close()
-                raise _fit_stopped(step, f"the last {bad_run} steps")
-        else:
-            bad_run = 0
-            if step < config.densify_until and out.means2d.grad is not None:
-                stats.add(out.means2d.grad, out.radii, camera.width, camera.height)
-            lv = float(loss.detach())
-            ema = lv if ema is None else 0.9 * ema + 0.1 * lv
-            if step % config.log_every == 0 or step == 1:
-                loss_curve.append((step, lv))
-            if step % config.log_every == 0 and progress:
-                bar.set_postfix(
-                    loss=f"{ema:.4f}", psnr=f"{psnr(image.detach().clamp(0, 1), target):.2f}", G=g.num, refresh=False
-                )
-        if step < config.densify_until:
-            if step > config.densify_from and step % config.densify_every == 0:
-                densify_and_prune(
-                    g, adam, stats, config, extent, prune_big=0 < config.opacity_reset_every < step, generator=generator
-                )
-                stats = DensifyStats.zeros(g.num, device)
-            if config.opacity_reset_every and step % config.opacity_reset_every == 0:
-                reset_opacity(g, adam)
-        step_times.append(time.perf_counter() - t_step)
-        bar.update(1)
-        if config.checkpoint_every and step % config.checkpoint_every == 0:
-            train_time += time.perf_counter() - t_train
-            t_train = time.perf_counter()
-            save_checkpoint(step)
-    bar.close()
-    if step_times and bad_run == len(step_times):
-        raise _fit_stopped(step, f"all {bad_run} steps of this run")
-    train_time += time.perf_counter() - t_train
-    final = max(step, start)
-    save_checkpoint(final)
+        if f.env is not None:
+            assert f.env_adam is not None  # created together with env
+            state["environment"] = {"sh": f.env.sh.detach().cpu().clone(), "optimizer": f.env_adam.state_dict()}
+        save_torch(f.ck_path, state, keep=True)  # resumable state: kept if the command fails
 
+
+def _fit_step(f: _Fit, step: int, bar: Any) -> None:
+    """Step ``step`` (1-based): render one training view (coarse-to-fine), the photometric loss
+    (plus the depth-spread penalty), the update unless something is not finite, the loss curve,
+    densification, and a checkpoint every ``checkpoint_every`` steps."""
+    t_step = time.perf_counter()
+    config, g, env = f.config, f.g, f.env
+    if step % config.sh_degree_interval == 0 and g.sh_degree < g.max_sh_degree:
+        g.sh_degree += 1
+    view = f.sampler.next()
+    camera = f.scene.cameras[view]
+    target = f.targets[view]
+    factor = resolution_factor(config, step)
+    if factor != 1.0:
+        camera = camera.downscaled(factor)
+        if (view, factor) not in f.coarse_targets:
+            f.coarse_targets[(view, factor)] = downsample_image(target, camera.height, camera.width)
+        target = f.coarse_targets[(view, factor)]
+    elif f.coarse_targets:
+        f.coarse_targets.clear()  # the schedule has ended
+    if config.depth_spread_weight > 0:
+        out, spread = _render_with_depth_spread(g, camera, config, f.extent, env)
+        image = out.features[..., :3]
+    else:
+        out, spread = _render(g, camera, config, env), None
+        image = out.features  # not clamped: 3DGS trains on the raw composite
+    out.means2d.retain_grad()
+    loss = photometric_loss(image, target, config.lambda_dssim)
+    if spread is not None:
+        loss = loss + config.depth_spread_weight * depth_spread_penalty(spread)
+    g.zero_grad(set_to_none=True)
+    if env is not None:
+        assert f.env_adam is not None  # created together with env
+        f.env_adam.zero_grad(set_to_none=True)
+    loss.backward()
+    # Parameter gradients are checked by the optimiser; it refuses non-finite steps.
+    grads_ok = bool(torch.isfinite(loss)) and (out.means2d.grad is None or bool(torch.isfinite(out.means2d.grad).all()))
+    env_ok = env is None or (env.sh.grad is not None and bool(torch.isfinite(env.sh.grad).all()))
+    ok = grads_ok and env_ok and f.adam.step(g.params(), learning_rates(config, step, f.extent, f.k, f.device))
+    if ok and env is not None:
+        assert f.env_adam is not None  # created together with env
+        f.env_adam.step()
+    g.zero_grad(set_to_none=True)
+    if not ok:
+        f.skipped += 1
+        f.bad_run += 1
+        if f.bad_run >= MAX_BAD_STEPS:
+            bar.close()
+            raise _fit_stopped(step, f"the last {f.bad_run} steps")
+    else:
+        f.bad_run = 0
+        if step < config.densify_until and out.means2d.grad is not None:
+            f.stats.add(out.means2d.grad, out.radii, camera.width, camera.height)
+        lv = float(loss.detach())
+        f.ema = lv if f.ema is None else 0.9 * f.ema + 0.1 * lv
+        if step % config.log_every == 0 or step == 1:
+            f.loss_curve.append((step, lv))
+        if step % config.log_every == 0 and f.progress:
+            bar.set_postfix(
+                loss=f"{f.ema:.4f}", psnr=f"{psnr(image.detach().clamp(0, 1), target):.2f}", G=g.num, refresh=False
+            )
+    _densify(f, step)
+    f.step_times.append(time.perf_counter() - t_step)
+    bar.update(1)
+    if config.checkpoint_every and step % config.checkpoint_every == 0:
+        f.train_time += time.perf_counter() - f.t_train
+        f.t_train = time.perf_counter()
+        _save_fit_checkpoint(f, step)
+
+
+def _densify(f: _Fit, step: int) -> None:
+    """Adaptive density control of step ``step``: clone, split and prune every
+    ``densify_every`` steps in the densification window, and the periodic opacity reset."""
+    config = f.config
+    if step < config.densify_until:
+        if step > config.densify_from and step % config.densify_every == 0:
+            densify_and_prune(
+                f.g,
+                f.adam,
+                f.stats,
+                config,
+                f.extent,
+                prune_big=0 < config.opacity_reset_every < step,
+                generator=f.generator,
+            )
+            f.stats = DensifyStats.zeros(f.g.num, f.device)
+        if config.opacity_reset_every and step % config.opacity_reset_every == 0:
+            reset_opacity(f.g, f.adam)
+
+
+def _fit_report(
+    f: _Fit,
+    final: int,
+    train_views: list[int],
+    test_views: list[int],
+    depth_views: list[int],
+    out_dir: Path,
+    ck: Optional[dict],
+    t_start: float,
+) -> FitReport:
+    """Evaluate the fitted Gaussians and write ``gaussians.ply``, the background (if learned)
+    and ``fit_report.json``; returns the report."""
+    from ..render.numba_backend import kernel_threads
+
+    config = f.config
     report = evaluate(
-        g,
-        scene,
+        f.g,
+        f.scene,
         train_views,
         test_views,
         config,
-        extent,
+        f.extent,
         renders_dir=out_dir / TEST_RENDERS_DIR,
-        env=env,
+        env=f.env,
         depth_views=depth_views,
     )
     report.update(
         steps=final,
-        train_time_s=train_time,
-        skipped_steps=skipped,
+        train_time_s=f.train_time,
+        skipped_steps=f.skipped,
         resumed_from=None if ck is None else int(ck["step"]),
-        loss_curve=_subsample(loss_curve, 200),
+        loss_curve=_subsample(f.loss_curve, 200),
         config=config.to_dict(),
         threads=kernel_threads(),  # the render's; torch's own operations run on one (above)
     )
-    if step_times:
+    if f.step_times:
         report.update(
-            step_time_median_s=float(np.median(step_times)), step_time_p95_s=float(np.percentile(step_times, 95))
+            step_time_median_s=float(np.median(f.step_times)),
+            step_time_p95_s=float(np.percentile(f.step_times, 95)),
         )
-    write_ply(out_dir / PLY_NAME, g)  # refuses non-finite values (cannot happen: steps are guarded)
-    if env is not None:
-        write_json(out_dir / BACKGROUND_NAME, env.to_dict())
+    write_ply(out_dir / PLY_NAME, f.g)  # refuses non-finite values (cannot happen: steps are guarded)
+    if f.env is not None:
+        write_json(out_dir / BACKGROUND_NAME, f.env.to_dict())
     report["wall_time_s"] = time.perf_counter() - t_start
     result = FitReport(**report)
     write_json(out_dir / REPORT_NAME, result.to_dict())

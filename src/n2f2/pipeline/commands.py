@@ -15,7 +15,7 @@ from ..gaussians.fit import FitConfig
 from ..segments.encoders import ENCODER_NAMES
 from ..segments.lifting import LiftSettings
 from ..segments.segmenters import SEGMENTER_NAMES
-from ..train.trainer import TrainConfig
+from ..train.config import TrainConfig
 from ..validate import add_device_option, nonneg_int, positive_float, positive_int
 from .presets import PRESETS
 from .run import DEFAULT_MODES, DemoScene, RunOptions

@@ -27,7 +27,7 @@ from ..errors import InputError
 from ..field.model import FieldConfig
 from ..gaussians.fit import FitConfig
 from ..segments.lifting import LiftSettings
-from ..train.trainer import TrainConfig
+from ..train.config import TrainConfig
 
 __all__ = ["DEFAULT_PRESET", "PRESETS", "PRESET_NAMES", "Preset", "default_preset", "get_preset"]
 

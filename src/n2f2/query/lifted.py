@@ -137,7 +137,7 @@ def build_lift(
     """:func:`n2f2.field.lift.lift_features`, computing the views' blending weights first when
     no cache is given (``seconds``: "blend", "lift", "total")."""
     from ..train.blend import build_blend_cache
-    from ..train.trainer import bank_cameras, frozen_geometry
+    from ..train.geometry import bank_cameras, frozen_geometry
 
     t0 = time.perf_counter()
     bank.validate_against(scene)

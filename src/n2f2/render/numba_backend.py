@@ -249,6 +249,16 @@ if numba is not None:
         g_aug,  # [N, D] rows of Gaussians with walked pairs are written here, the rest left alone
         g_spill,  # [S, D] feature gradients of the pairs that dest sends here
     ):
+        """The rasterizer's backward: the gradients of each walked pair's blending parameters
+        (``g_kp``) and feature row (``g_aug`` or ``g_spill``), one thread per range of tiles.
+
+        One function because numba compiles it into one parallel loop that can call only other
+        compiled functions (the small row helpers it uses), not Python helpers, and the state a
+        tile carries from Gaussian to Gaussian stays in this frame: the per-pixel transmittance,
+        prefix and log-alpha arrays and the chunk's feature rows are allocated once per thread
+        and reused for every tile, and the six parameter gradients and the four dot products are
+        accumulated in locals. Split into compiled helpers, every Gaussian's call would take a
+        dozen of those arrays as arguments and send its accumulators through memory."""
         # O = sum_i w_i f_i, w_i = alpha_i T_i:  dL/dalpha_i = (T_{i+1} fg_i - total + prefix_i) / (1 - alpha_i)
         # with fg_i = f_i . g, total = O . g and prefix_i = sum_{j<=i} w_j fg_j.
         P = basis.shape[1]

@@ -549,7 +549,21 @@ def build_bank(
             )
     bar.close()
 
-    # Fit the quantile transform over every valid segment of the scene.
+    return _finish_bank(scene, out, stems, header, per_image, times, num_quantiles)
+
+
+def _finish_bank(
+    scene,
+    out: Path,
+    stems: list[str],
+    header: dict,
+    per_image: dict[str, dict],  # image -> its seconds by part
+    times: list[float],  # seconds of each image extracted by this run
+    num_quantiles: int,
+) -> dict:
+    """Fit the quantile transform over every valid segment of the scene's records, write the
+    final ``bank.json`` and return the report."""
+    meta_path = out / "bank.json"
     all_scales, all_sources, n_total, n_empty, n_degenerate, n_layers = [], [], 0, 0, 0, []
     for stem in stems:
         d = _record_dir(out, stem)

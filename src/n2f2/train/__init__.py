@@ -11,25 +11,25 @@ from typing import TYPE_CHECKING
 from .._lazy import lazy_exports
 
 if TYPE_CHECKING:  # the lazily exported names, for static analysis
+    from .checkpoint import saved_configs as saved_configs
+    from .config import TrainConfig as TrainConfig
+    from .config import field_preset as field_preset
     from .evaluate import cosine_table as cosine_table
     from .evaluate import evaluate_cosine_by_level as evaluate_cosine_by_level
+    from .losses import hierarchical_loss as hierarchical_loss
     from .sampling import SegmentPool as SegmentPool
     from .sampling import ViewSegments as ViewSegments
     from .sampling import covering_probabilities as covering_probabilities
     from .sampling import sample_segments as sample_segments
     from .sampling import segment_weights as segment_weights
-    from .trainer import TrainConfig as TrainConfig
-    from .trainer import field_preset as field_preset
-    from .trainer import hierarchical_loss as hierarchical_loss
-    from .trainer import saved_configs as saved_configs
     from .trainer import train_field as train_field
 
 _EXPORTS = {
-    "TrainConfig": "trainer",
+    "TrainConfig": "config",
     "train_field": "trainer",
-    "field_preset": "trainer",
-    "hierarchical_loss": "trainer",
-    "saved_configs": "trainer",
+    "field_preset": "config",
+    "hierarchical_loss": "losses",
+    "saved_configs": "checkpoint",
     "ViewSegments": "sampling",
     "SegmentPool": "sampling",
     "sample_segments": "sampling",

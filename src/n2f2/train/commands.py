@@ -12,7 +12,7 @@ from ..validate import add_device_option, nonneg_int, positive_float
 
 def _preset_summary(name: str) -> str:
     from ..field.model import FieldConfig
-    from .trainer import TrainConfig
+    from .config import TrainConfig
 
     f, t = FieldConfig.preset(name), TrainConfig.preset(name)
     return f"D={f.dim}, {f.plane_resolution}^2x{f.plane_channels} planes, {t.iterations} steps"
@@ -20,7 +20,7 @@ def _preset_summary(name: str) -> str:
 
 def register(subparsers) -> None:
     from ..field.model import FieldConfig
-    from .trainer import TrainConfig
+    from .config import TrainConfig
 
     p = subparsers.add_parser(
         "train",
@@ -89,8 +89,8 @@ def register(subparsers) -> None:
 
 def run_train(args: argparse.Namespace) -> int:
     from ..field.model import FieldConfig
+    from .config import TrainConfig
     from .stage import TrainJob, run_train
-    from .trainer import TrainConfig
 
     run_train(
         TrainJob(
@@ -121,9 +121,9 @@ def run_eval_field(args: argparse.Namespace) -> int:
     from ..gaussians import read_ply
     from ..io import write_json
     from ..segments import SegmentBank
+    from .config import FIELD_NAME
     from .evaluate import evaluate_cosine_by_level
     from .stage import gaussians_path
-    from .trainer import FIELD_NAME
 
     run = Path(args.run)
     field, meta = load_field(run / FIELD_NAME, device=args.device)

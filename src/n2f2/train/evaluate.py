@@ -22,7 +22,7 @@ import torch
 import torch.nn.functional as F
 
 from ..field.model import NestedField, gaussian_features
-from .trainer import bank_cameras, frozen_geometry, render_features
+from .geometry import bank_cameras, frozen_geometry, render_features
 
 if TYPE_CHECKING:
     from ..data.scene import Scene

@@ -1,4 +1,4 @@
-"""The loss's per-row prefix sums compiled with numba (:func:`n2f2.train.trainer.prefix_projected_loss`).
+"""The loss's per-row prefix sums compiled with numba (:func:`n2f2.train.losses.prefix_projected_loss`).
 
 A training row r (a pixel and one segment covering it) needs two sums over the first ``M_r``
 feature dims of its pixel: ``x G x`` (a prefix sum of the pixel's ``a_k``) and ``u . x`` (a

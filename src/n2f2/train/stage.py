@@ -12,7 +12,7 @@ from typing import Any, Callable, Optional
 from ..config import default_preset, option_flag
 from ..errors import InputError
 from ..field.model import FieldConfig
-from .trainer import TrainConfig
+from .config import TrainConfig
 
 Log = Callable[[str], None]
 
@@ -51,7 +51,7 @@ def gaussians_path(path: str | Path) -> Path:
 def job_configs(job: TrainJob, out: Path) -> tuple[FieldConfig, TrainConfig]:
     """The field and training configs of ``job``: the preset's (or, resuming, the checkpoint's)
     with the overrides applied."""
-    from .trainer import saved_configs
+    from .checkpoint import saved_configs
 
     for cls, over in ((FieldConfig, job.field_overrides), (TrainConfig, job.train_overrides)):
         for name, value in over.items():
@@ -81,7 +81,8 @@ def run_train(job: TrainJob, log: Log = print) -> dict:
     from ..gaussians import read_ply
     from ..io import claim_out_dir, remove_results
     from ..segments import SegmentBank
-    from .trainer import RESULT_NAMES, train_field
+    from .config import RESULT_NAMES
+    from .trainer import train_field
 
     if not job.downscale > 0:
         raise InputError(None, f"--downscale must be > 0, got {job.downscale}")

@@ -150,6 +150,25 @@ def normalize(v: ArrayLike) -> np.ndarray:  # v [3]
     return v / np.linalg.norm(v)
 
 
+@dataclass
+class Draws:
+    """A layout's random draws, all from one generator in the order the layout makes them, so
+    a seed fixes the scene: the objects' positions on the table and their materials' tints."""
+
+    rng: np.random.Generator
+    jitter_amount: float  # default half-width of a position's jitter, metres
+
+    def jitter(self, xy: ArrayLike, amount: Optional[float] = None) -> np.ndarray:  # xy [2] -> [2]
+        """``xy`` plus uniform noise in [-amount, amount] per coordinate."""
+        amount = self.jitter_amount if amount is None else amount
+        return np.asarray(xy, dtype=np.float64) + self.rng.uniform(-amount, amount, size=2)
+
+    def tint(self, color: tuple[float, float, float], amount: float = 0.04) -> tuple[float, float, float]:
+        """``color`` plus uniform noise in [-amount, amount] per channel, clipped to [0, 1]."""
+        red, green, blue = (float(np.clip(c + self.rng.uniform(-amount, amount), 0.0, 1.0)) for c in color)
+        return red, green, blue
+
+
 class Builder:
     """Collects regions and primitives; objects are modelled in a local frame standing on the
     table (origin on the table surface) and posed with a yaw and an (x, y) position."""
@@ -206,6 +225,15 @@ class Builder:
             )
 
         return add_local
+
+
+def add_regions(b: Builder, table: Sequence[tuple[int, str, str, Optional[str]]]) -> dict[str, int]:
+    """Add ``table``'s regions, ``(level, name, caption, parent's name or None)`` in order (a
+    parent before its children), to ``b``; returns each name's id."""
+    ids: dict[str, int] = {}
+    for level, name, caption, parent in table:
+        ids[name] = b.region(level, name, caption, None if parent is None else ids[parent])
+    return ids
 
 
 def add_walls(b: Builder, wall: int, half_x: float, half_y: float, material: Material) -> None:
