@@ -96,10 +96,26 @@ def test_missing_clip_model_gives_one_clear_message(monkeypatch):
     with pytest.raises(MissingModelError) as e:
         ClipEncoder.from_pretrained("n2f2-tests/no-such-clip-model")
     msg = str(e.value)
-    assert "n2f2-tests/no-such-clip-model" in msg and "huggingface-cli download" in msg
+    assert "n2f2-tests/no-such-clip-model" in msg and "hf download" in msg and "--local-dir DIR" in msg
     assert "--encoder captions" in msg
     with pytest.raises(MissingModelError, match="--segmenter classical"):
         SamSegmenter.from_pretrained("n2f2-tests/no-such-sam-model")
+
+
+def test_the_advised_download_command_exists_with_its_options():
+    # The message advises `hf download ID --local-dir DIR`: the installed huggingface_hub ships
+    # that command (not `huggingface-cli`) and it takes --local-dir.
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    hf = Path(sys.executable).parent / "hf"
+    assert hf.is_file(), "huggingface_hub's hf command is not installed beside this Python"
+    out = subprocess.run([str(hf), "download", "--help"], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and "--local-dir" in out.stdout
+    import huggingface_hub
+
+    assert callable(huggingface_hub.snapshot_download)  # the Python fallback the message names
 
 
 # ----------------------------------------------------------------------------- captions

@@ -279,7 +279,7 @@ def test_missing_sam2_model_gives_one_clear_message(monkeypatch):
     with pytest.raises(MissingModelError) as e:
         get_segmenter("sam2", model_id="n2f2-tests/no-such-sam2-model")
     msg = str(e.value)
-    assert "SAM 2.1 model 'n2f2-tests/no-such-sam2-model'" in msg and "huggingface-cli download" in msg
+    assert "SAM 2.1 model 'n2f2-tests/no-such-sam2-model'" in msg and "hf download" in msg and "--local-dir DIR" in msg
     assert "--sam-model" in msg and "--segmenter classical" in msg
 
 

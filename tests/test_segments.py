@@ -547,3 +547,21 @@ def test_langsplat_bad_files(tmp_path):
     with pytest.raises(InputError) as e:
         read_langsplat(feats, "missing", 6, 8)
     assert e.value.path == feats / "missing_s.npy"
+
+
+def test_captions_encoder_beside_a_model_segmenter_is_refused_before_any_model_loads(tmp_path, monkeypatch):
+    # --encoder captions needs the ground truth's captions: `segments --segmenter sam --encoder
+    # captions` stops with one line before reading the scene or loading SAM or MiniLM.
+    import n2f2.segments.encoders as encoders
+    import n2f2.segments.segmenters as segmenters
+    from n2f2.segments.setup import SegmentsSetup
+
+    def never(*args, **kwargs):
+        raise AssertionError("a model was loaded")
+
+    monkeypatch.setattr(segmenters, "get_segmenter", never)
+    monkeypatch.setattr(encoders, "get_encoder", never)
+    setup = SegmentsSetup(data=str(tmp_path / "missing-scene"), downscale=1.0, skip_missing=False, depth_source="gt",
+                          gaussians=None, segmenter="sam", encoder="captions", model=None, sam_model=None, device="cpu")
+    with pytest.raises(InputError, match="--encoder captions embeds ground-truth captions"):
+        setup.build()

@@ -71,17 +71,23 @@ class SegmentSource(Protocol):
     ) -> tuple[SegmentSet, np.ndarray]: ...  # segments, embeddings [S, E]
 
 
+def check_pairing(segmenter: str, encoder: str, requires_captions: bool) -> None:
+    """Refuse an encoder that embeds captions beside a segmenter that has none (checked by
+    name, before either model loads)."""
+    if requires_captions and segmenter != "ground-truth":
+        raise InputError(
+            None,
+            f"--encoder {encoder} embeds ground-truth captions, so it needs "
+            "--segmenter ground-truth (the demo scene); use --encoder clip otherwise",
+        )
+
+
 class SegmentAndEncode:
     """Segments from a segmenter, embeddings from an encoder (CLIP on masked crops, or the
     segments' captions for the offline teacher)."""
 
     def __init__(self, segmenter, encoder, chunk: int = 64) -> None:
-        if encoder.requires_captions and segmenter.name != "ground-truth":
-            raise InputError(
-                None,
-                f"--encoder {encoder.name} embeds ground-truth captions, so it needs "
-                "--segmenter ground-truth (the demo scene); use --encoder clip otherwise",
-            )
+        check_pairing(segmenter.name, encoder.name, encoder.requires_captions)
         self.segmenter = segmenter
         self.encoder = encoder
         self.chunk = chunk  # segments whose full-size masks are materialised at once

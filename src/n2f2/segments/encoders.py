@@ -86,9 +86,9 @@ def load_pretrained(cls, model_id: str, what: str, alternative: str, flag: str =
             reason = str(e).splitlines()[0] if str(e) else type(e).__name__
     raise MissingModelError(
         f"{what} model '{model_id}' is not in the local Hugging Face cache and could not be "
-        f"downloaded ({reason}). Download it on a machine with internet access with "
-        f"`huggingface-cli download {model_id}` (then copy ~/.cache/huggingface), pass a local "
-        f"folder with {flag}, or use {alternative}."
+        f"downloaded ({reason}). On a machine with internet access run `hf download {model_id} "
+        f"--local-dir DIR` (or, in Python, huggingface_hub.snapshot_download('{model_id}', local_dir='DIR')), "
+        f"copy DIR here and pass it with {flag}, or use {alternative}."
     )
 
 
@@ -344,6 +344,7 @@ class EncoderKind:
     name: str
     description: str  # for --help
     build: Callable[[dict, Union[str, torch.device]], "Encoder"]  # (spec, device) -> encoder
+    requires_captions: bool = False  # embeds the segments' captions (ground truth), not pixels
 
 
 ENCODERS: dict[str, EncoderKind] = {
@@ -359,6 +360,7 @@ ENCODERS: dict[str, EncoderKind] = {
             "ground-truth captions embedded by all-MiniLM-L6-v2 (offline stand-in for CLIP, needs the "
             "demo scene's ground-truth segments)",
             lambda spec, device: CaptionEncoder.from_package(device=device),
+            requires_captions=CaptionEncoder.requires_captions,
         ),
     )
 }

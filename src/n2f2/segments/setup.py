@@ -70,10 +70,12 @@ class SegmentsSetup:
 
     def build(self) -> tuple:
         """(scene, source, depth provider), checking the inputs before loading models."""
-        from .bank import SegmentAndEncode
-        from .encoders import get_encoder
+        from .bank import SegmentAndEncode, check_pairing
+        from .encoders import ENCODERS, get_encoder
         from .segmenters import get_segmenter
 
+        kind = ENCODERS.get(self.encoder)
+        check_pairing(self.segmenter, self.encoder, kind is not None and kind.requires_captions)  # no model loaded
         scene = load_bank_scene(self.data, self.downscale, self.skip_missing)
         depth = depth_provider(scene, self.depth_source, self.gaussians, self.device)  # a missing PLY: before models
         segmenter = get_segmenter(self.segmenter, scene=scene, model_id=self.sam_model, device=self.device)
