@@ -378,6 +378,15 @@ def test_run_reads_its_labels_before_fitting(base, tmp_path, capsys):
     assert not out.exists() and time.perf_counter() - t < 60  # nothing fitted first
 
 
+def test_bench_with_a_missing_input_leaves_no_folder(base, tmp_path, capsys):
+    # The bench creates OUT/data before it checks --gaussians: a refused bench takes both back.
+    out = tmp_path / "bench"
+    missing = tmp_path / "nowhere.ply"
+    assert_refused(capsys, ["bench", "--quick", "--out", out, "--scene", base["scene"], "--gaussians", missing,
+                            "--quiet"], [base["scene"]], "nowhere.ply")
+    assert not out.exists()
+
+
 @pytest.mark.parametrize("command, module, func, argv, advice", [
     ("fit-gaussians", "n2f2.gaussians.commands", "run", ["DATA", "--out", "O"], "add --resume"),
     ("train", "n2f2.train.commands", "run_train", ["DATA", "--gaussians", "G", "--segments", "B", "--out", "O"],

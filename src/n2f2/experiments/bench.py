@@ -68,12 +68,13 @@ def prepare_data(
     its segment bank (ground-truth segments, caption embeddings) under ``out/data`` unless given,
     each with the pipeline's stages under the stage cache of ``out/data``."""
     from ..gaussians.stage import FitJob, run_fit
+    from ..io import make_dirs
     from ..pipeline.cache import StageCache, file_digest, scene_digest, stage_key, tree_digest
     from ..pipeline.run import cached_demo_scene
     from ..segments.stage import BankJob, run_bank
 
     data = out / "data"
-    data.mkdir(parents=True, exist_ok=True)
+    make_dirs(data)
     cache = StageCache.open(data)
     built: dict[str, bool] = {}
     seconds: dict[str, float] = {}

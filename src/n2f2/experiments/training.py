@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any, Callable, Mapping, Optional
 
 import numpy as np
 
+from ..io import make_dirs
 from .memory import ActivationMeter, field_parameter_count, rasterized_channels
 from .variants import VariantSpec, variant_field_config
 
@@ -224,7 +225,7 @@ def lift_variant(
         "lift_s": lift_s,
         "build_time_s": blend_s + lift_s,
     }
-    run_dir.mkdir(parents=True, exist_ok=True)
+    make_dirs(run_dir)
     write_json(run_dir / LIFT_REPORT_NAME, report)
     return report
 
@@ -286,6 +287,6 @@ def _build_lift(
         lift = build_lift(gaussians, scene, bank, views, progress=config.progress)
         save_lift(path, lift, {"bank": meta["bank"], "gaussians": meta["gaussians"]})
 
-    run_dir.mkdir(parents=True, exist_ok=True)
+    make_dirs(run_dir)
     built = StageCache.open(run_dir).run("lift", key, [path], build, log=lambda s: log(f"[bench] {run_dir.name}: {s}"))
     return path, built, str(ply), meta

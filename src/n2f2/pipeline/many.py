@@ -8,7 +8,7 @@ import sys
 import time
 from pathlib import Path
 
-from ..io import write_json
+from ..io import make_dirs, write_json
 from .run import RunOptions, run_pipeline
 
 SUMMARY_NAME = "summary"  # DIR/summary.json and DIR/summary.md
@@ -141,7 +141,7 @@ def run_many(opts: list[RunOptions], out: Path, executor, progress: bool = True)
             bar.update(1)
     bar.close()
     summary = {"executor": executor.name, "seconds": round(time.perf_counter() - start, 2), "scenes": rows}
-    out.mkdir(parents=True, exist_ok=True)
+    make_dirs(out)
     write_json(out / f"{SUMMARY_NAME}.json", summary)
     write_text(out / f"{SUMMARY_NAME}.md", summary_markdown(summary))
     commit_outputs()  # the summary stays when the command then exits 2 for a failed scene

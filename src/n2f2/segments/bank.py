@@ -38,7 +38,7 @@ from typing import TYPE_CHECKING, Optional, Protocol, Sequence
 import numpy as np
 
 from ..errors import InputError
-from ..io import write_json
+from ..io import make_dirs, write_json
 from .bins import QuantileScaleBins
 from .lifting import SCALE_DESCRIPTIONS, DepthProvider, LiftSettings, lift_view
 from .segmenters import SegmentSet, layers_to_masks, segment_layers
@@ -487,7 +487,7 @@ def build_bank(
 
     lift = lift or LiftSettings()
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    make_dirs(out)
     stems = list(scene.image_names)
     if len(set(stems)) != len(stems):
         raise InputError(

@@ -30,7 +30,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from ..errors import InputError
-from ..io import claim_out_dir, write_json, write_npy
+from ..io import claim_out_dir, make_dirs, write_json, write_npy
 from ..validate import finite_array
 from .encoders import DEFAULT_CLIP_MODEL
 from .segmenters import SegmentSet, segment_layers
@@ -375,7 +375,7 @@ def export_langsplat(
     out = Path(out_dir)
     targets = [f"{stem}_{kind}.npy" for stem in bank.image_names for kind in ("s", "f")] + [ENCODER_FILE]
     claim_out_dir(out, targets, force=force, resume_flag=None)
-    out.mkdir(parents=True, exist_ok=True)
+    make_dirs(out)
     rows_total = dropped = 0
     for i in tqdm(range(bank.num_images), desc="export", unit="img", disable=not progress):
         rec = bank.record(i)

@@ -49,7 +49,7 @@ from torch import Tensor
 
 from ..errors import InputError
 from ..field.model import FieldConfig, NestedField, bbox_from_points, save_field
-from ..io import save_torch, write_json
+from ..io import make_dirs, save_torch, write_json
 from ..segments.bins import ONE_MINUS_EPS
 from ..validate import MAX_BAD_STEPS, NonFiniteError, check_finite, finite_array
 from .blend import BlendCache, build_blend_cache
@@ -231,7 +231,7 @@ def train_field(
         pool_all=SegmentPool.from_views([segments[v] for v in usable], config.pixel_balance) if every_view else None,
     )
 
-    out.mkdir(parents=True, exist_ok=True)
+    make_dirs(out)
     bar = tqdm(
         total=config.iterations,
         initial=min(state.step, config.iterations),
