@@ -1,7 +1,8 @@
-"""The evaluation stage's runner: ``n2f2 eval``, ``n2f2 run`` and the bench all score a run on
-labels through :func:`run_eval`, which chooses the protocol (:mod:`.protocols`), claims the
-output folder, checks every input before anything is replaced, evaluates, writes the report
-and prints its summary."""
+"""The evaluation stage's runner: ``n2f2 eval`` and ``n2f2 run`` / ``demo`` / ``run-many`` score a
+run on labels through :func:`run_eval`, which chooses the protocol (:mod:`.protocols`), claims
+the output folder, checks every input before anything is replaced, evaluates, writes the report
+and prints its summary. (The bench scores its variants with :func:`~n2f2.eval.runner.evaluate_run`
+and the 3D protocol itself, into its own report.)"""
 
 from __future__ import annotations
 

@@ -1,7 +1,9 @@
-"""The training stage's runner: ``n2f2 train``, ``n2f2 run`` and the bench all train a feature
-field through :func:`run_train`, which claims the run folder, builds the configs from a preset
-and overrides, reads the scene, the segment bank and the Gaussians before anything is
-replaced, trains, and prints the summary line."""
+"""The training stage's runner: ``n2f2 train`` and ``n2f2 run`` / ``demo`` / ``run-many`` train a
+feature field through :func:`run_train`, which claims the run folder, builds the configs from a
+preset and overrides, reads the scene, the segment bank and the Gaussians before anything is
+replaced, trains, and prints the summary line. (The bench trains its variants with
+:func:`~n2f2.train.trainer.train_field` itself: it meters their activations and extends shorter
+runs.)"""
 
 from __future__ import annotations
 
