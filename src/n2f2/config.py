@@ -46,6 +46,31 @@ def add_preset_option(parser: argparse.ArgumentParser, what: str) -> None:
     )
 
 
+@dataclass(kw_only=True)
+class StageJob:
+    """What the fit's, the bank's and the training's jobs take besides their inputs: the same
+    flags in each command (:func:`stage_job_args`)."""
+
+    downscale: float = 1.0  # image downscale factor, as 3DGS -r
+    skip_missing: bool = False  # drop views whose image file is missing
+    device: str = "cpu"
+    resume: bool = False  # continue what OUT holds
+    force: bool = False  # replace what OUT holds once the inputs are read
+    progress: bool = True
+
+
+def stage_job_args(args: argparse.Namespace) -> dict[str, Any]:
+    """:class:`StageJob`'s fields from a command's parsed flags."""
+    return dict(
+        downscale=args.downscale,
+        skip_missing=args.skip_missing,
+        device=args.device,
+        resume=args.resume,
+        force=args.force,
+        progress=not args.quiet,
+    )
+
+
 class ConfigDict:
     """Mixin for config dataclasses: ``to_dict``, ``from_dict`` and ``preset``."""
 

@@ -6,6 +6,7 @@ and the 3D protocol itself, into its own report.)"""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Callable
 
@@ -28,7 +29,7 @@ def run_eval(job: EvalJob, log: Log = print) -> Any:
     protocol = choose_protocol(job.protocol, Path(job.labels))
     protocol.check(job)
     if job.query_config is None:
-        job.query_config = QueryConfig()
+        job = replace(job, query_config=QueryConfig())  # the caller's job stays as it was
     out = Path(job.out) if job.out else Path(job.run_dir) / "eval"
     present = claim_out_dir(out, eval_results(out), force=job.force, resume_flag=None)
     if job.compare is not None:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from ..config import add_config_options, add_preset_option, config_overrides, field_default
+from ..config import add_config_options, add_preset_option, config_overrides, field_default, stage_job_args
 from ..validate import add_device_option, finite_float, nonneg_int, positive_float, positive_int, unit_interval
 
 
@@ -74,12 +74,7 @@ def run(args: argparse.Namespace) -> int:
             overrides=config_overrides(args, FitConfig),
             init=args.init,
             seed=args.seed,
-            downscale=args.downscale,
-            skip_missing=args.skip_missing,
-            device=args.device,
-            resume=args.resume,
-            force=args.force,
-            progress=not args.quiet,
+            **stage_job_args(args),
         )
     )
     return 0

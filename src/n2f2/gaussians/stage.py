@@ -8,7 +8,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable, Optional
 
-from ..config import default_preset, option_flag
+from ..config import StageJob, default_preset, option_flag
 from ..errors import InputError
 from .fit_config import FitConfig
 
@@ -16,7 +16,7 @@ Log = Callable[[str], None]
 
 
 @dataclass
-class FitJob:
+class FitJob(StageJob):
     """One fit: what ``n2f2 fit-gaussians`` takes on its command line."""
 
     data: Path  # scene folder, or a folder of photos (posed first by sfm into OUT/sfm)
@@ -25,12 +25,6 @@ class FitJob:
     overrides: dict[str, Any] = field(default_factory=dict)  # FitConfig fields set explicitly
     init: Optional[str] = None  # "points", "random" or an INRIA PLY; None: points when the scene has them
     seed: int = 0
-    downscale: float = 1.0
-    skip_missing: bool = False
-    device: str = "cpu"
-    resume: bool = False  # continue from OUT/checkpoint.pt
-    force: bool = False  # replace the results in OUT once the inputs are read
-    progress: bool = True
 
 
 def fit_results() -> tuple[str, ...]:

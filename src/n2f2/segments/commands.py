@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..config import add_config_options, config_overrides
+from ..config import add_config_options, config_overrides, stage_job_args
 from ..distributed import add_executor_options
 from ..validate import add_device_option, positive_float
 from .encoders import ENCODER_NAMES
@@ -159,6 +159,7 @@ def register(subparsers) -> None:
 
 
 def job_from_args(args: argparse.Namespace, **kw) -> BankJob:
+    """The bank job of `segments` or `segments-from-langsplat` flags (``kw``: the rest)."""
     return BankJob(
         data=Path(args.data),
         out=Path(args.out),
@@ -166,12 +167,7 @@ def job_from_args(args: argparse.Namespace, **kw) -> BankJob:
         lift=LiftSettings(**config_overrides(args, LiftSettings)),
         model=args.model,
         depth_source=args.depth_source,
-        downscale=args.downscale,
-        skip_missing=args.skip_missing,
-        device=args.device,
-        resume=args.resume,
-        force=args.force,
-        progress=not args.quiet,
+        **stage_job_args(args),
         **kw,
     )
 

@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable, Optional
 
+from ..config import StageJob
 from .lifting import LiftSettings
 
 if TYPE_CHECKING:
@@ -18,7 +19,7 @@ Log = Callable[[str], None]
 
 
 @dataclass
-class BankJob:
+class BankJob(StageJob):
     """One segment bank: what ``n2f2 segments`` (or, with ``features``,
     ``segments-from-langsplat``) takes on its command line."""
 
@@ -32,13 +33,7 @@ class BankJob:
     sam_model: Optional[str] = None  # SAM / SAM 2 model id or folder
     features: Optional[Path] = None  # LangSplat language_features: imported instead of segmenting
     depth_source: str = "render"
-    downscale: float = 1.0
-    skip_missing: bool = False
-    device: str = "cpu"
-    resume: bool = False  # finish the bank in OUT (settings must match)
-    force: bool = False  # replace the bank in OUT once the inputs are read
     keep_unfinished: bool = False  # with force: a bank left unfinished with the same settings is finished
-    progress: bool = True
 
 
 def bank_results(out: Path) -> list[str]:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from ..config import add_config_options, add_preset_option, config_overrides, field_default
+from ..config import add_config_options, add_preset_option, config_overrides, field_default, stage_job_args
 from ..validate import add_device_option, nonneg_int, positive_float
 
 
@@ -103,12 +103,7 @@ def run_train(args: argparse.Namespace) -> int:
             train_overrides=config_overrides(args, TrainConfig),
             train_on_all=args.train_on_all,
             seed=args.seed,
-            downscale=args.downscale,
-            skip_missing=args.skip_missing,
-            device=args.device,
-            resume=args.resume,
-            force=args.force,
-            progress=not args.quiet,
+            **stage_job_args(args),
         )
     )
     return 0

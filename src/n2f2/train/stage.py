@@ -11,7 +11,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable, Optional
 
-from ..config import default_preset, option_flag
+from ..config import StageJob, default_preset, option_flag
 from ..errors import InputError
 from ..field.model import FieldConfig
 from .config import TrainConfig
@@ -20,7 +20,7 @@ Log = Callable[[str], None]
 
 
 @dataclass
-class TrainJob:
+class TrainJob(StageJob):
     """One training run: what ``n2f2 train`` takes on its command line."""
 
     data: Path  # scene folder
@@ -32,12 +32,6 @@ class TrainJob:
     train_overrides: dict[str, Any] = field(default_factory=dict)  # TrainConfig fields set explicitly
     train_on_all: bool = False  # also train on the scene's test views
     seed: int = 0
-    downscale: float = 1.0
-    skip_missing: bool = False
-    device: str = "cpu"
-    resume: bool = False  # continue from OUT/checkpoint.pt
-    force: bool = False  # replace the results in OUT once the inputs are read
-    progress: bool = True
 
 
 def gaussians_path(path: str | Path) -> Path:
