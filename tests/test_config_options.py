@@ -189,7 +189,10 @@ def test_fit_segments_and_run_flags_reach_their_settings(tmp_path):
     assert config_overrides(args, FitConfig) == {"depth_spread_weight": 0.5, "steps": 20}
 
     seg = ["segments", "DATA", "--out", "B"]
-    assert _lift_settings(build_parser().parse_args(seg)).scale_measure == "eigenvalue"  # LiftSettings' default
+    # The preset's measure, as `run` takes it: cpu (the default off CUDA) area, paper eigenvalue.
+    assert _lift_settings(build_parser().parse_args(seg)).scale_measure == "area"
+    assert _lift_settings(build_parser().parse_args(seg + ["--preset", "paper"])).scale_measure == "eigenvalue"
+    assert _lift_settings(build_parser().parse_args(seg + ["--device", "cuda"])).scale_measure == "eigenvalue"
     assert _lift_settings(build_parser().parse_args(seg + ["--scale-measure", "extent"])).scale_measure == "extent"
 
     args = build_parser().parse_args(["run", "DATA", "--out", "O"])

@@ -30,4 +30,6 @@ class EvalJob:
     force: bool = False  # replace the evaluation in OUT once the inputs are checked
     device: str = "cpu"
     encoder: Any = None  # a text encoder instead of the run's (the bench's memo)
+    engine: Any = None  # a query engine instead of the run's (the bench's training-free lift)
+    notes: tuple[str, ...] = ()  # added to the report's notes (the bench names its settings)
     progress: bool = True

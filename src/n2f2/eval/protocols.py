@@ -84,6 +84,7 @@ def _labels_2d(job: EvalJob, engine, out: Path, on_ready: Callable[[], None], lo
         on_ready=on_ready,
         engine=engine,
     )
+    result.notes.extend(job.notes)
     if with_3d:
         from ..data.labels import read_label_dir
         from .protocol3d import evaluate_protocol3d
@@ -136,6 +137,7 @@ def _labels_3d(job: EvalJob, engine, out: Path, on_ready: Callable[[], None], lo
         label_dir=job.labels,
         on_ready=on_ready,
     )
+    res.notes.extend(job.notes)
     write_protocol3d_outputs(res, out)
     for line in protocol3d_summary_lines(res.to_dict()):
         log(line)

@@ -1,8 +1,8 @@
 """The evaluation stage's runner: ``n2f2 eval`` and ``n2f2 run`` / ``demo`` / ``run-many`` score a
 run on labels through :func:`run_eval`, which chooses the protocol (:mod:`.protocols`), claims
 the output folder, checks every input before anything is replaced, evaluates, writes the report
-and prints its summary. (The bench scores its variants with :func:`~n2f2.eval.runner.evaluate_run`
-and the 3D protocol itself, into its own report.)"""
+and prints its summary. The bench scores its variants (and the training-free lift, through
+``EvalJob.engine``) with it too."""
 
 from __future__ import annotations
 
@@ -38,8 +38,8 @@ def run_eval(job: EvalJob, log: Log = print) -> Any:
                 job.compare, "--compare names the eval.json this evaluation replaces: copy it elsewhere first"
             )
         load_eval(job.compare)  # fail on a bad comparison file before any work
-    engine = None
-    if job.budget or protocol.engine:  # one engine (and text encoder) for every protocol and the budget
+    engine = job.engine  # one engine (and text encoder) for every protocol and the budget
+    if engine is None and (job.budget or protocol.engine):
         engine = QueryEngine.from_run(
             job.run_dir, device=job.device, scene=job.scene, config=job.query_config, encoder=job.encoder
         )

@@ -1,12 +1,13 @@
-"""Evaluation of the bench's runs: LangSplat's protocol through :func:`n2f2.eval.runner.evaluate_run`
-(both box sizes), the per-level cosine to the teacher, and statistics of the composite weights
-gamma. Each result is cached in its run folder's ``stages.json``, keyed on the content of the
-field and the labels (:class:`n2f2.pipeline.cache.StageCache`). The training-free lift is scored
-by the same runner through a :class:`n2f2.query.lifted.LiftEngine` (:func:`evaluate_lift`), as
-``n2f2 eval --budget`` scores it (:func:`n2f2.eval.budget.loss_budget`). Every run, the lift
-included, is also scored under the 3D protocol (:func:`n2f2.eval.protocol3d.evaluate_protocol3d`,
-every 3D mode it answers; :func:`evaluate_variant_3d`, :func:`evaluate_lift_3d`) into
-``RUN/eval3d/``, cached the same way."""
+"""Evaluation of the bench's runs through the evaluation's runner (:func:`n2f2.eval.stage.run_eval`,
+as ``n2f2 eval`` scores a run): LangSplat's protocol (both box sizes), the per-level cosine to
+the teacher, and statistics of the composite weights gamma. Each result is cached in its run
+folder's ``stages.json``, keyed on the content of the field and the labels
+(:class:`n2f2.pipeline.cache.StageCache`). The training-free lift is scored by the same runner
+through a :class:`n2f2.query.lifted.LiftEngine` (:func:`evaluate_lift`), as ``n2f2 eval
+--budget`` scores it (:func:`n2f2.eval.budget.loss_budget`). Every run, the lift included, is
+also scored under the 3D protocol (``--protocol 3d``, every 3D mode it answers;
+:func:`evaluate_variant_3d`, :func:`evaluate_lift_3d`) into ``RUN/eval3d/``, cached the same
+way."""
 
 from __future__ import annotations
 
@@ -15,7 +16,10 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Mapping, Optional, Sequence
 
+from ..eval.stage import run_eval
+
 if TYPE_CHECKING:
+    from ..eval.job import EvalJob
     from .config import BenchConfig, BenchData
 
 
@@ -76,8 +80,10 @@ def evaluate_variant(
         out_dir.name,
         key,
         [eval_json],
-        lambda: _evaluate(run_dir, data, modes, out_dir, config, temperature, encoder, render, weights),
-        log=lambda s: log(f"[bench] {run_dir.name}: {s}"),
+        lambda: _evaluate(
+            run_dir, data, modes, out_dir, config, temperature, encoder, render, weights, _prefixed(run_dir, log)
+        ),
+        log=_prefixed(run_dir, log),
     )
     return load_eval(eval_json)
 
@@ -92,31 +98,43 @@ def _evaluate(
     encoder: Any,
     render: str,
     weights: str,
+    log: Callable[[str], None],
 ) -> None:
-    from ..eval.reports import markdown_report
-    from ..eval.runner import EvalConfig, evaluate_run
-    from ..io import write_json, write_text
+    """The 2D protocol on one run through the evaluation's runner, as ``n2f2 eval`` writes it."""
     from ..query.engine import QueryConfig
 
-    result = evaluate_run(
+    job = _bench_job(
         run_dir,
-        data.label_dir,
-        scene=data.scene_dir,
-        bank=data.bank_dir,
-        config=EvalConfig(modes=tuple(modes), progress=config.progress),
+        data,
+        out_dir,
+        config,
+        modes=tuple(modes),
         query_config=QueryConfig(temperature=temperature, render=render, composite_weights=weights),
-        device=config.device,
         encoder=encoder,
+        bank=data.bank_dir,
+        notes=(
+            f"bench: composite weights {weights} (temperature T = {temperature:g} for eq6), 2D views rendered {render}",
+        ),
     )
-    result.notes.append(
-        f"bench: composite weights {weights} (temperature T = {temperature:g} for eq6), 2D views rendered {render}"
+    run_eval(job, log=log)
+
+
+def _bench_job(run_dir: Path, data: "BenchData", out_dir: Path, config: "BenchConfig", **fields: Any) -> "EvalJob":
+    """An evaluation of the bench's labels into ``out_dir``: the bench's scene and bank, no
+    relevancy files, and what the stage cache chose to redo replaced."""
+    from ..eval.job import EvalJob
+
+    return EvalJob(
+        run_dir=run_dir,
+        labels=data.label_dir,
+        out=out_dir,
+        scene=data.scene_dir,
+        relevancy=False,
+        force=True,
+        device=config.device,
+        progress=config.progress,
+        **fields,
     )
-    # eval.md and eval.json as `n2f2 eval` writes them; the JSON round trip gives the same dict a
-    # reused evaluation has.
-    d = result.to_dict()
-    d["bench_temperature"] = temperature
-    write_text(out_dir / "eval.md", markdown_report(d))
-    write_json(out_dir / "eval.json", d)
 
 
 def evaluate_lift(
@@ -149,8 +167,8 @@ def evaluate_lift(
         out_dir.name,
         key,
         [eval_json],
-        lambda: _evaluate_lift(lift, data, modes, out_dir, config, encoder),
-        log=lambda s: log(f"[bench] {run_dir.name}: {s}"),
+        lambda: _evaluate_lift(lift, data, modes, out_dir, config, encoder, _prefixed(run_dir, log)),
+        log=_prefixed(run_dir, log),
     )
     return load_eval(eval_json)
 
@@ -186,28 +204,23 @@ def _evaluate_lift(
     out_dir: Path,
     config: "BenchConfig",
     encoder: Any,
+    log: Callable[[str], None],
 ) -> None:
-    """The lift's query engine (:func:`_lift_engine`) scored by ``evaluate_run``."""
-    from ..eval.reports import markdown_report
-    from ..eval.runner import EvalConfig, evaluate_run
-    from ..io import write_json, write_text
-
+    """The lift's query engine (:func:`_lift_engine`) scored by the evaluation's runner."""
     engine, run_dir = _lift_engine(lift, data, config, encoder)
-    result = evaluate_run(
+    job = _bench_job(
         run_dir,
-        data.label_dir,
-        scene=data.scene_dir,
-        bank=data.bank_dir,
-        config=EvalConfig(modes=tuple(modes), progress=config.progress),
+        data,
+        out_dir,
+        config,
+        modes=tuple(modes),
         query_config=engine.config,
-        device=config.device,
         encoder=encoder,
         engine=engine,
+        bank=data.bank_dir,
+        notes=(f"bench: the training-free lift {lift['lift_path']} ({lift['about']})",),
     )
-    result.notes.append(f"bench: the training-free lift {lift['lift_path']} ({lift['about']})")
-    d = result.to_dict()
-    write_text(out_dir / "eval.md", markdown_report(d))
-    write_json(out_dir / "eval.json", d)
+    run_eval(job, log=log)
 
 
 def evaluate_variant_3d(
@@ -281,19 +294,17 @@ def _cached_3d(
     )
 
     def run() -> None:
-        from ..data.labels import read_label_dir
-        from ..eval.protocol3d import evaluate_protocol3d, write_protocol3d_outputs
-
-        result = evaluate_protocol3d(
-            engine(),
-            read_label_dir(data.label_dir),
-            config=Protocol3dConfig(progress=config.progress),
-            label_dir=data.label_dir,
+        run_eval(
+            _bench_job(run_dir, data, out_dir, config, protocol="3d", engine=engine()), log=_prefixed(run_dir, log)
         )
-        write_protocol3d_outputs(result, out_dir)
 
-    StageCache.open(run_dir).run(out_dir.name, key, [eval_json], run, log=lambda s: log(f"[bench] {run_dir.name}: {s}"))
+    StageCache.open(run_dir).run(out_dir.name, key, [eval_json], run, log=_prefixed(run_dir, log))
     return json.loads(eval_json.read_text())
+
+
+def _prefixed(run_dir: Path, log: Callable[[str], None]) -> Callable[[str], None]:
+    """``log`` with the bench's prefix naming the run."""
+    return lambda line: log(f"[bench] {run_dir.name}: {line}")
 
 
 def cosine_variant(run_dir: Path, data: "BenchData", config: "BenchConfig", log: Callable[[str], None] = print) -> dict:

@@ -32,14 +32,12 @@ def train_variant(
     spec: VariantSpec, data: "BenchData", run_dir: Path, config: "BenchConfig", log: Callable[[str], None] = print
 ) -> dict:
     """Train (or reuse) one variant; returns its train report plus ``"reused"`` and ``"memory"``."""
-    from ..data import load_scene
-    from ..gaussians import read_ply
     from ..io import write_json
     from ..pipeline.presets import get_preset
     from ..segments.bank import SegmentBank
     from ..train.checkpoint import saved_configs
-    from ..train.config import CHECKPOINT_NAME, FIELD_NAME, REPORT_NAME
-    from ..train.trainer import train_field
+    from ..train.config import CHECKPOINT_NAME, FIELD_NAME, LIFT_NAME, REPORT_NAME
+    from ..train.stage import TrainJob, run_train
 
     field_config = variant_field_config(spec, config.dim)
     train_config = replace(
@@ -86,30 +84,29 @@ def train_variant(
     )
     resume = same or extend
     if not resume:
-        for stale in (CHECKPOINT_NAME, FIELD_NAME, REPORT_NAME, MEMORY_NAME):
+        for stale in (CHECKPOINT_NAME, FIELD_NAME, REPORT_NAME, LIFT_NAME, MEMORY_NAME):
             (run_dir / stale).unlink(missing_ok=True)
     log(
         f"[bench] {run_dir.name}: training {spec.variant} ({spec.backbone}), D={field_config.dim}, "
         f"k={field_config.step_size}, {train_config.iterations} steps"
         + (" (resumed)" if same else " (continuing a shorter run)" if extend else "")
     )
-    scene = load_scene(data.scene_dir)
-    bank = SegmentBank.open(data.bank_dir)
-    gaussians = read_ply(data.gaussians)
     meter = ActivationMeter()
+    job = TrainJob(
+        data=data.scene_dir,
+        gaussians=data.gaussians,
+        bank=data.bank_dir,
+        out=run_dir,
+        field_config=field_config,
+        train_config=train_config,
+        callback=meter.end_step,
+        device=config.device,
+        resume=resume,
+        progress=config.progress,
+    )
     with meter:
-        report = train_field(
-            scene,
-            gaussians,
-            bank,
-            run_dir,
-            field_config=field_config,
-            config=train_config,
-            resume=resume,
-            paths=paths,
-            progress=config.progress,
-            callback=meter.end_step,
-        )
+        report = run_train(job, log=lambda line: log(f"[bench] {run_dir.name}: {line}"))
+    bank = SegmentBank.open(data.bank_dir)
     params = field_parameter_count(field_config, int(bank.embed_dim))
     F_dim = rasterized_channels(field_config)
     memory = {

@@ -47,7 +47,7 @@ def cpu() -> Preset:
     return Preset(
         name="cpu",
         fit=FitConfig.cpu(),
-        lift=LiftSettings(scale_measure="area"),
+        lift=LiftSettings.cpu(),
         field=FieldConfig.cpu(),
         train=TrainConfig.cpu(),
     )
@@ -57,7 +57,7 @@ def paper() -> Preset:
     return Preset(
         name="paper",
         fit=FitConfig.paper(),
-        lift=LiftSettings(),
+        lift=LiftSettings.paper(),
         field=FieldConfig.paper(),
         train=TrainConfig.paper(),
     )

@@ -9,9 +9,10 @@ and argparse cannot tell a folder name from a sub-action name.
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 from pathlib import Path
 
-from ..config import add_config_options, config_overrides, stage_job_args
+from ..config import add_config_options, add_preset_option, config_overrides, default_preset, stage_job_args
 from ..distributed import add_executor_options
 from ..validate import add_device_option, positive_float
 from .encoders import ENCODER_NAMES
@@ -46,7 +47,8 @@ def _common(p: argparse.ArgumentParser) -> None:
         default="render",
         help="render: expected depth of --gaussians (paper, default); gt: the demo scene's exact depth maps",
     )
-    add_config_options(p, LiftSettings)  # --scale-measure; None keeps LiftSettings' default
+    add_preset_option(p, "the segment scale measure")
+    add_config_options(p, LiftSettings)  # --scale-measure; None keeps the preset's
     p.add_argument(
         "--downscale", type=positive_float, default=1.0, help="image downscale factor, as 3DGS -r (default 1)"
     )
@@ -164,7 +166,9 @@ def job_from_args(args: argparse.Namespace, **kw) -> BankJob:
         data=Path(args.data),
         out=Path(args.out),
         gaussians=None if args.gaussians is None else Path(args.gaussians),
-        lift=LiftSettings(**config_overrides(args, LiftSettings)),
+        lift=replace(
+            LiftSettings.preset(args.preset or default_preset(args.device)), **config_overrides(args, LiftSettings)
+        ),
         model=args.model,
         depth_source=args.depth_source,
         **stage_job_args(args),

@@ -15,12 +15,12 @@ moment gives the point count, sums and second moments of every segment at once.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable, Optional
+from typing import Callable, ClassVar, Optional
 
 import numpy as np
 
 from ..cameras import Camera
-from ..config import option
+from ..config import PRESET_NAMES, ConfigDict, option
 from ..errors import InputError
 
 SCALE_DESCRIPTIONS = {  # LiftSettings.scale_measure -> what bank.json records
@@ -35,7 +35,9 @@ DepthProvider = Callable[[int], tuple[np.ndarray, np.ndarray]]
 
 
 @dataclass
-class LiftSettings:
+class LiftSettings(ConfigDict):
+    PRESETS: ClassVar[tuple[str, ...]] = PRESET_NAMES  # see the static methods of those names
+
     erode: bool = True  # erode each mask once with a 3 x 3 kernel before lifting (GARField)
     min_points: int = 10  # fewer valid 3D points -> degenerate segment (scale NaN, dropped)
     min_alpha: float = 0.5  # rendered pixels with less accumulated opacity have no depth
@@ -65,6 +67,16 @@ class LiftSettings:
         choices=SCALE_MEASURES,
     )
     extent_percentile: float = 2.0
+
+    @staticmethod
+    def cpu() -> "LiftSettings":
+        """Segments measured by their visible area (never larger than their parent's)."""
+        return LiftSettings(scale_measure="area")
+
+    @staticmethod
+    def paper() -> "LiftSettings":
+        """The paper's largest eigenvalue."""
+        return LiftSettings()
 
     def __post_init__(self) -> None:
         if self.scale_measure not in SCALE_MEASURES:

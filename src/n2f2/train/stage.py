@@ -1,9 +1,8 @@
 """The training stage's runner: ``n2f2 train`` and ``n2f2 run`` / ``demo`` / ``run-many`` train a
 feature field through :func:`run_train`, which claims the run folder, builds the configs from a
 preset and overrides, reads the scene, the segment bank and the Gaussians before anything is
-replaced, trains, and prints the summary line. (The bench trains its variants with
-:func:`~n2f2.train.trainer.train_field` itself: it meters their activations and extends shorter
-runs.)"""
+replaced, trains, and prints the summary line. The bench trains its variants through it too,
+giving each variant's configs whole and a step callback that meters activations."""
 
 from __future__ import annotations
 
@@ -32,6 +31,11 @@ class TrainJob(StageJob):
     train_overrides: dict[str, Any] = field(default_factory=dict)  # TrainConfig fields set explicitly
     train_on_all: bool = False  # also train on the scene's test views
     seed: int = 0
+    # Configs given whole (the bench's variants): they replace the preset (and a resumed
+    # checkpoint's); the overrides still apply on top.
+    field_config: Optional[FieldConfig] = None
+    train_config: Optional[TrainConfig] = None
+    callback: Optional[Callable[[int, float], None]] = None  # after each step: (step, loss)
 
 
 def gaussians_path(path: str | Path) -> Path:
@@ -56,7 +60,10 @@ def job_configs(job: TrainJob, out: Path) -> tuple[FieldConfig, TrainConfig]:
     saved = saved_configs(out) if job.resume else None
     preset = job.preset or default_preset(job.device)
     try:
-        if saved is not None:  # a resumed run keeps the checkpoint's settings; overrides may change them
+        if job.field_config is not None and job.train_config is not None:
+            field_config = replace(job.field_config, **job.field_overrides)
+            config = job.train_config
+        elif saved is not None:  # a resumed run keeps the checkpoint's settings; overrides may change them
             field_config = replace(saved[0], **job.field_overrides)
             config = saved[1]
         else:
@@ -101,6 +108,7 @@ def run_train(job: TrainJob, log: Log = print) -> dict:
         config=config,
         resume=job.resume,
         progress=job.progress,
+        callback=job.callback,
         paths={
             "scene": str(Path(job.data).resolve()),
             "gaussians": str(gpath.resolve()),
