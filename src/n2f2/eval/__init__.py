@@ -31,6 +31,7 @@ __getattr__, __all__ = lazy_exports(
         "evaluate_label_dir": "protocol",
         "evaluate_scene": "protocol",
         "localization_hit": "protocol",
+        "localization_point": "protocol",
         "majority_filter": "protocol",
         "resolve_box_size": "protocol",
         "resolve_majority_radius": "protocol",

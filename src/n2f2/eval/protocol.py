@@ -15,7 +15,9 @@ features), so the protocol itself never sees a model. Per (frame, category) pair
   category's polygons. The level whose ``R'`` has the highest maximum is the one reported.
 * **localization** (hit). For each level ``box(R)`` (no 0.5 mix); the level with the highest
   filtered maximum is chosen; a hit is when any pixel equal to that maximum lies inside any of the
-  category's boxes, edges included.
+  category's boxes, edges included. The maxima are :func:`n2f2.query.maps.localization_maxima`,
+  whose first (:func:`localization_point`) is the point ``n2f2 query`` and the viewer report:
+  integer pixel coordinates (x = column, y = row) of the map, the coordinates of the label boxes.
 
 Scene scores: mIoU = mean IoU over all pairs; localization accuracy = hits / pairs.
 
@@ -67,6 +69,8 @@ from ..query.maps import (  # noqa: F401  (re-exported: the protocol's rules, wr
     BoxSize,
     Radius,
     box_filter,
+    localization_maxima,
+    localization_point,
     majority_filter,
     mask_from_smoothed,
     mask_iou,
@@ -156,8 +160,9 @@ def localization_hit(
     boxes: np.ndarray,  # [B, 4] (x1, y1, x2, y2)
     box_size: int = LANGSPLAT_BOX_SIZE,
 ) -> bool:
-    """LangSplat's localization test for one level: any maximum of ``box(R)`` inside any box."""
-    return points_in_boxes(max_locations(box_filter(relevancy, box_size)), boxes)
+    """LangSplat's localization test for one level: any maximum of ``box(R)``
+    (:func:`localization_maxima`) inside any box."""
+    return points_in_boxes(localization_maxima(relevancy, box_size), boxes)
 
 
 # ------------------------------------------------------------------------------ one pair
@@ -206,8 +211,9 @@ def evaluate_frame_category(
     # Localization: box(R) without the mix; the level with the highest filtered maximum.
     peaks = filtered.reshape(len(rel), -1).max(axis=1)  # [L]
     loc_level = int(np.argmax(peaks))
-    # Any maximum of a level inside any box (points_in_boxes of max_locations, for every level
-    # at once): the maxima of each level against the pixels the boxes cover.
+    # Any maximum of a level inside any box (localization_hit, i.e. points_in_boxes of
+    # localization_maxima, for every level at once): the maxima of each level against the pixels
+    # the boxes cover.
     at_peak = filtered == peaks[:, None, None]  # [L, H, W]
     hits = [bool(h) for h in (at_peak & pixels_in_boxes(boxes, *rel.shape[1:])).any(axis=(1, 2))]
     return PairResult(

@@ -231,8 +231,36 @@ class Environment(torch.nn.Module):
             "sh": self.sh.detach().cpu().tolist(),
         }
 
+    @staticmethod
+    def from_dict(d: dict) -> "Environment":
+        """The background :meth:`to_dict` wrote (the same float32 coefficients)."""
+        from ..render.sh import num_sh_bases
+
+        degree = int(d["degree"])
+        sh = torch.tensor(d["sh"], dtype=torch.float32)
+        if d.get("kind") != "spherical-harmonics" or tuple(sh.shape) != (num_sh_bases(degree), 3):
+            raise ValueError(f"not a spherical-harmonics background of degree {degree}")
+        env = Environment(degree, (0.0, 0.0, 0.0))
+        with torch.no_grad():
+            env.sh.copy_(sh)
+        return env.requires_grad_(False)
+
 
 BACKGROUND_NAME = "background.json"
+
+
+def read_background(folder: Union[str, Path], device: Union[str, torch.device] = "cpu") -> Optional[Environment]:
+    """The learned background a fit saved in ``folder`` (``background.json``, also copied into a
+    trained run beside its ``gaussians.ply``); None without one: the fit rendered on black."""
+    import json
+
+    path = Path(folder) / BACKGROUND_NAME
+    if not path.is_file():
+        return None
+    try:
+        return Environment.from_dict(json.loads(path.read_text())).to(device)
+    except (OSError, ValueError, KeyError, TypeError) as e:  # JSONDecodeError is a ValueError
+        raise InputError(path, f"unreadable learned background ({e})") from None
 
 
 def _render(g: Gaussians, camera, config: FitConfig, env: Optional[Environment] = None):

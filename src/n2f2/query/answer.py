@@ -71,6 +71,7 @@ def answer_queries(
     force: bool = False,
     device: str = "cpu",
     progress: bool = True,
+    full_res: bool = False,  # views at the images' size, not at the run's downscale
 ) -> dict:
     """Render each view's feature cache once, answer every query of ``texts`` in one pass, and
     write the outputs into ``out`` (refused when it holds an answer, unless ``force``).
@@ -95,7 +96,7 @@ def answer_queries(
     if composite_weights is not None:
         overrides["composite_weights"] = composite_weights
     config = QueryConfig(selection=selection, box_size=box_size, **overrides)
-    engine = QueryEngine.from_run(run_dir, device=device, scene=scene, config=config)
+    engine = QueryEngine.from_run(run_dir, device=device, scene=scene, config=config, full_res=full_res)
     view_names = [engine.camera(i)[2] for i in views]  # fail before any work on a bad index
     results = list(dict.fromkeys(query_results(texts, view_names, three_d) + listed_results(out)))
     present = claim_out_dir(out, results, force=force, resume_flag=None)

@@ -21,6 +21,16 @@ def add_render_option(p: argparse.ArgumentParser) -> None:
     add_config_options(p, QueryConfig, ["render"], field_defaults=True)
 
 
+def add_full_res_option(p: argparse.ArgumentParser) -> None:
+    """``--full-res``: views at the images' size; without it at the downscale the run was trained
+    at (``n2f2 train --downscale``), the size its Gaussians were fitted at."""
+    p.add_argument(
+        "--full-res",
+        action="store_true",
+        help="render views at the images' full size (default: at the --downscale the run was trained at)",
+    )
+
+
 def add_composite_options(p: argparse.ArgumentParser) -> None:
     """``--composite-weights`` (default QueryConfig's) and ``--temperature`` (None: QueryConfig's):
     composite's weights over the scales, read back by :func:`composite_config`."""
@@ -43,7 +53,8 @@ def composite_config(args: argparse.Namespace) -> dict:
     return config
 
 
-def _box_size(value: str):
+def box_size_arg(value: str):
+    """``--box-size``: a positive number of pixels, or ``scaled`` (``n2f2 query`` and ``n2f2 view``)."""
     if value == "scaled":
         return value
     try:
@@ -112,13 +123,14 @@ def register(subparsers) -> None:
     )
     p.add_argument(
         "--box-size",
-        type=_box_size,
+        type=box_size_arg,
         default=None,
         help="protocol mean-filter size in pixels, or 'scaled' = round(30 W / 986) "
         "(default 30, LangSplat's; use 'scaled' on small renders)",
     )
     add_composite_options(p)
     add_render_option(p)
+    add_full_res_option(p)
     add_config_options(p, QueryConfig, ["canonical"])  # None: QueryConfig's phrases
     add_config_options(p, QueryConfig, ["selection"], field_defaults=True)
     p.add_argument(
@@ -157,6 +169,7 @@ def run(args: argparse.Namespace) -> int:
             force=args.force,
             device=args.device,
             progress=not args.quiet,
+            full_res=args.full_res,
         )
     )
     return 0

@@ -214,6 +214,8 @@ class QueryEngine:
         config: :class:`QueryConfig`.
         device: torch device for every tensor.
         scene: optional :class:`n2f2.data.scene.Scene` giving the cameras for view indices.
+        background: the learned background RGB views are composited over, as the fit rendered
+            its test views (:func:`n2f2.gaussians.fit.read_background`); None: black.
     """
 
     def __init__(
@@ -226,6 +228,7 @@ class QueryEngine:
         device: Union[str, torch.device] = "cpu",
         scene: Any = None,
         run_dir: Optional[Path] = None,
+        background: Any = None,
     ) -> None:
         self.field = field
         self.gaussians = gaussians
@@ -235,6 +238,7 @@ class QueryEngine:
         self.device = torch.device(device)
         self.scene = scene
         self.run_dir = run_dir
+        self.background = background  # Environment: camera -> [H, W, 3], or None
         cfg = meta.get("config", {})
         self.variant: str = str(cfg.get("variant", meta.get("variant", "nested")))  # the name, as in files
         self.kind: FieldVariant = get_variant(self.variant)  # what the variant supervises and answers
@@ -255,13 +259,17 @@ class QueryEngine:
         scene: Any = None,
         config: Optional[QueryConfig] = None,
         encoder: Any = None,
+        full_res: bool = False,
     ) -> "QueryEngine":
-        """Load ``RUN_DIR/field.pt`` and ``RUN_DIR/gaussians.ply`` (and the field's text encoder).
+        """Load ``RUN_DIR/field.pt`` and ``RUN_DIR/gaussians.ply`` (and the field's text encoder),
+        and the fit's learned background when the run holds it (``background.json``).
 
         ``scene`` is a Scene, a scene folder, or None (then the scene recorded in the run's
-        metadata is used when it exists; views can still be given as cameras)."""
+        metadata is used when it exists; views can still be given as cameras). A folder is
+        loaded at the downscale the run was trained at, or at the images' size with ``full_res``."""
         from ..field import load_field
         from ..gaussians import read_ply
+        from ..gaussians.fit import read_background
 
         run_dir = Path(run_dir)
         if not run_dir.is_dir():
@@ -278,8 +286,9 @@ class QueryEngine:
         if encoder is None and meta.get("encoder_spec") is None:
             raise InputError(field_path, "field metadata names no text encoder (encoder_spec)")
         if scene is None or isinstance(scene, (str, Path)):
-            scene = _load_run_scene(run_dir, meta, scene)
-        return QueryEngine(field, gaussians, encoder, meta, config, device, scene, run_dir)
+            scene = _load_run_scene(run_dir, meta, scene, full_res)
+        background = read_background(run_dir, device)
+        return QueryEngine(field, gaussians, encoder, meta, config, device, scene, run_dir, background)
 
     # ------------------------------------------------------------------ field data
     @property
@@ -449,10 +458,14 @@ class QueryEngine:
             caches[k] = self._build_cache(k, flat[:, j * D : (j + 1) * D])
         t2 = time.perf_counter()
         image = None
-        if rgb:
-            image = rasterize_in_bands(
-                g.means, g.normalized_quats, g.scales, g.opacities, view_colors(g, cam), cam, background=(0.0, 0.0, 0.0)
-            ).features.clamp_(0.0, 1.0)
+        if rgb:  # as the fit renders its test views (gaussians.fit._render), over its background
+            env = self.background
+            black = None if env is not None else (0.0, 0.0, 0.0)
+            colors = view_colors(g, cam)  # [N, 3]
+            rendered = rasterize_in_bands(g.means, g.quats, g.scales, g.opacities, colors, cam, background=black)
+            if env is not None:
+                rendered.features += (1.0 - rendered.alpha) * env(cam).to(rendered.features)
+            image = rendered.features.clamp_(0.0, 1.0)
         return ViewCache(
             cam, index, name, caches, out.alpha.reshape(H, W_), image, {"render": t1 - t0, "cache": t2 - t1}
         )
@@ -710,8 +723,10 @@ def _box(config: QueryConfig) -> BoxSize:
     return LANGSPLAT_BOX_SIZE if config.box_size is None else config.box_size
 
 
-def _load_run_scene(run_dir: Path, meta: dict, scene: Optional[Union[str, Path]]) -> Any:
-    """The scene a run was trained on: ``scene`` if given, else the path its metadata records."""
+def _load_run_scene(run_dir: Path, meta: dict, scene: Optional[Union[str, Path]], full_res: bool = False) -> Any:
+    """The scene a run was trained on: ``scene`` if given, else the path its metadata records;
+    at the downscale the training recorded (runs from before it was recorded: 1), or 1 with
+    ``full_res``."""
     import json
 
     from ..data import load_scene
@@ -733,5 +748,5 @@ def _load_run_scene(run_dir: Path, meta: dict, scene: Optional[Union[str, Path]]
     path = Path(scene)
     if not path.is_dir():
         raise InputError(path, "scene folder does not exist")
-    downscale = float(meta.get("downscale", 1.0) or 1.0)
+    downscale = 1.0 if full_res else float(meta.get("downscale", 1.0) or 1.0)
     return load_scene(path, downscale=downscale)

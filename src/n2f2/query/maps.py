@@ -4,6 +4,21 @@ threshold, the majority filter, and the maxima used for localisation.
 These are the rules of LangSplat's ``eval/evaluate_iou_loc.py`` and ``eval/utils.py``, written
 once: ``n2f2 query`` and the viewer use them to turn relevancy into masks and locations, and
 :mod:`n2f2.eval.protocol` (which documents each rule against LangSplat's code) scores with them.
+
+Localisation, one rule for every caller (:func:`localization_maxima`): the maxima of ``box(R)``,
+the mean-filtered raw relevancy (no 0.5 mix). A point is an integer pixel index ``(x, y)`` =
+(column, row) of the map as rendered, in its own ``H x W``; the pixel's centre lies at image
+coordinates ``(x + 0.5, y + 0.5)`` (n2f2's camera convention). Nothing rescales a point: the
+viewer renders a training view at the size ``n2f2 query`` does (same run, same ``--full-res``),
+so their points compare as they are; a map rendered at another size has its own pixels (scale
+by the ratio of the widths and heights to compare). ``n2f2 query`` (``localization`` in
+query.json), the viewer's ``/api/query`` and its 3D "Render view" report :func:`localization_point`,
+the first maximum in row-major order; the evaluation scores a hit when any maximum lies in a label
+box, whose corners are in the same pixel coordinates (LangSplat compares these integers with them).
+
+Flat maps (:func:`flat_warning`): a map whose range over the view is below :data:`FLAT_RANGE`
+carries no signal; its mask and point are artefacts of min-max normalisation and ties, and the
+outputs say so.
 """
 
 from __future__ import annotations
@@ -11,7 +26,7 @@ from __future__ import annotations
 import math
 from concurrent.futures import ThreadPoolExecutor
 from functools import lru_cache
-from typing import Callable, Literal, Union
+from typing import Callable, Literal, Optional, Union
 
 import numpy as np
 
@@ -23,6 +38,15 @@ LANGSPLAT_MAJORITY_RADIUS = 3  # utils.smooth: scale = 3
 # Width of the LERF-OVS label images LangSplat evaluates at (about 986 px, e.g. 986 x 728).
 # Reference width for box_size="scaled"; pass box_ref_width to use another.
 LERF_REFERENCE_WIDTH = 986
+
+# A relevancy map whose range (max - min) over the view is below this is flat: it carries no
+# signal. Relevancy is a softmax pair probability, sigmoid(10 (cos_t - max_c cos_c)) in (0, 1),
+# whose slope is at most 2.5 per unit of cosine: a range of 1e-3 is a cosine margin under 4e-4
+# across the whole view, far below any difference a threshold could act on (the protocol's 0.4
+# acts after min-max normalisation, which stretches any range, float32 rounding included, to
+# [0, 1]), and far above the float32 rounding of a map of equal features (0 to a few 1e-6, e.g.
+# 0.4999987-0.5000009). Even the tests' tiny 80-iteration field gives maps spanning about 0.07.
+FLAT_RANGE = 1e-3
 
 BoxSize = Union[int, Literal["scaled"]]
 Radius = Union[int, Literal["scaled"]]
@@ -230,3 +254,48 @@ def max_locations(filtered: np.ndarray) -> np.ndarray:  # [H, W] -> int64 [P, 2]
     ``np.nonzero(map == map.max())`` flipped to x, y."""
     rows, cols = np.nonzero(filtered == filtered.max())
     return np.stack([cols, rows], axis=1)
+
+
+def localization_maxima(
+    relevancy: np.ndarray,  # [H, W] raw relevancy of one map
+    box_size: int = LANGSPLAT_BOX_SIZE,
+) -> np.ndarray:  # int64 [P, 2] as (x, y), row-major order
+    """THE localisation rule (LangSplat's ``lerf_localization``): every maximum of ``box(R)``,
+    as integer pixel indices of the map (see the module docstring for the convention)."""
+    return max_locations(box_filter(relevancy, box_size))
+
+
+def localization_point(
+    relevancy: np.ndarray,  # [H, W] raw relevancy of one map
+    box_size: int = LANGSPLAT_BOX_SIZE,
+) -> tuple[int, int]:  # (x, y) integer pixel indices
+    """The one point that ``n2f2 query``, the viewer and the evaluation report for a map: the first
+    (row-major) of :func:`localization_maxima`."""
+    x, y = localization_maxima(relevancy, box_size)[0]
+    return int(x), int(y)
+
+
+# ------------------------------------------------------------------------------ flat maps
+def relevancy_range(relevancy: np.ndarray) -> float:  # [...] -> max - min
+    """The spread of a relevancy map (or of any set of relevancies, e.g. per Gaussian)."""
+    r = np.asarray(relevancy)
+    return float(r.max()) - float(r.min())
+
+
+def is_flat(relevancy: np.ndarray, eps: float = FLAT_RANGE) -> bool:  # [...] -> flat?
+    """True when the map's range is below ``eps`` (:data:`FLAT_RANGE`): it carries no signal."""
+    return relevancy_range(relevancy) < eps
+
+
+def flat_warning(
+    relevancy: np.ndarray,  # [...] one map, or the relevancy of every Gaussian
+    where: str = "this view",
+    eps: float = FLAT_RANGE,
+) -> Optional[str]:
+    """The warning that ``n2f2 query`` prints and writes (and the viewer shows) for a flat map,
+    None for a map with signal: ``relevancy is flat over this view (range 2.2e-06 < 1e-03): the
+    answer carries no signal``."""
+    span = relevancy_range(relevancy)
+    if not span < eps:
+        return None
+    return f"relevancy is flat over {where} (range {span:.1e} < {eps:.0e}): the answer carries no signal"

@@ -6,14 +6,17 @@ Per view ``V`` and query ``Q`` (``<slug>`` = lower-case query, non-alphanumerics
 * ``V_<slug>.npy``: float32 ``[H, W]`` raw relevancy (in (0, 1), 0.5 = as relevant as the
   closest negative phrase).
 * ``V_<slug>_heatmap.png``: the relevancy, min-max normalised per map, in the turbo colour map,
-  blended over the rendered RGB with opacity proportional to the normalised value.
+  blended over the rendered RGB with opacity proportional to the normalised value. A flat map
+  (:func:`n2f2.query.maps.is_flat`) is drawn on the absolute 0..1 scale instead, as one colour
+  (:func:`heat_values`), and its record in query.json carries a ``"warning"``.
 * ``V_<slug>_mask.png``: the segmentation mask (evaluation-protocol rule) tinted over the RGB,
   with the localization pixel marked by a cross.
 * ``V_rgb.png``: the rendered RGB.
 
 2D post-processing (segmentation mask, localization, smoothing) is the evaluation protocol's
 (:mod:`n2f2.query.maps`): ``R' = 0.5 (box(R) + R)``, min-max normalise, map to [-1, 1], clip,
-``> threshold``, 7x7 majority filter; localization = first maximum of ``box(R)``.
+``> threshold``, 7x7 majority filter; localization = first maximum of ``box(R)``
+(:func:`n2f2.query.maps.localization_point`: integer pixel (x, y) of the view as rendered).
 """
 
 from __future__ import annotations
@@ -25,7 +28,7 @@ from typing import TYPE_CHECKING, Optional, Union
 import numpy as np
 
 from ..io import write_json, write_npy, write_png
-from .maps import box_filter, max_locations, segmentation_mask
+from .maps import flat_warning, is_flat, localization_point, segmentation_mask
 
 if TYPE_CHECKING:
     from .engine import QueryResult, ViewCache
@@ -52,13 +55,6 @@ def unique_slugs(texts: list[str]) -> list[str]:
     return out
 
 
-def localize(relevancy: np.ndarray, box_size: int) -> tuple[int, int]:  # [H, W] -> (x, y)
-    """The localization pixel: the first maximum (row-major) of ``box(R)``, as the protocol."""
-
-    x, y = max_locations(box_filter(relevancy, box_size))[0]
-    return int(x), int(y)
-
-
 def segment(relevancy: np.ndarray, box_size: int, threshold: float) -> np.ndarray:  # -> bool [H, W]
     """The protocol's segmentation mask of a relevancy map."""
 
@@ -72,13 +68,24 @@ def normalize01(x: np.ndarray) -> np.ndarray:
     return (x - lo) / (hi - lo) if hi > lo else np.zeros_like(x)
 
 
+def heat_values(relevancy: np.ndarray) -> np.ndarray:  # [H, W] -> float32 [H, W] in [0, 1]
+    """What the heatmap colours: the min-max normalised relevancy, or for a flat map
+    (:func:`n2f2.query.maps.is_flat`) its mean relevancy at every pixel, on the absolute 0..1
+    scale: one colour (a flat 0.5 map is turbo's middle), not min-max stretched rounding noise
+    (which also straddles a colour-map entry at 0.5)."""
+    r = np.asarray(relevancy, dtype=np.float32)
+    if is_flat(r):
+        return np.full_like(r, np.clip(r.mean(dtype=np.float64), 0.0, 1.0))
+    return normalize01(r)
+
+
 def relevancy_colors(
     relevancy: np.ndarray,  # [H, W]
 ) -> np.ndarray:  # [H, W, 3] float32 in [0, 1]
-    """Turbo colours of the min-max normalised relevancy (the heatmap without the RGB)."""
+    """Turbo colours of :func:`heat_values` (the heatmap without the RGB)."""
     from matplotlib import colormaps
 
-    return colormaps["turbo"](normalize01(relevancy))[..., :3].astype(np.float32)
+    return colormaps["turbo"](heat_values(relevancy))[..., :3].astype(np.float32)
 
 
 def heatmap_overlay(
@@ -86,9 +93,9 @@ def heatmap_overlay(
     relevancy: np.ndarray,  # [H, W]
     colors: Optional[np.ndarray] = None,  # [H, W, 3] relevancy_colors(relevancy), when already made
 ) -> np.ndarray:  # [H, W, 3] float
-    """Turbo colours of the min-max normalised relevancy over the RGB; weak values let the
-    image through (opacity ``HEATMAP_ALPHA`` x normalised value)."""
-    v = normalize01(relevancy)
+    """Turbo colours of :func:`heat_values` (the min-max normalised relevancy; absolute for a
+    flat map) over the RGB; weak values let the image through (opacity ``HEATMAP_ALPHA`` x value)."""
+    v = heat_values(relevancy)
     a = HEATMAP_ALPHA * v[..., None]
     return rgb * (1.0 - a) + (relevancy_colors(relevancy) if colors is None else colors) * a
 
@@ -133,7 +140,7 @@ def write_view_outputs(
     for qi, (text, slug) in enumerate(zip(result.texts, unique_slugs(result.texts))):
         rel = np.ascontiguousarray(rel_all[qi], dtype=np.float32)
         mask = segment(rel, box_size, threshold)
-        x, y = localize(rel, box_size)
+        x, y = localization_point(rel, box_size)
         write_npy(out_dir / f"{view.name}_{slug}.npy", rel)
         write_png(out_dir / f"{view.name}_{slug}_heatmap.png", heatmap_overlay(rgb, rel))
         write_png(out_dir / f"{view.name}_{slug}_mask.png", mask_overlay(rgb, mask, (x, y)))
@@ -156,6 +163,9 @@ def write_view_outputs(
         }
         if result.scale_scores is not None:
             rec["scale_scores"] = result.scale_scores[qi].detach().float().cpu().tolist()
+        warning = flat_warning(rel)
+        if warning is not None:  # only for a flat map: the record is otherwise unchanged
+            rec["warning"] = warning
         records.append(rec)
     return records
 

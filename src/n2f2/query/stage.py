@@ -1,6 +1,7 @@
 """The query stage's runner: ``n2f2 query`` and the demo's relevancy PNGs answer text queries on
 a trained run through :func:`run_query`, which checks the texts and settings, answers every
-query in each view (:func:`~n2f2.query.answer.answer_queries`) and prints one line per answer."""
+query in each view (:func:`~n2f2.query.answer.answer_queries`) and prints one line per answer,
+followed by a ``warning:`` line when that answer's relevancy map is flat (it carries no signal)."""
 
 from __future__ import annotations
 
@@ -45,6 +46,7 @@ class QueryJob:
     force: bool = False  # replace an answer already in OUT
     device: str = "cpu"
     progress: bool = True
+    full_res: bool = False  # views at the images' size, not at the downscale the run was trained at
 
 
 def run_query(job: QueryJob, log: Log = print) -> dict:
@@ -77,6 +79,7 @@ def run_query(job: QueryJob, log: Log = print) -> dict:
         force=job.force,
         device=job.device,
         progress=job.progress,
+        full_res=job.full_res,
     )
     for v in summary["views"]:
         for r in v["queries"]:
@@ -86,6 +89,8 @@ def run_query(job: QueryJob, log: Log = print) -> dict:
                 f"({loc['x']}, {loc['y']}), mask {r['mask_area_px']} px"
                 + (f", scale {r['chosen_scale']}" if r["chosen_scale"] else "")
             )
+            if r.get("warning"):  # a flat map (query.maps.flat_warning): said right under its line
+                log(f'warning: "{shown(r["query"])}": {r["warning"]}')
     sel3d = summary.get("selection_3d")
     for t, s in (sel3d["selections"] if sel3d else {}).items():
         assert sel3d is not None  # the loop runs over sel3d's selections only

@@ -189,6 +189,7 @@ def train_field(
     meta = {
         "encoder_spec": getattr(bank, "encoder_spec", None),
         "scene": paths.get("scene") or str(getattr(scene, "root", "")),
+        "downscale": float(getattr(scene, "downscale", 1.0)),  # as loaded: renders of the run use it too
         "gaussians": paths.get("gaussians"),
         "bank": bank_path,
         "scene_extent": extent,
@@ -524,13 +525,22 @@ def _to(batch: PixelBatch, device: torch.device) -> PixelBatch:
 
 
 def _record_gaussians(path: Optional[str], out: Path) -> Optional[str]:
-    """Copy the PLY the field was trained on into the run folder (so RUN/ is self-contained)."""
+    """Copy the PLY the field was trained on into the run folder (so RUN/ is self-contained),
+    and the learned background its fit saved beside it (``background.json``): renders of the
+    run composite RGB over it as the fit's own test views do (a background left there by other
+    Gaussians goes)."""
     if not path:
         return None
-    src, dst = Path(path), out / GAUSSIANS_NAME
-    if src.resolve() != dst.resolve():
-        from ..io import atomic_path
+    from ..gaussians.fit import BACKGROUND_NAME
+    from ..io import atomic_path, remove_results
 
+    src, dst = Path(path), out / GAUSSIANS_NAME
+    if src.resolve() != dst.resolve():  # (the run's own copy has its background beside it)
         with atomic_path(dst) as tmp:
             shutil.copyfile(src, tmp)
+        if (src.parent / BACKGROUND_NAME).is_file():
+            with atomic_path(out / BACKGROUND_NAME) as tmp:
+                shutil.copyfile(src.parent / BACKGROUND_NAME, tmp)
+        else:  # the fit rendered on black
+            remove_results(out, [BACKGROUND_NAME])
     return str(dst)

@@ -74,17 +74,22 @@ def launch(
     limits: Any = None,
     export_dir: Optional[str | Path] = None,
     warm: bool = True,
+    full_res: bool = False,
+    box_size: Any = None,
 ) -> RunningViewer:
     """Load the run once and start the 3D viewer on ``port`` and (unless ``api_port`` is None)
-    the JSON API on ``api_port``; returns when both accept connections. Port 0 = any free port."""
+    the JSON API on ``api_port``; returns when both accept connections. Port 0 = any free port.
+    Views render at the downscale the run was trained at, or at the images' size with ``full_res``.
+    ``box_size``: the protocol's mean filter (pixels or "scaled"; None: LangSplat's 30 px, as
+    ``n2f2 query``'s) of the masks, the localisation and explicit mode's scale choice."""
     import viser
 
     from ..errors import InputError
-    from ..query.engine import QueryEngine
+    from ..query.engine import QueryConfig, QueryEngine
     from .server import Viewer, api_server
     from .splats import SplatViewer
 
-    engine = QueryEngine.from_run(run_dir, scene=scene)
+    engine = QueryEngine.from_run(run_dir, scene=scene, full_res=full_res, config=QueryConfig(box_size=box_size))
     viewer = Viewer(engine, limits or ViewerLimits())
     api = thread = None
     if api_port is not None:
@@ -129,6 +134,8 @@ def _cmd_view(args: argparse.Namespace) -> int:
         scene=args.scene,
         limits=limits,
         export_dir=args.export_dir,
+        full_res=args.full_res,
+        box_size=args.box_size,
     )
     print(
         f"n2f2 viewer: 3D view on {running.url}"
@@ -146,6 +153,8 @@ def _cmd_view(args: argparse.Namespace) -> int:
 
 
 def register(subparsers) -> None:
+    from ..query.commands import add_full_res_option, box_size_arg
+
     p = subparsers.add_parser(
         "view",
         help="start the local viewer on a trained run: 3D splats in the browser + JSON API",
@@ -169,6 +178,7 @@ def register(subparsers) -> None:
     p.add_argument("--no-api", action="store_true", help="serve only the 3D viewer")
     p.add_argument("--host", default=HOST, help=f"bind address of both (default: {HOST}, this machine only)")
     p.add_argument("--scene", default=None, help="scene folder, if not the one recorded in the run")
+    add_full_res_option(p)
     p.add_argument("--export-dir", default=None, help="where 'Export selection' writes (default: the run folder)")
     cache_mb = field_default(ViewerLimits, "render_cache_bytes") / 2**20
     p.add_argument(
@@ -178,4 +188,11 @@ def register(subparsers) -> None:
         help=f"memory for cached renders, least recently used out first (default: {cache_mb:g}; 0: none)",
     )
     add_config_options(p, ViewerLimits, LIMIT_FLAGS)  # None: ViewerLimits' own value
+    p.add_argument(
+        "--box-size",
+        type=box_size_arg,
+        default=None,
+        help="protocol mean-filter size in pixels for masks and localisation, or 'scaled' = round(30 W / 986) "
+        "(default 30, LangSplat's, as n2f2 query's: the same view and query give the same point)",
+    )
     p.set_defaults(func=_cmd_view)

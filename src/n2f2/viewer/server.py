@@ -7,12 +7,19 @@ API (all JSON; errors are ``{"error": "..."}`` with a 4xx/5xx status, never a tr
 * ``POST /api/render`` ``{"camera": CAMERA}`` -> ``{"rgb_png": base64, "width", "height",
   "cached", "timing_ms"}``.
 * ``POST /api/query`` ``{"queries": [str, ...], "camera": CAMERA, "mode": "composite"|"explicit"}``
-  -> ``{"rgb_png", "width", "height", "mode", "timing_ms", "results": [{"query",
+  -> ``{"rgb_png", "width", "height", "mode", "box_size", "timing_ms", "results": [{"query",
   "max_relevancy", "localization": [x, y], "mask_area", "mask_png", "overlay_png",
-  "relevancy_png", "chosen_scale"}]}``. ``localization`` is in pixel coordinates (pixel centres
-  at +0.5, as everywhere in n2f2); ``mask_png`` is the protocol's segmentation mask as a
-  white-on-transparent PNG; ``overlay_png`` / ``relevancy_png`` are ``n2f2 query``'s heatmap
-  (:mod:`n2f2.query.outputs`) over the RGB / alone.
+  "relevancy_png", "chosen_scale"}]}``, and ``"warning"`` in a result whose relevancy is flat over
+  the view (:func:`n2f2.query.maps.flat_warning`, the line ``n2f2 query`` prints).
+  ``localization`` is ``n2f2 query``'s point (:func:`n2f2.query.maps.localization_point`):
+  integer pixel indices (x = column, y = row) of the view as rendered, the pixel's centre at
+  ``(x + 0.5, y + 0.5)``; a training view renders at the size ``n2f2 query`` renders it (same
+  ``--full-res``), so the point equals
+  query.json's for the same view, query, mode and ``box_size`` (the protocol's mean filter in
+  pixels: ``QueryConfig.box_size`` of the engine, LangSplat's 30 by default, as ``n2f2 query``).
+  ``mask_png`` is the protocol's segmentation mask as a white-on-transparent PNG;
+  ``overlay_png`` / ``relevancy_png`` are ``n2f2 query``'s heatmap (:mod:`n2f2.query.outputs`)
+  over the RGB / alone.
 * ``POST /api/selection`` ``{"query": str, "mode": ..., "threshold": float|null}`` -> the selected
   Gaussians as an INRIA 3DGS PLY (``application/octet-stream``), count in ``X-Selected-Gaussians``.
 
@@ -139,9 +146,16 @@ class Viewer:
     """Holds the query engine and a per-camera render cache. One lock serialises the engine
     (PyTorch on 2 cores gains nothing from running queries concurrently)."""
 
-    def __init__(self, engine: Any, limits: ViewerLimits = ViewerLimits(), box_size: Any = "scaled"):
+    def __init__(self, engine: Any, limits: ViewerLimits = ViewerLimits(), box_size: Any = None):
+        from ..query.maps import LANGSPLAT_BOX_SIZE
+
         self.engine = engine
-        self.box_size = box_size  # smoothing box of the protocol's mask/localization rules
+        # Mean filter of the protocol's mask / localization rules (pixels or "scaled"). None: the
+        # engine's QueryConfig.box_size, whose own None is LangSplat's 30 px, as `n2f2 query`'s:
+        # one default, so the viewer and the command give the same mask and point.
+        if box_size is None:
+            box_size = getattr(getattr(engine, "config", None), "box_size", None)
+        self.box_size = LANGSPLAT_BOX_SIZE if box_size is None else box_size
         self.limits = limits
         self.scene = engine.scene
         if self.scene is None:
@@ -152,6 +166,12 @@ class Viewer:
         # The field's W is shared by every cache (and the engine): it is not a render's cost.
         self._shared = frozenset({engine.W.untyped_storage().data_ptr()}) if hasattr(engine, "W") else frozenset()
         self._renders = ByteLRU(limits.render_cache_bytes, lambda cache: tensor_bytes(cache, exclude=self._shared))
+
+    def box_pixels(self, width: int) -> int:
+        """The protocol's mean-filter size in pixels for a render ``width`` pixels wide."""
+        from ..query.maps import resolve_box_size
+
+        return resolve_box_size(self.box_size, width)
 
     def encoder_description(self) -> str:
         """The text encoder's description, from the field's metadata when it records one (no
@@ -255,8 +275,8 @@ class Viewer:
     def _results(self, view_cache: Any, texts: list[str], result: Any) -> list[dict]:
         """Per query: the protocol's mask and localization and the heatmap overlay, the same
         functions ``n2f2 query`` writes its files with (:mod:`n2f2.query.outputs`), as PNGs."""
-        from ..query.maps import LANGSPLAT_THRESHOLD, resolve_box_size
-        from ..query.outputs import heatmap_overlay, localize, relevancy_colors, segment
+        from ..query.maps import LANGSPLAT_THRESHOLD, flat_warning, localization_point
+        from ..query.outputs import heatmap_overlay, relevancy_colors, segment
 
         rel = result.relevancy.float().cpu().numpy()  # [Q, H, W]
         rgb = view_cache.rgb.float().cpu().numpy()  # [H, W, 3]
@@ -264,24 +284,26 @@ class Viewer:
         out = []
         for qi, text in enumerate(texts):
             r = np.ascontiguousarray(rel[qi], dtype=np.float32)
-            box = resolve_box_size(self.box_size, r.shape[1])
+            box = self.box_pixels(r.shape[1])
             mask = segment(r, box, LANGSPLAT_THRESHOLD)
-            col, row = localize(r, box)
+            x, y = localization_point(r, box)
             heat = relevancy_colors(r)
             mask_rgba = np.zeros(mask.shape + (4,), np.uint8)
             mask_rgba[mask] = (255, 255, 255, 255)
-            out.append(
-                {
-                    "query": text,
-                    "max_relevancy": float(r.max()),
-                    "localization": [col + 0.5, row + 0.5],
-                    "mask_area": int(mask.sum()),
-                    "mask_png": png_base64(mask_rgba),
-                    "overlay_png": png_base64(heatmap_overlay(rgb, r, heat)),
-                    "relevancy_png": png_base64(heat),
-                    "chosen_scale": labels[qi],
-                }
-            )
+            rec = {
+                "query": text,
+                "max_relevancy": float(r.max()),
+                "localization": [x, y],
+                "mask_area": int(mask.sum()),
+                "mask_png": png_base64(mask_rgba),
+                "overlay_png": png_base64(heatmap_overlay(rgb, r, heat)),
+                "relevancy_png": png_base64(heat),
+                "chosen_scale": labels[qi],
+            }
+            warning = flat_warning(r)
+            if warning is not None:
+                rec["warning"] = warning
+            out.append(rec)
         return out
 
     def selection_ply(self, text: str, mode: str, threshold: Optional[float]) -> tuple[bytes, int]:
@@ -412,6 +434,7 @@ def create_app(viewer: Viewer):
             "width": cache.width,
             "height": cache.height,
             "mode": mode,
+            "box_size": viewer.box_pixels(cache.width),
             "results": results,
             "timing_ms": 1000 * (time.perf_counter() - t0),
         }

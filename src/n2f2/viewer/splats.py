@@ -30,7 +30,10 @@ Display (the "colours" dropdown):
 "Render view" renders the browser's current camera on the server with the same fast path as the
 JSON API (:meth:`n2f2.viewer.server.Viewer.query_view`) and shows, per query, the relevancy heatmap
 and the segmentation mask with the localisation cross (:mod:`n2f2.query.outputs`), with the
-numbers beside them. "Export selection" writes the selected Gaussians as an INRIA PLY (and a
+numbers beside them: the point is ``n2f2 query``'s (:func:`n2f2.query.maps.localization_point`,
+integer pixel (x, y) of the render), and a flat map gets its warning there, as a query's flat
+relevancy over the Gaussians does in the status text.
+"Export selection" writes the selected Gaussians as an INRIA PLY (and a
 JSON of the query, mode, threshold and count) into the export folder given on the command line
 (default: the run folder); the file name comes from the queries, never from a typed path.
 """
@@ -400,6 +403,8 @@ class SplatViewer:
         return self.timing
 
     def _show_query_status(self) -> None:
+        from ..query.maps import flat_warning
+
         q = self.query
         if q is None:
             return
@@ -412,6 +417,9 @@ class SplatViewer:
         for text, rel, scale in zip(q.texts, q.relevancy, q.chosen):
             extra = f", scale {scale}" if scale else ""
             lines.append(f"- {text}: relevancy {float(rel.min()):.3f} to {float(rel.max()):.3f}{extra}")
+            warning = flat_warning(rel, "the Gaussians")
+            if warning is not None:
+                lines.append(f"  **warning:** {warning}")
         t = self.timing
         lines.append(
             f"\n{1000 * t.total:.0f} ms to colours sent (relevancy {1000 * t.relevancy:.0f}, "
@@ -429,8 +437,8 @@ class SplatViewer:
     def render_view(self, client: Any = None) -> Optional[np.ndarray]:
         """Render the client's camera on the server; show per query [heatmap | mask + cross] and
         the numbers. Returns the image shown ([H, W, 3] uint8), None without a client."""
-        from ..query.maps import resolve_box_size
-        from ..query.outputs import heatmap_overlay, localize, mask_overlay, segment
+        from ..query.maps import flat_warning, localization_point
+        from ..query.outputs import heatmap_overlay, mask_overlay, segment
 
         if client is None:
             clients = list(self.server.get_clients().values())
@@ -453,29 +461,30 @@ class SplatViewer:
             view, _ = self.viewer.render(key, camera, mode)
             rel_all = np.zeros((0, camera.height, camera.width), np.float32)
         rgb = view.rgb.float().cpu().numpy()
-        box = resolve_box_size(self.viewer.box_size, camera.width)
+        box = self.viewer.box_pixels(camera.width)
         threshold = float(self.gui_threshold.value)
-        rows, lines = [], []
+        rows, lines, warnings = [], [], []
         for qi, text in enumerate(texts):
             rel = np.ascontiguousarray(rel_all[qi], dtype=np.float32)
             mask = segment(rel, box, threshold)
-            x, y = localize(rel, box)
+            x, y = localization_point(rel, box)
             rows.append(np.concatenate([heatmap_overlay(rgb, rel), mask_overlay(rgb, mask, (x, y))], axis=1))
             scale = labels[qi]
-            lines.append(
-                f"| {text} | {float(rel.max()):.3f} | ({x + 0.5:.1f}, {y + 0.5:.1f}) | "
-                f"{int(mask.sum())} | {scale or '-'} |"
-            )
+            lines.append(f"| {text} | {float(rel.max()):.3f} | ({x}, {y}) | {int(mask.sum())} | {scale or '-'} |")
+            warning = flat_warning(rel)
+            if warning is not None:
+                warnings.append(f"**warning:** {text}: {warning}")
         image = np.concatenate(rows, axis=0) if rows else rgb
         image = (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
         self.gui_image.image = image
         self.gui_image.visible = True
         ms = 1000 * (time.perf_counter() - t0)
         header = (
-            f"{camera.width}x{camera.height} px, {ms:.0f} ms, mask threshold {threshold:.2f}\n\n"
+            f"{camera.width}x{camera.height} px, {ms:.0f} ms, mask threshold {threshold:.2f}, box {box} px\n\n"
             "| query | max relevancy | localisation (x, y) px | mask px | scale |\n|---|---|---|---|---|\n"
         )
-        self.gui_numbers.content = header + "\n".join(lines) if lines else f"RGB only (no query), {ms:.0f} ms"
+        numbers = header + "\n".join(lines) + "".join(f"\n\n{w}" for w in warnings)
+        self.gui_numbers.content = numbers if lines else f"RGB only (no query), {ms:.0f} ms"
         return image
 
     # ------------------------------------------------------------------ export

@@ -13,6 +13,7 @@ function setLoading(on, text) {
 }
 
 function showError(msg) { $("error").textContent = msg || ""; }
+function showWarning(msg) { $("warning").textContent = msg || ""; }
 
 async function api(path, body) {
   const init = body === undefined ? {} : {
@@ -49,10 +50,11 @@ async function drawMain(rgbB64, overlayB64, maskB64, loc) {
     ctx.globalAlpha = 1.0;
   }
   if (loc) {
+    // loc is the integer pixel (x = column, y = row) of the render: circle its centre.
     ctx.strokeStyle = "#00ff88";
     ctx.lineWidth = 2;
     ctx.beginPath();
-    ctx.arc(loc[0] * SCALE, loc[1] * SCALE, 7, 0, 2 * Math.PI);
+    ctx.arc((loc[0] + 0.5) * SCALE, (loc[1] + 0.5) * SCALE, 7, 0, 2 * Math.PI);
     ctx.stroke();
   }
 }
@@ -64,6 +66,7 @@ function cameraBody() {
 async function renderCurrent() {
   setLoading(true, "rendering view…");
   showError("");
+  showWarning("");
   try {
     const data = await api("/api/render", { camera: cameraBody() });
     state.lastRgb = data.rgb_png;
@@ -89,6 +92,7 @@ async function runQuery() {
   if (queries.length === 0) { showError("type a query first"); return; }
   setLoading(true, "querying…");
   showError("");
+  showWarning("");
   try {
     const data = await api("/api/query", { queries, camera: cameraBody(), mode: currentMode() });
     state.lastResults = data;
@@ -100,16 +104,22 @@ async function runQuery() {
       const div = document.createElement("div");
       div.className = "result";
       div.dataset.query = r.query;
-      div.innerHTML = `<div class="title"></div><img width="${data.width * 1.5}"><div class="stats"></div>`;
+      div.innerHTML = `<div class="title"></div><img width="${data.width * 1.5}"><div class="stats"></div>` +
+        `<div class="warning"></div>`;
       div.querySelector(".title").textContent = r.query;
       div.querySelector("img").src = "data:image/png;base64," + r.overlay_png;
       div.querySelector(".stats").textContent =
-        `max ${r.max_relevancy.toFixed(3)} · mask ${r.mask_area} px · scale ${r.chosen_scale ?? "composite"}`;
+        `max ${r.max_relevancy.toFixed(3)} · mask ${r.mask_area} px · at (${r.localization.join(", ")})` +
+        ` · scale ${r.chosen_scale ?? "composite"}`;
+      // A flat relevancy map carries no signal: the server says so, and so does the page.
+      div.querySelector(".warning").textContent = r.warning ? `warning: ${r.warning}` : "";
       div.onclick = () => drawMain(data.rgb_png, r.overlay_png, r.mask_png, r.localization);
       list.appendChild(div);
     }
     $("canvas").dataset.queried = "1";
-    $("timing").textContent = `query ${data.timing_ms.toFixed(0)} ms (${data.mode})`;
+    $("timing").textContent = `query ${data.timing_ms.toFixed(0)} ms (${data.mode}, box ${data.box_size} px)`;
+    const flat = data.results.filter((r) => r.warning).map((r) => `"${r.query}": ${r.warning}`);
+    showWarning(flat.length ? `warning: ${flat.join("; ")}` : "");
   } catch (e) {
     showError(e.message);
   } finally {
