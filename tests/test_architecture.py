@@ -13,7 +13,7 @@ import n2f2
 # Importable by every stage.
 BOTTOM = ("cameras", "errors", "io", "config", "sparse", "validate", "distributed", "heap", "_lazy")
 # The stages, in data-flow order: each may import from itself, the bottom, and earlier stages.
-STAGES = ("data", "render", "gaussians", "segments", "field", "train", "query", "eval", "pipeline",
+STAGES = ("data", "render", "gaussians", "segments", "field", "train", "hierarchy", "query", "eval", "pipeline",
           "experiments", "viewer", "cli")
 PACKAGE_ROOT = Path(n2f2.__file__).parent
 

@@ -69,7 +69,7 @@ def test_a_flat_map_is_drawn_as_one_colour_and_a_real_one_stretched():
 @pytest.fixture(scope="module")
 def flat_run(trained_run, tmp_path_factory):
     """A copy of the shared demo run whose field's output weights W are zero: every feature is 0,
-    every relevancy exactly 0.5 (see n2f2.query.relevancy)."""
+    every relevancy exactly 0.5 (see n2f2.field.relevancy)."""
     import torch
 
     from n2f2.field import load_field, save_field

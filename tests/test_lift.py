@@ -13,7 +13,7 @@ import torch
 from n2f2.cameras import Camera, look_at
 from n2f2.field.lift import bank_level_rule, level_segments, lift_features, load_lift, save_lift
 from n2f2.query.lifted import build_lift, lift_engine
-from n2f2.query.relevancy import relevancy_from_scores
+from n2f2.field.relevancy import relevancy_from_scores
 
 H, W, E = 10, 12, 5
 

@@ -330,9 +330,9 @@ def test_every_level_of_a_pair_matches_the_port_level_by_level(seed):
 
 # ------------------------------------------------------------------------- relevancy
 def test_relevancy_is_langsplats_softmax_argmin_on_normalised_features():
-    """n2f2's one relevancy (query.relevancy) against a literal port of LangSplat's
+    """n2f2's one relevancy (field.relevancy) against a literal port of LangSplat's
     OpenCLIPNetwork.get_relevancy, applied to the unit-normalised features it scores."""
-    from n2f2.query.relevancy import relevancy
+    from n2f2.field.relevancy import relevancy
     g = torch.Generator().manual_seed(0)
     f = torch.randn(50, 16, generator=g, dtype=torch.float64) * 0.3  # unnormalised, as rendered
     pos = torch.randn(3, 16, generator=g, dtype=torch.float64)

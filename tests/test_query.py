@@ -18,7 +18,7 @@ from n2f2.query.engine import QueryConfig
 from n2f2.validate import composite_temperature
 from n2f2.segments.bins import supervised_dims
 from n2f2.query.caches import build_composite_cache, build_linear_cache, build_prefix_cache, select_scale
-from n2f2.query.relevancy import normalize_features, relevancy
+from n2f2.field.relevancy import normalize_features, relevancy
 
 DT = torch.float64
 

@@ -113,7 +113,7 @@ def test_the_check_skips_only_the_registries(tmp_path):
 def test_every_mode_name_has_its_object_in_order():
     from n2f2.query.engine import MODES as ENGINE_MODES
 
-    assert MODES == ("composite", "explicit", "levels", "soft", "oracle")
+    assert MODES == ("composite", "explicit", "levels", "soft", "oracle", "node")
     assert ENGINE_MODES is MODES and tuple(QUERY_MODES) == MODES
     for name in MODES:
         m = get_mode(name)
@@ -127,7 +127,7 @@ def test_every_mode_name_has_its_object_in_order():
 def test_an_unknown_mode_is_an_input_error_naming_the_modes(name):
     with pytest.raises(InputError) as e:
         get_mode(name)  # type: ignore[arg-type]
-    assert str(e.value) == f"unknown query mode {name!r}; choose one of composite, explicit, levels, soft, oracle"
+    assert str(e.value) == f"unknown query mode {name!r}; choose one of composite, explicit, levels, soft, oracle, node"
 
 
 def test_each_mode_against_hand_worked_answers():
@@ -137,6 +137,7 @@ def test_each_mode_against_hand_worked_answers():
         "levels": ("select", "levels", True, True, False, False, True, True, False, True),
         "soft": ("blend", None, False, True, True, False, True, False, False, False),
         "oracle": ("truth", None, True, True, False, True, False, False, True, False),
+        "node": ("none", "nodes", False, False, False, False, True, False, False, True),
     }
     for name, want in table.items():
         m = QUERY_MODES[name]
@@ -153,6 +154,7 @@ def test_the_variants_of_a_mode_are_those_that_answer_it():
     assert QUERY_MODES["soft"].variants == ("nested", "flat")
     assert QUERY_MODES["levels"].variants == ("levels",)
     assert QUERY_MODES["oracle"].variants == ("nested", "flat", "levels")
+    assert QUERY_MODES["node"].variants == ("nested", "flat", "levels")  # from the run's hierarchy
     for v in VARIANTS.values():  # a variant answers only registered modes, in the registry's order
         assert [m for m in MODES if m in v.modes] == sorted(v.modes, key=MODES.index)
         assert set(v.modes) <= set(MODES)
@@ -170,7 +172,7 @@ def test_a_mode_checks_its_settings():
     with pytest.raises(ValueError, match="choice"):
         QueryMode("x", "x", "guess", None, "_view_soft")
     with pytest.raises(ValueError, match="cache kind"):
-        QueryMode("x", "x", "none", "node", "_view_composite")
+        QueryMode("x", "x", "none", "tree", "_view_composite")
     assert set(CHOICES) == {m.choice for m in QUERY_MODES.values()}
     assert set(CACHE_KINDS) == {m.cache_kind for m in QUERY_MODES.values()} - {None}
 

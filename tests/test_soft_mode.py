@@ -13,7 +13,7 @@ import torch
 from n2f2.cli import main as cli_main
 from n2f2.field.variants import VARIANTS
 from n2f2.query.caches import build_prefix_cache, soft_scales
-from n2f2.query.relevancy import relevancy
+from n2f2.field.relevancy import relevancy
 from n2f2.query.soft import SOFT_TEMPERATURE, soft_relevancy, soft_weights, weighed_scales
 
 TAU = 0.01  # the definition's temperature

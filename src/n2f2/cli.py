@@ -33,6 +33,7 @@ def command_modules() -> tuple:
     from .eval import commands as eval_commands
     from .experiments import commands as experiments_commands
     from .gaussians import commands as gaussians_commands
+    from .hierarchy import commands as hierarchy_commands
     from .pipeline import commands as pipeline_commands
     from .query import commands as query_commands
     from .segments import commands as segments_commands
@@ -44,6 +45,7 @@ def command_modules() -> tuple:
         gaussians_commands,
         segments_commands,
         train_commands,
+        hierarchy_commands,
         query_commands,
         eval_commands,
         pipeline_commands,

@@ -15,7 +15,7 @@ from .protocols import PROTOCOLS
 
 
 def register(subparsers) -> None:
-    from ..query.commands import add_composite_options, add_render_option
+    from ..query.commands import add_composite_options, add_decomposition_option, add_render_option
     from .runner import EvalConfig
 
     p = subparsers.add_parser(
@@ -81,6 +81,7 @@ def register(subparsers) -> None:
     )
     add_composite_options(p)
     add_render_option(p)
+    add_decomposition_option(p)
     p.add_argument("--no-relevancy", action="store_true", help="do not write the relevancy .npy files")
     p.add_argument(
         "--budget",
@@ -124,6 +125,39 @@ def register(subparsers) -> None:
     )
     x.add_argument("--force", action="store_true", help="replace what OUT already holds")
     x.set_defaults(func=run_export)
+    register_eval_hierarchy(subparsers)
+
+
+def register_eval_hierarchy(subparsers) -> None:
+    """``n2f2 eval-hierarchy``: a decomposition of a run's Gaussians against ground-truth regions."""
+    from .hierarchy import HierarchyEvalSettings
+
+    h = subparsers.add_parser(
+        "eval-hierarchy",
+        help="score a `n2f2 decompose` hierarchy against a generated scene's part / object / group regions",
+        description="For every labelled view of SCENE with DECOMP/views/<stem>/levels.npy: the best IoU of each "
+        "ground-truth region (part, object, group) with any node at any level of the hierarchy, and with any "
+        "segment of a 2D-only baseline (multi-scale Felzenszwalb on the image); the cross-view consistency of "
+        "the best nodes and the share of nodes not nested in their parent (tree.json, gaussian_nodes.npy). "
+        "Writes OUT/eval_hierarchy.json (every number), OUT/eval_hierarchy.md and OUT/eval_hierarchy.png.",
+    )
+    h.add_argument("run_dir", metavar="RUN", help="the trained run that was decomposed")
+    h.add_argument("decomp", metavar="DECOMP", help="the `n2f2 decompose RUN --out DECOMP` folder (tree.json, ...)")
+    h.add_argument(
+        "--labels", required=True, metavar="SCENE", help="generated scene with ground truth (regions/, regions.json)"
+    )
+    h.add_argument("--out", default=None, metavar="DIR", help="output folder (default DECOMP/eval_hierarchy)")
+    add_config_options(h, HierarchyEvalSettings, field_defaults=True)
+    h.add_argument("--force", action="store_true", help="replace the evaluation already in OUT")
+    h.set_defaults(func=run_eval_hierarchy)
+
+
+def run_eval_hierarchy(args: argparse.Namespace) -> int:
+    from .hierarchy import HierarchyEvalSettings, evaluate_hierarchy
+
+    settings = HierarchyEvalSettings(min_pixels=args.min_pixels, baseline_scales=tuple(args.baseline_scales))
+    evaluate_hierarchy(args.run_dir, args.decomp, args.labels, out=args.out, settings=settings, force=args.force)
+    return 0
 
 
 def run_export(args: argparse.Namespace) -> int:
@@ -161,7 +195,7 @@ def run(args: argparse.Namespace) -> int:
             query_types=path(args.query_types),
             skip_missing_frames=args.skip_missing_frames,
             rescale_labels=args.rescale_labels,
-            query_config=QueryConfig(render=args.render, **composite_config(args)),
+            query_config=QueryConfig(render=args.render, decomposition=args.decomposition, **composite_config(args)),
             relevancy=not args.no_relevancy,
             budget=args.budget,
             force=args.force,

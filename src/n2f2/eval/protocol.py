@@ -6,7 +6,7 @@ the code that applies it; where this module differs (bad input, an optional box 
 difference is opt-in or only concerns input LangSplat would crash on or silently mis-score.
 
 Inputs are relevancy maps, not features: the query stage renders features and turns them into
-relevancy with the LangSplat formula (:func:`n2f2.query.relevancy.relevancy`, on normalised
+relevancy with the LangSplat formula (:func:`n2f2.field.relevancy.relevancy`, on normalised
 features), so the protocol itself never sees a model. Per (frame, category) pair the protocol scores
 
 * **segmentation** (IoU). For each level ``R``: ``R' = 0.5 * (box(R) + R)``; ``R'`` is min-max

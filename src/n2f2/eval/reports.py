@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any, Mapping, Optional, Union
 import numpy as np
 
 from ..io import atomic_path
+from ..query.modes import get_mode
 from .runner import ONE_MAP_MODES, QUERY_KINDS, QUERY_TYPES, SCALE_MODES, compare_evals, load_eval
 from .tables import fmt, markdown_table, pct
 
@@ -361,7 +362,7 @@ def _report_header(result: Mapping, title: Mapping[str, str]) -> list[str]:
         "scales the localization bound is loose",
     }
     for m in result["modes"]:
-        out.append(f"- mode {m}: {about[m]}\n")
+        out.append(f"- mode {m}: {about.get(m) or get_mode(m).description}\n")
     for note in result.get("notes", []):
         out.append(f"- note: {note}\n")
     return out

@@ -1,6 +1,7 @@
 """The nested feature field: TriPlane+MLP (or PE+MLP) backbone ``Theta: R^3 -> R^D`` queried at
 the Gaussian centres, and the zero-initialised scale-aware projection ``W [E, D]``
-(paper Sec. 3.1-3.2), and its variants (:mod:`.variants`: nested, flat, levels) as objects."""
+(paper Sec. 3.1-3.2), its variants (:mod:`.variants`: nested, flat, levels) as objects, and the
+one relevancy score of its language features against text (:mod:`.relevancy`)."""
 
 from typing import TYPE_CHECKING
 
@@ -16,6 +17,10 @@ if TYPE_CHECKING:  # the lazily exported names, for static analysis
     from .model import load_field as load_field
     from .model import prefix_mask as prefix_mask
     from .model import save_field as save_field
+    from .relevancy import DEFAULT_NEGATIVES as DEFAULT_NEGATIVES
+    from .relevancy import normalize_features as normalize_features
+    from .relevancy import relevancy as relevancy
+    from .relevancy import relevancy_from_scores as relevancy_from_scores
     from .triplane import PositionalEncoding as PositionalEncoding
     from .triplane import TriPlane as TriPlane
     from .variants import LEVEL_NAMES as LEVEL_NAMES
@@ -36,6 +41,10 @@ __getattr__, __all__ = lazy_exports(
         "load_field": "model",
         "prefix_mask": "model",
         "save_field": "model",
+        "DEFAULT_NEGATIVES": "relevancy",
+        "normalize_features": "relevancy",
+        "relevancy": "relevancy",
+        "relevancy_from_scores": "relevancy",
         "PositionalEncoding": "triplane",
         "TriPlane": "triplane",
         "FieldVariant": "variants",

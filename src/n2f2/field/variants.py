@@ -96,6 +96,25 @@ class FieldVariant(ABC):
         """The names of its scales in reports and query results."""
 
     @abstractmethod
+    def scale_values(self, dim: int, step_size: int = 1) -> list[float]:
+        """The quantized segment scale ``s`` in [0, 1) at the middle of each scale's bin (larger:
+        coarser), in the order of :meth:`scales`."""
+
+    def coarse_to_fine(self, dim: int, step_size: int = 1) -> list[tuple[int, int]]:
+        """:meth:`scales`, coarsest first (the hierarchy's level order)."""
+        return self._coarse_first(self.scales(dim, step_size), dim, step_size)
+
+    def coarse_to_fine_labels(self, dim: int, step_size: int = 1) -> list[str]:
+        return self._coarse_first(self.scale_labels(dim, step_size), dim, step_size)
+
+    def coarse_to_fine_values(self, dim: int, step_size: int = 1) -> list[float]:
+        return self._coarse_first(self.scale_values(dim, step_size), dim, step_size)
+
+    def _coarse_first(self, items: list, dim: int, step_size: int) -> list:
+        values = self.scale_values(dim, step_size)
+        return [items[i] for i in sorted(range(len(items)), key=lambda i: -values[i])]
+
+    @abstractmethod
     def supervision_mask(self, s: Tensor, dim: int, step_size: int = 1) -> Tensor:  # s [B] -> [B, D] float
         """B(s): which of the ``dim`` dims a segment of quantized scale ``s`` supervises."""
 
@@ -141,6 +160,11 @@ class PrefixVariant(FieldVariant):
 
     def scale_labels(self, dim: int, step_size: int = 1) -> list[str]:
         return [f"d={d}" for d in self.scale_dims(dim, step_size)]
+
+    def scale_values(self, dim: int, step_size: int = 1) -> list[float]:
+        """Prefix ``d = k j`` of ``n`` scales serves ``s`` in ``[1 - j / n, 1 - (j - 1) / n)``."""
+        n = len(self.scale_dims(dim, step_size))
+        return [1.0 - (j - 0.5) / n for j in range(1, n + 1)]
 
 
 class NestedVariant(PrefixVariant):
@@ -196,6 +220,10 @@ class LevelsVariant(FieldVariant):
 
     def scale_labels(self, dim: int, step_size: int = 1) -> list[str]:
         return list(LEVEL_NAMES)
+
+    def scale_values(self, dim: int, step_size: int = 1) -> list[float]:
+        """The middles of the terciles of ``s`` (:func:`n2f2.segments.bins.three_level_groups`)."""
+        return [(2 * level + 1) / (2 * NUM_LEVELS) for level in range(NUM_LEVELS)]
 
     def supervision_mask(self, s: Tensor, dim: int, step_size: int = 1) -> Tensor:
         """The block of the segment's level, one tercile of the quantized scale each

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
+from typing import Mapping, Optional
 
 import numpy as np
 import torch
@@ -59,8 +60,15 @@ def property_names(sh_degree: int) -> list[str]:
 
 
 # ---------------------------------------------------------------------------------- writing
-def write_ply(path: str | Path, gaussians: Gaussians) -> None:
-    """Write ``gaussians`` (all ``max_sh_degree`` coefficients) as an INRIA 3DGS PLY, atomically."""
+def write_ply(
+    path: str | Path,
+    gaussians: Gaussians,
+    extra: Optional[Mapping[str, np.ndarray]] = None,  # name -> [N] int32: properties after the INRIA ones
+) -> None:
+    """Write ``gaussians`` (all ``max_sh_degree`` coefficients) as an INRIA 3DGS PLY, atomically.
+    ``extra`` int properties (the hierarchy's ``node_0 ...``) follow the INRIA ones; other 3DGS
+    tools skip properties they do not know, and :func:`read_ply_ints` reads them back."""
+    extra = dict(extra or {})
     with torch.no_grad():
         g = gaussians
         n = g.num
@@ -80,10 +88,19 @@ def write_ply(path: str | Path, gaussians: Gaussians) -> None:
     if not np.isfinite(data).all():
         bad = int((~np.isfinite(data).all(axis=1)).sum())
         raise NonFiniteError(path, f"refusing to write: {bad} of {n} Gaussians have NaN or infinite parameters")
+    for name, col in extra.items():
+        if name in names or np.shape(col) != (n,):
+            raise ValueError(f"extra PLY property {name!r} must be a new name with {n} values, got {np.shape(col)}")
+    rows = np.empty(n, dtype=[(p, "<f4") for p in names] + [(p, "<i4") for p in extra])
+    for i, p in enumerate(names):
+        rows[p] = data[:, i]
+    for p, col in extra.items():
+        rows[p] = np.asarray(col, dtype=np.int32)
     header = (
         "\n".join(
             ["ply", "format binary_little_endian 1.0", f"element vertex {n}"]
             + [f"property float {name}" for name in names]
+            + [f"property int {name}" for name in extra]
             + ["end_header"]
         )
         + "\n"
@@ -91,7 +108,18 @@ def write_ply(path: str | Path, gaussians: Gaussians) -> None:
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
             f.write(header.encode("ascii"))
-            f.write(np.ascontiguousarray(data, dtype="<f4").tobytes())
+            f.write(rows.tobytes())
+
+
+def read_ply_ints(path: str | Path, prefix: str) -> dict[str, np.ndarray]:
+    """The integer vertex properties of ``path`` whose names start with ``prefix`` (``node_``),
+    in file order, as int64 ``[N]`` arrays (what :func:`write_ply`'s ``extra`` wrote)."""
+    v = _read_vertices(Path(path))
+    return {
+        p: np.asarray(v[p], dtype=np.int64)
+        for p in v.dtype.names or ()
+        if p.startswith(prefix) and np.issubdtype(v.dtype[p], np.integer)
+    }
 
 
 # ---------------------------------------------------------------------------------- reading

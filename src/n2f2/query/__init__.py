@@ -27,9 +27,5 @@ __getattr__, __all__ = lazy_exports(
         "build_composite_cache": "caches",
         "build_linear_cache": "caches",
         "build_prefix_cache": "caches",
-        "DEFAULT_NEGATIVES": "relevancy",
-        "normalize_features": "relevancy",
-        "relevancy": "relevancy",
-        "relevancy_from_scores": "relevancy",
     },
 )

@@ -9,6 +9,10 @@ import json
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Optional, Sequence, Union
 
+import torch
+
+from .modes import get_mode
+
 if TYPE_CHECKING:
     from .maps import BoxSize
 
@@ -72,6 +76,7 @@ def answer_queries(
     device: str = "cpu",
     progress: bool = True,
     full_res: bool = False,  # views at the images' size, not at the run's downscale
+    decomposition: Optional[Union[str, Path]] = None,  # QueryConfig.decomposition; None: RUN/decomposition
 ) -> dict:
     """Render each view's feature cache once, answer every query of ``texts`` in one pass, and
     write the outputs into ``out`` (refused when it holds an answer, unless ``force``).
@@ -95,6 +100,8 @@ def answer_queries(
         overrides["temperature"] = temperature
     if composite_weights is not None:
         overrides["composite_weights"] = composite_weights
+    if decomposition is not None:
+        overrides["decomposition"] = str(decomposition)
     config = QueryConfig(selection=selection, box_size=box_size, **overrides)
     engine = QueryEngine.from_run(run_dir, device=device, scene=scene, config=config, full_res=full_res)
     view_names = [engine.camera(i)[2] for i in views]  # fail before any work on a bad index
@@ -173,5 +180,34 @@ def answer_queries(
             "num_gaussians": engine.gaussians.num,
             "selections": {t: {"count": s["count"], "ply": s["ply"]} for t, s in selections.items()},
         }
+    if get_mode(mode).needs_tree:
+        summary["nodes"] = node_paths(engine, texts)
     write_summary(out / "query.json", summary)
     return summary
+
+
+def node_paths(engine: Any, texts: list[str]) -> dict[str, dict]:
+    """Per query of node mode its answer (nodes, level) and the best node's path to the root:
+    each node's id, level, the phrase ``n2f2 decompose --vocabulary`` gave it, and the best of
+    this query's texts with its relevancy."""
+    answers = engine.node_answers(texts)
+    tree = engine.tree
+    rel = torch.stack([a.relevancy for a in answers])  # [Q, K]
+    out = {}
+    for text, answer in zip(texts, answers):
+        path = []
+        for node in tree.path(answer.nodes[0]):
+            best = int(torch.argmax(rel[:, node]))
+            rec = tree.tree["nodes"][node]
+            path.append(
+                {
+                    "node": node,
+                    "level": rec["level"],
+                    "gaussians": rec["gaussians"],
+                    "text": rec.get("text"),
+                    "best_query": texts[best],
+                    "relevancy": float(rel[best, node]),
+                }
+            )
+        out[text] = {"nodes": answer.nodes, "level": answer.level, "path": path}
+    return out

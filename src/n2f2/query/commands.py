@@ -31,6 +31,13 @@ def add_full_res_option(p: argparse.ArgumentParser) -> None:
     )
 
 
+def add_decomposition_option(p: argparse.ArgumentParser) -> None:
+    """``--decomposition DIR``: the run's hierarchy that ``--mode node`` answers from."""
+    from .engine import QueryConfig
+
+    add_config_options(p, QueryConfig, ["decomposition"], field_defaults=True)
+
+
 def add_composite_options(p: argparse.ArgumentParser) -> None:
     """``--composite-weights`` (default QueryConfig's) and ``--temperature`` (None: QueryConfig's):
     composite's weights over the scales, read back by :func:`composite_config`."""
@@ -131,6 +138,8 @@ def register(subparsers) -> None:
     add_composite_options(p)
     add_render_option(p)
     add_full_res_option(p)
+    add_decomposition_option(p)
+    p.add_argument("--path", action="store_true", help="with --mode node: print each answer's ancestors, finest first")
     add_config_options(p, QueryConfig, ["canonical"])  # None: QueryConfig's phrases
     add_config_options(p, QueryConfig, ["selection"], field_defaults=True)
     p.add_argument(
@@ -170,6 +179,8 @@ def run(args: argparse.Namespace) -> int:
             device=args.device,
             progress=not args.quiet,
             full_res=args.full_res,
+            decomposition=None if args.decomposition is None else Path(args.decomposition),
+            path=args.path,
         )
     )
     return 0

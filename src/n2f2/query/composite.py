@@ -26,7 +26,7 @@ the plain mean of the scale features. With unit-scale embeddings the scores are 
 unnormalised ``phi_d``'s norms and the canonical phrases. n2f2's default, ``"unit"`` (:data:`DEFAULT_WEIGHTS`), is
 the mean of the *normalised* scale features, ``(1 / S) sum_d phi_d / max(|phi_d|, eps)``, i.e.
 ``gamma_d = 1 / (S max(|phi_d|, eps))`` (the relevancy's own normalisation,
-:mod:`n2f2.query.relevancy`): every scale's direction counts the same whatever its feature's
+:mod:`n2f2.field.relevancy`): every scale's direction counts the same whatever its feature's
 norm, and relevancy reads only directions. It ranked better than ``T = 1`` on both generated
 layouts (``docs/measurements.md``, "Uniform composite weights" and "The mean of the normalised
 scale features").
@@ -45,7 +45,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .relevancy import NORM_EPS
+from ..field.relevancy import NORM_EPS
 
 # Canonical phrases of paper Eq. 6 ("object", "stuff", "thing", "part", "texture").
 DEFAULT_CANONICAL: tuple[str, ...] = ("object", "stuff", "thing", "part", "texture")

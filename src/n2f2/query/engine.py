@@ -1,6 +1,6 @@
 """The query engine: per-view caches, the five modes, and 3D queries on the Gaussians.
 
-Modes (:mod:`n2f2.query.modes`; all scored by :mod:`n2f2.query.relevancy`, the one relevancy definition):
+Modes (:mod:`n2f2.query.modes`; all scored by :mod:`n2f2.field.relevancy`, the one relevancy definition):
 
 * ``composite`` (default, paper Sec. 3.3): one relevancy map per query from the composite
   embedding ``W Theta~``. ``Theta~`` (premultiplied by ``revcumsum(gamma^3D)``) is computed once
@@ -61,8 +61,10 @@ from torch import Tensor
 
 from ..config import option
 from ..errors import InputError
+from ..field.relevancy import DEFAULT_NEGATIVES, check_texts
 from ..field.variants import LEVEL_NAMES, FieldVariant, get_variant
 from ..segments.bins import supervised_dims
+from ..train.runs import load_run_scene
 from ..validate import composite_temperature
 from .caches import (
     LinearCache,
@@ -85,9 +87,9 @@ from .maps import (
     segmentation_mask,
     smoothed_relevancy,
 )
-from .modes import COMPOSITE_CACHE, PREFIX_CACHE, QUERY_MODES, QueryMode, get_mode
+from .modes import COMPOSITE_CACHE, NODE_CACHE, PREFIX_CACHE, QUERY_MODES, QueryMode, get_mode
 from .modes import MODES as MODES
-from .relevancy import DEFAULT_NEGATIVES, check_texts
+from .nodes import TIE_WEIGHT, NodeAnswer, NodeCache, answer_mask, choose_nodes, gaussian_scores
 from .soft import soft_relevancy
 
 if TYPE_CHECKING:
@@ -143,6 +145,11 @@ class QueryConfig:
         choices=RENDERS,
     )
     chunk: int = 65536  # points per block when building caches (bounds [chunk, E] memory)
+    decomposition: Optional[str] = option(
+        None,
+        help="the run's hierarchy for --mode node (n2f2 decompose's folder; default RUN/decomposition)",
+        metavar="DIR",
+    )
 
     def __post_init__(self) -> None:
         if not self.canonical:
@@ -250,6 +257,7 @@ class QueryEngine:
         self._theta_tilde: Optional[Tensor] = None
         self._backbone: Optional[Tensor] = None
         self._gaussian_caches: dict[str, ScoreCache] = {}
+        self._tree: Any = None
 
     # ------------------------------------------------------------------ construction
     @staticmethod
@@ -286,7 +294,7 @@ class QueryEngine:
         if encoder is None and meta.get("encoder_spec") is None:
             raise InputError(field_path, "field metadata names no text encoder (encoder_spec)")
         if scene is None or isinstance(scene, (str, Path)):
-            scene = _load_run_scene(run_dir, meta, scene, full_res)
+            scene = load_run_scene(run_dir, meta, scene, full_res)
         background = read_background(run_dir, device)
         return QueryEngine(field, gaussians, encoder, meta, config, device, scene, run_dir, background)
 
@@ -315,12 +323,38 @@ class QueryEngine:
         return self.kind.scale_labels(self.dim, self.step)
 
     def modes(self) -> tuple[str, ...]:
-        """Modes this field supports."""
-        return self.kind.modes
+        """Modes this run answers: its field's, and ``node`` once it has a hierarchy."""
+        tree = tuple(m.name for m in QUERY_MODES.values() if m.needs_tree) if self._tree_dir() else ()
+        return self.kind.modes + tree
+
+    def _tree_dir(self) -> Optional[Path]:
+        """The hierarchy's folder (QueryConfig.decomposition, else RUN/decomposition) if it holds one."""
+        root = Path(self.config.decomposition) if self.config.decomposition else None
+        if root is None and self.run_dir is not None:
+            root = self.run_dir / "decomposition"
+        return root if root is not None and (root / "tree.json").is_file() else None
+
+    @property
+    def tree(self) -> Any:  # n2f2.hierarchy.LoadedTree
+        """The run's hierarchy, read on first use."""
+        if self._tree is None:
+            from ..hierarchy.files import read_tree
+
+            root = self._tree_dir()
+            if root is None:
+                where = self.config.decomposition or (
+                    self.run_dir / "decomposition" if self.run_dir else "RUN/decomposition"
+                )
+                raise InputError(Path(where), "mode 'node' needs the run's hierarchy: run `n2f2 decompose RUN` first")
+            self._tree = read_tree(root, num_gaussians=int(self.gaussians.means.shape[0]))
+        return self._tree
 
     def _check_mode(self, mode: str) -> QueryMode:
         """The mode named ``mode``, if this field answers it (else an InputError saying why)."""
         query_mode = get_mode(mode)
+        if query_mode.needs_tree:
+            _ = self.tree  # the hierarchy, or one line saying how to make it
+            return query_mode
         if mode not in self.modes():
             raise InputError(
                 self.run_dir / "field.pt" if self.run_dir else None,
@@ -429,7 +463,7 @@ class QueryEngine:
         kinds = list(dict.fromkeys(self._cache_kind(m) for m in modes))
         # Composite needs Theta~, the other kinds raw Theta: one rasterization of both.
         parts = (["tilde"] if COMPOSITE_CACHE in kinds else []) + (
-            ["theta"] if any(k != COMPOSITE_CACHE for k in kinds) else []
+            ["theta"] if any(k not in (COMPOSITE_CACHE, NODE_CACHE) for k in kinds) else []
         )
         self.encode(self.config.negatives)  # loads the encoder on first use: not render time
         if "tilde" in parts:
@@ -437,7 +471,11 @@ class QueryEngine:
         g = self.gaussians
         H, W_ = cam.height, cam.width
         D = self.dim
-        if self.renders_deferred:
+        if not parts:  # node mode only: its maps are rendered per query; the alpha map here
+            t0 = time.perf_counter()
+            flat = g.means.new_zeros(H * W_, 1)
+            out = rasterize_in_bands(g.means, g.normalized_quats, g.scales, g.opacities, flat[:1].expand(g.num, 1), cam)
+        elif self.renders_deferred:
             _ = self.backbone_features  # computed once per engine: not render time
             t0 = time.perf_counter()
             flat, out = self._render_deferred(cam, parts)
@@ -454,6 +492,9 @@ class QueryEngine:
         t1 = time.perf_counter()
         caches = {}
         for k in kinds:
+            if k == NODE_CACHE:
+                caches[k] = self._node_cache(cam)
+                continue
             j = parts.index("tilde" if k == COMPOSITE_CACHE else "theta")
             caches[k] = self._build_cache(k, flat[:, j * D : (j + 1) * D])
         t2 = time.perf_counter()
@@ -624,6 +665,8 @@ class QueryEngine:
         """Score cache whose points are the Gaussians (built once per mode kind)."""
         self._check_mode(mode)
         kind = self._cache_kind(mode)
+        if kind == NODE_CACHE:
+            return self._node_cache(None)
         if kind not in self._gaussian_caches:
             pts = self.theta_tilde if kind == COMPOSITE_CACHE else self.theta
             with torch.no_grad():
@@ -659,6 +702,46 @@ class QueryEngine:
         """Explicit / levels mode over the Gaussians: the scale with the highest maximum (:func:`select_scale`)."""
         chosen, scores, out = select_scale(cast(Union[PrefixCache, LinearCache], cache), emb)
         return out, chosen.tolist(), scores
+
+    # ------------------------------------------------------------------ nodes of the hierarchy
+    def _node_cache(self, camera: Any) -> NodeCache:
+        tree = self.tree
+        emb = torch.as_tensor(tree.embeddings, device=self.device)
+        labels = [lv["scale_label"] for lv in tree.tree["levels"]]
+        return NodeCache(emb, self.encode(self.config.negatives), labels, camera)
+
+    def node_answers(self, texts: Sequence[str]) -> list[NodeAnswer]:
+        """Per query its nodes of the run's hierarchy (:func:`n2f2.query.nodes.choose_nodes`)."""
+        cache = self._node_cache(None)
+        margins = cache.margins(self.encode(check_texts(texts))).cpu()  # [Q, K]
+        return [choose_nodes(m, self.tree.levels) for m in margins]
+
+    def _node_maps(self, cache: NodeCache, emb: Tensor) -> tuple[list[NodeAnswer], list[Tensor]]:
+        answers = [choose_nodes(m, self.tree.levels) for m in cache.margins(emb).cpu()]
+        return answers, [answer_mask(self.tree.gaussian_nodes, a).to(self.device) for a in answers]
+
+    def _view_node(
+        self, cache: NodeCache, emb: Tensor, height: int, width: int, gt_masks: Any, scorer: Optional[OracleScorer]
+    ) -> Answer:
+        """Node mode on a view: each answer's rendered coverage, ties among the pixels it does
+        not cover ordered by their nodes' score (:func:`n2f2.query.nodes.gaussian_scores`)."""
+        from ..render import rasterize
+
+        answers, masks = self._node_maps(cache, emb)
+        g = self.gaussians
+        out = emb.new_empty(len(emb), height, width)
+        for q, (answer, mask) in enumerate(zip(answers, masks)):
+            feats = torch.stack([mask.float(), gaussian_scores(self.tree.gaussian_nodes, answer)], dim=1)
+            cov = rasterize(g.means, g.normalized_quats, g.scales, g.opacities, feats.to(g.means), cache.camera)
+            out[q] = cov.features[..., 0] + TIE_WEIGHT * cov.features[..., 1]
+        scores = torch.stack([a.relevancy for a in answers]).to(emb)  # [Q, K]
+        return out, [a.level for a in answers], scores
+
+    def _gaussians_node(self, cache: NodeCache, emb: Tensor) -> Answer:
+        """Node mode over the Gaussians: 1 on the answer's Gaussians, else 0."""
+        answers, masks = self._node_maps(cache, emb)
+        out = torch.stack([m.to(emb) for m in masks])  # [Q, N]
+        return out, [a.level for a in answers], torch.stack([a.relevancy for a in answers]).to(emb)
 
     def select(self, text: str, threshold: Optional[float] = None, mode: str = "composite") -> Tensor:
         """Boolean ``[N]`` selection of the Gaussians relevant to ``text``.
@@ -721,32 +804,3 @@ def _box(config: QueryConfig) -> BoxSize:
     """The configured mean-filter size, or the evaluation protocol's default."""
 
     return LANGSPLAT_BOX_SIZE if config.box_size is None else config.box_size
-
-
-def _load_run_scene(run_dir: Path, meta: dict, scene: Optional[Union[str, Path]], full_res: bool = False) -> Any:
-    """The scene a run was trained on: ``scene`` if given, else the path its metadata records;
-    at the downscale the training recorded (runs from before it was recorded: 1), or 1 with
-    ``full_res``."""
-    import json
-
-    from ..data import load_scene
-
-    if scene is None:
-        candidates: list[Optional[str]] = [meta.get("scene"), meta.get("scene_path")]  # recorded folders
-        report = run_dir / "train_report.json"
-        if report.is_file():
-            try:
-                r = json.loads(report.read_text())
-                candidates += [r.get("scene"), r.get("scene_path")]
-            except (json.JSONDecodeError, OSError):
-                pass
-        recorded = next((c for c in candidates if c), None)
-        # A recorded folder that has moved is not an error until a view index needs it.
-        if recorded is None or not Path(recorded).is_dir():
-            return None
-        scene = recorded
-    path = Path(scene)
-    if not path.is_dir():
-        raise InputError(path, "scene folder does not exist")
-    downscale = 1.0 if full_res else float(meta.get("downscale", 1.0) or 1.0)
-    return load_scene(path, downscale=downscale)

@@ -22,10 +22,10 @@ import torch
 from torch import Tensor
 
 from ..field.lift import LIFT_LEVELS, LevelBlocks, Lift, lift_features, load_lift
+from ..field.relevancy import inverse_norm
 from ..field.variants import NUM_LEVELS, LevelsVariant
 from .caches import LinearCache
 from .engine import QueryEngine
-from .relevancy import inverse_norm
 
 if TYPE_CHECKING:
     from ..data.scene import Scene

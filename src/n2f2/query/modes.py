@@ -28,6 +28,10 @@ Which field variants answer a mode is the variants' to say (:attr:`FieldVariant.
     levels     select  levels     yes        yes  every level's map  -      yes
     soft       blend   field's    no         yes  -                  -      -
     oracle     truth   field's    yes        no   -                  yes    -
+    node       none    nodes      no         yes  -                  -      yes
+
+``node`` answers from the run's hierarchy (``n2f2 decompose``, :mod:`n2f2.query.nodes`): a run
+offers it once that folder exists, whatever its variant.
 """
 
 from __future__ import annotations
@@ -41,9 +45,10 @@ if TYPE_CHECKING:
     from ..field.variants import FieldVariant
 
 CHOICES = ("none", "select", "blend", "truth")  # QueryMode.choice (see the module docstring)
-# Score caches (ViewCache.caches' keys): the composite Theta~, the prefixes of theta, the level blocks.
-COMPOSITE_CACHE, PREFIX_CACHE, LEVELS_CACHE = "composite", "prefix", "levels"
-CACHE_KINDS = (COMPOSITE_CACHE, PREFIX_CACHE, LEVELS_CACHE)
+# Score caches (ViewCache.caches' keys): the composite Theta~, the prefixes of theta, the level
+# blocks, the nodes of the run's hierarchy.
+COMPOSITE_CACHE, PREFIX_CACHE, LEVELS_CACHE, NODE_CACHE = "composite", "prefix", "levels", "nodes"
+CACHE_KINDS = (COMPOSITE_CACHE, PREFIX_CACHE, LEVELS_CACHE, NODE_CACHE)
 
 
 @dataclass(frozen=True)
@@ -59,6 +64,7 @@ class QueryMode:
     writes_npy: bool = False  # the evaluation writes its relevancy .npy (per_scale: every scale's map)
     paper: bool = False  # one of the paper's modes (its Table 3): the bench report's columns and curves
     viewer: bool = False  # offered by the viewers
+    needs_tree: bool = False  # answers from the run's hierarchy (`n2f2 decompose`), on any variant
 
     def __post_init__(self) -> None:
         if self.choice not in CHOICES:
@@ -94,10 +100,11 @@ class QueryMode:
 
     @property
     def variants(self) -> tuple[str, ...]:
-        """The field variants that answer it (:attr:`n2f2.field.variants.FieldVariant.modes`)."""
+        """The field variants that answer it (:attr:`n2f2.field.variants.FieldVariant.modes`;
+        every variant for a mode that answers from the run's hierarchy)."""
         from ..field.variants import VARIANTS
 
-        return tuple(v.name for v in VARIANTS.values() if self.name in v.modes)
+        return tuple(v.name for v in VARIANTS.values() if self.name in v.modes or self.needs_tree)
 
     def cache_for(self, variant: FieldVariant) -> str:
         """The score cache it reads on a field of ``variant``."""
@@ -154,9 +161,19 @@ ORACLE = QueryMode(
     "_view_oracle",
     paper=True,
 )
+NODE = QueryMode(
+    "node",
+    "whole nodes of the run's hierarchy (n2f2 decompose): the best node and its instances (n2f2.query.nodes)",
+    "none",
+    NODE_CACHE,
+    "_view_node",
+    "_gaussians_node",
+    viewer=True,
+    needs_tree=True,
+)
 
 # The registry: mode name -> its mode. Order = the order of help texts, choices and reports.
-QUERY_MODES: dict[str, QueryMode] = {m.name: m for m in (COMPOSITE, EXPLICIT, LEVELS, SOFT, ORACLE)}
+QUERY_MODES: dict[str, QueryMode] = {m.name: m for m in (COMPOSITE, EXPLICIT, LEVELS, SOFT, ORACLE, NODE)}
 MODES = tuple(QUERY_MODES)  # the names
 
 

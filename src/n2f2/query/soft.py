@@ -3,7 +3,7 @@ at every scale of the field, written once here and used by the query engine (2D 
 Gaussians) and the evaluation runner.
 
 For a query ``q`` and the field's scales ``s = 1..S`` (a nested field's supervised prefix lengths,
-a flat field's one scale), with ``rel_s(q, p)`` the relevancy (:mod:`n2f2.query.relevancy`) of a
+a flat field's one scale), with ``rel_s(q, p)`` the relevancy (:mod:`n2f2.field.relevancy`) of a
 point ``p`` (a pixel of the view, or a Gaussian) at scale ``s``::
 
     peak_s(q) = max_p rel_s(q, p)                   (over the view's pixels / the Gaussians)

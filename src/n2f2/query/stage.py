@@ -47,13 +47,15 @@ class QueryJob:
     device: str = "cpu"
     progress: bool = True
     full_res: bool = False  # views at the images' size, not at the downscale the run was trained at
+    decomposition: Optional[Path] = None  # the run's hierarchy for mode node; None: RUN/decomposition
+    path: bool = False  # mode node: print each answer's ancestors
 
 
 def run_query(job: QueryJob, log: Log = print) -> dict:
     """Answer ``job.texts`` in ``job.views`` into ``job.out`` and return the ``query.json`` summary."""
+    from ..field.relevancy import check_texts
     from .answer import answer_queries
     from .maps import LANGSPLAT_BOX_SIZE, LANGSPLAT_THRESHOLD
-    from .relevancy import check_texts
 
     texts = check_texts(job.texts)
     mask_threshold = LANGSPLAT_THRESHOLD if job.mask_threshold is None else job.mask_threshold
@@ -80,6 +82,7 @@ def run_query(job: QueryJob, log: Log = print) -> dict:
         device=job.device,
         progress=job.progress,
         full_res=job.full_res,
+        decomposition=job.decomposition,
     )
     for v in summary["views"]:
         for r in v["queries"]:
@@ -91,6 +94,11 @@ def run_query(job: QueryJob, log: Log = print) -> dict:
             )
             if r.get("warning"):  # a flat map (query.maps.flat_warning): said right under its line
                 log(f'warning: "{shown(r["query"])}": {r["warning"]}')
+    if job.path and "nodes" in summary:
+        for text, ans in summary["nodes"].items():
+            log(f"{shown(text)!r}: " + " -> ".join(_node_shown(p) for p in ans["path"]))
+    elif job.path:
+        log("note: --path prints the ancestors of a node answer (--mode node)")
     sel3d = summary.get("selection_3d")
     for t, s in (sel3d["selections"] if sel3d else {}).items():
         assert sel3d is not None  # the loop runs over sel3d's selections only
@@ -100,3 +108,9 @@ def run_query(job: QueryJob, log: Log = print) -> dict:
         )
     log(f"query: {len(texts)} queries x {len(summary['views'])} views ({job.mode}) -> {out}")
     return summary
+
+
+def _node_shown(p: dict) -> str:
+    """``node 12 "teapot" (lid of the teapot 0.61)``: a node of a path, with its phrase."""
+    name = f' "{p["text"]}"' if p.get("text") else ""
+    return f"node {p['node']}{name} ({p['best_query']} {p['relevancy']:.2f})"

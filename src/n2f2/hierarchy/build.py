@@ -1,0 +1,279 @@
+"""A class-agnostic hierarchy of the scene's Gaussians read off the trained nested field, with no
+text involved: :func:`decompose`.
+
+The field answers, at every scale of its ladder, with a language feature per Gaussian
+(``phi_d = W[:, :d] theta[:d]`` for a nested field's prefix ``d``). Gaussians that belong to one
+segment at a scale were trained towards one teacher embedding there, so their features agree;
+the hierarchy groups them scale by scale:
+
+1. **Candidate scales**: the variant's scales, coarse to fine (:meth:`FieldVariant.coarse_to_fine`),
+   thinned to doubling prefix lengths ``k, 2k, 4k, ..., D`` (:func:`candidate_scales`): the
+   quantile ladder is uniform in segment-scale rank, and neighbouring prefixes differ by one dim,
+   so most of them group alike.
+2. **Atoms**: k-means over every candidate scale's unit features at once (:func:`atoms`), so
+   that an atom is pure at every scale; nodes are unions of atoms, which is what makes nesting
+   hold by construction.
+3. **Levels, fine to coarse** (:func:`group_scales`): at each candidate scale, the clusters of the
+   finer scale (atoms at the finest) are merged by average linkage on their mean feature at this
+   scale, cut at cosine distance ``2 delta``. ``delta`` is the field's own scatter at that scale:
+   the median plus 3 scaled MADs (the robust outlier rule of segment lifting) of each
+   Gaussian's cosine distance to its cluster's mean; two members of one segment can lie up to
+   twice that apart. No constant is tuned on a scene.
+4. **Level choice** (:func:`choose_levels`): candidates that group alike (the same number of
+   nodes as the next coarser one) are dropped, and of the rest at most ``max_levels`` are kept
+   where the grouping changes most: the largest ratios of node counts between a candidate and
+   the next coarser one.
+
+Nodes carry global ids, coarsest level first; ``gaussian_nodes [N, L]`` gives every Gaussian's
+node at every level, and each node's parent is the node of the level above that holds its
+Gaussians (the same for all of them, by construction).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Optional
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..config import option
+
+if TYPE_CHECKING:
+    from ..field.variants import FieldVariant
+
+
+@dataclass(frozen=True)
+class DecomposeConfig:
+    """Settings of :func:`decompose` (``n2f2 decompose``'s options)."""
+
+    max_levels: int = option(6, help="at most this many levels, kept where the grouping changes most")
+    atoms_per_gaussian: float = 1 / 12  # k-means atoms: N / 12 ...
+    max_atoms: int = 2048  # ... at most this many (average linkage is quadratic in them)
+    min_atoms: int = 16
+    kmeans_sample: int = 131072  # k-means is fitted on at most this many Gaussians, then all are assigned
+    kmeans_iterations: int = 25
+    basis_dims: int = 64  # the atoms' k-means runs on this many principal components of the features
+    noise_mads: float = 3.0  # delta = median + noise_mads * 1.4826 * MAD (segment lifting's rule)
+    seed: int = 0
+    chunk: int = 65536  # Gaussians per block when reading features
+
+
+@dataclass
+class Decomposition:
+    """A hierarchy of Gaussians: ``L`` levels, coarsest first."""
+
+    gaussian_nodes: np.ndarray  # [N, L] int32 global node id of every Gaussian at every level
+    level_scales: list[tuple[int, int]]  # [L] theta dims [start, end) each level's features read
+    level_labels: list[str]  # [L] the field's names of those scales ("d=16")
+    level_values: list[float]  # [L] quantized scale s in [0, 1) at the middle of each level's bin
+    parents: np.ndarray  # [K] int64 parent node id, -1 at level 0
+    levels: np.ndarray  # [K] int64 level of each node
+    thresholds: list[float]  # [L] the cosine distance each level was cut at (2 delta)
+    candidates: list[dict] = field(default_factory=list)  # every candidate scale: label, nodes, kept
+
+    @property
+    def num_levels(self) -> int:
+        return int(self.gaussian_nodes.shape[1])
+
+    @property
+    def num_nodes(self) -> int:
+        return int(self.parents.shape[0])
+
+    def nodes_at(self, level: int) -> np.ndarray:  # -> [K_l] node ids
+        return np.nonzero(self.levels == level)[0]
+
+
+def candidate_scales(variant: "FieldVariant", dim: int, step_size: int) -> list[int]:
+    """Indices into ``variant.coarse_to_fine(dim, step_size)`` of the candidate scales: doubling
+    prefix lengths (every scale when there are at most 8), the finest always included."""
+    scales = variant.coarse_to_fine(dim, step_size)
+    if len(scales) <= 8:
+        return list(range(len(scales)))
+    picked = sorted({min(len(scales), 2**i) - 1 for i in range(int(np.ceil(np.log2(len(scales)))) + 1)})
+    return picked
+
+
+def scale_bases(W: Tensor, scales: list[tuple[int, int]]) -> list[Tensor]:  # W [E, D] -> [d, d] each
+    """Per scale ``[a, b)`` a matrix ``B`` with ``(theta B) . (theta' B) = phi . phi'`` for
+    ``phi = W[:, a:b] theta[a:b]``: the Cholesky factor of ``W[:, a:b]^T W[:, a:b]`` (plus a
+    tiny ridge), so cosines are computed in ``b - a`` dims instead of E."""
+    out = []
+    for a, b in scales:
+        Wd = W[:, a:b].double()
+        G = Wd.T @ Wd
+        ridge = 1e-10 * float(G.diagonal().mean().clamp_min(1e-30))
+        L = torch.linalg.cholesky(G + ridge * torch.eye(b - a, dtype=G.dtype))
+        out.append(L.float())  # (theta L) . (theta' L) = theta G theta'
+    return out
+
+
+def unit_features(
+    theta: Tensor,  # [n, D]
+    scale: tuple[int, int],
+    basis: Tensor,  # [d, d] from scale_bases
+) -> Tensor:  # -> [n, d] unit rows (zero where the feature is zero)
+    a, b = scale
+    z = theta[:, a:b] @ basis
+    return z / z.norm(dim=1, keepdim=True).clamp_min(1e-12)
+
+
+def atoms(
+    theta: Tensor,  # [N, D]
+    scales: list[tuple[int, int]],
+    bases: list[Tensor],
+    config: DecomposeConfig,
+) -> np.ndarray:  # -> [N] int64 atom of each Gaussian, 0..A-1
+    """k-means over the concatenated unit features of every candidate scale (each scale weighted
+    equally), on ``basis_dims`` principal components; fitted on a sample, then all assigned."""
+    n = theta.shape[0]
+    num = int(np.clip(round(n * config.atoms_per_gaussian), config.min_atoms, config.max_atoms))
+    num = min(num, n)
+    gen = torch.Generator().manual_seed(config.seed)
+    w = 1.0 / np.sqrt(len(scales))
+
+    def stacked(rows: Tensor) -> Tensor:  # [m, D] -> [m, sum d]
+        return torch.cat([unit_features(rows, s, B) * w for s, B in zip(scales, bases)], dim=1)
+
+    sample = torch.randperm(n, generator=gen)[: min(n, config.kmeans_sample)]
+    X = stacked(theta[sample])
+    q = min(config.basis_dims, X.shape[1], X.shape[0])
+    mean = X.mean(0)
+    _, _, V = torch.linalg.svd(X - mean, full_matrices=False)
+    P = V[:q].T  # [sum d, q]
+    Y = (X - mean) @ P
+    centres = Y[torch.randperm(Y.shape[0], generator=gen)[:num]].clone()
+    for _ in range(config.kmeans_iterations):
+        assign = torch.cdist(Y, centres).argmin(1)
+        sums = torch.zeros_like(centres).index_add_(0, assign, Y)
+        counts = torch.bincount(assign, minlength=num).float()
+        filled = counts > 0
+        centres[filled] = sums[filled] / counts[filled, None]
+    out = torch.empty(n, dtype=torch.long)
+    for i in range(0, n, config.chunk):
+        Yi = (stacked(theta[i : i + config.chunk]) - mean) @ P
+        out[i : i + config.chunk] = torch.cdist(Yi, centres).argmin(1)
+    return np.unique(out.numpy(), return_inverse=True)[1].astype(np.int64)
+
+
+def cluster_means(
+    theta: Tensor,  # [N, D]
+    labels: np.ndarray,  # [N] cluster 0..C-1
+    scale: tuple[int, int],
+    basis: Tensor,  # [d, d]
+    chunk: int,
+) -> tuple[Tensor, Tensor]:  # -> unit mean [C, d], each Gaussian's cosine distance to it [N]
+    C = int(labels.max()) + 1
+    lab = torch.from_numpy(labels)
+    sums = torch.zeros(C, basis.shape[1])
+    for i in range(0, theta.shape[0], chunk):
+        sums.index_add_(0, lab[i : i + chunk], unit_features(theta[i : i + chunk], scale, basis))
+    means = sums / sums.norm(dim=1, keepdim=True).clamp_min(1e-12)
+    dist = torch.empty(theta.shape[0])
+    for i in range(0, theta.shape[0], chunk):
+        z = unit_features(theta[i : i + chunk], scale, basis)
+        dist[i : i + chunk] = 1.0 - (z * means[lab[i : i + chunk]]).sum(1)
+    return means, dist
+
+
+def scatter(dist: Tensor, mads: float) -> float:  # dist [N] -> delta
+    """Median plus ``mads`` scaled median absolute deviations of the cosine distances."""
+    d = dist.double()
+    med = d.median()
+    return float(med + mads * 1.4826 * (d - med).abs().median())
+
+
+def merge_clusters(means: Tensor, cut: float) -> np.ndarray:  # means [C, d] unit -> [C] new label
+    """Average linkage on cosine distance, cut at ``cut``."""
+    from scipy.cluster.hierarchy import fcluster, linkage
+
+    if means.shape[0] < 2:
+        return np.zeros(means.shape[0], dtype=np.int64)
+    Z = linkage(means.double().numpy(), method="average", metric="cosine")
+    return (fcluster(Z, t=cut, criterion="distance") - 1).astype(np.int64)
+
+
+def group_scales(
+    theta: Tensor,  # [N, D]
+    scales: list[tuple[int, int]],  # coarse to fine
+    bases: list[Tensor],
+    atom_of: np.ndarray,  # [N] atoms
+    config: DecomposeConfig,
+) -> tuple[list[np.ndarray], list[float]]:
+    """One partition per scale, coarse to fine, each nested in the next coarser (clusters of a
+    finer scale are merged whole), and the cut of each."""
+    current = atom_of
+    parts: list[np.ndarray] = []
+    cuts: list[float] = []
+    for scale, basis in zip(reversed(scales), reversed(bases)):
+        means, dist = cluster_means(theta, current, scale, basis, config.chunk)
+        cut = 2.0 * scatter(dist, config.noise_mads)
+        current = merge_clusters(means, cut)[current]
+        parts.append(current)
+        cuts.append(cut)
+    return parts[::-1], cuts[::-1]
+
+
+def choose_levels(counts: list[int], max_levels: int) -> list[int]:
+    """Indices (coarse to fine) of the candidates kept as levels: one candidate per distinct
+    grouping (the finest of equal counts: nested partitions with as many nodes are equal), no
+    single-node level when another exists, and at most ``max_levels`` of those whose count grows
+    most over the next coarser distinct one."""
+    distinct = [i for i in range(len(counts)) if i + 1 == len(counts) or counts[i + 1] != counts[i]]
+    many = [i for i in distinct if counts[i] > 1] or distinct[-1:]
+    if len(many) <= max_levels:
+        return many
+    growth = {i: counts[i] / (counts[many[j - 1]] if j else 1) for j, i in enumerate(many)}
+    return sorted(sorted(many, key=lambda i: -growth[i])[:max_levels])
+
+
+def decompose(
+    theta: Tensor,  # [N, D] the field's features at the Gaussian centres
+    W: Tensor,  # [E, D] the field's projection
+    variant: "FieldVariant",
+    step_size: int,
+    config: Optional[DecomposeConfig] = None,
+) -> Decomposition:
+    """The hierarchy of the Gaussians (see the module docstring)."""
+    config = config or DecomposeConfig()
+    theta = theta.detach().float().cpu()
+    W = W.detach().float().cpu()
+    dim = theta.shape[1]
+    all_scales = variant.coarse_to_fine(dim, step_size)
+    labels = variant.coarse_to_fine_labels(dim, step_size)
+    values = variant.coarse_to_fine_values(dim, step_size)
+    picked = candidate_scales(variant, dim, step_size)
+    scales = [all_scales[i] for i in picked]
+    bases = scale_bases(W, scales)
+    atom_of = atoms(theta, scales, bases, config)
+    parts, cuts = group_scales(theta, scales, bases, atom_of, config)
+    counts = [int(p.max()) + 1 for p in parts]
+    kept = choose_levels(counts, config.max_levels)
+    nodes = np.empty((theta.shape[0], len(kept)), dtype=np.int32)
+    parents: list[np.ndarray] = []
+    levels: list[np.ndarray] = []
+    offset = 0
+    for level, i in enumerate(kept):
+        local = np.unique(parts[i], return_inverse=True)[1]
+        nodes[:, level] = local + offset
+        k = int(local.max()) + 1
+        parent = np.full(k, -1, dtype=np.int64)
+        if level:
+            parent[local] = nodes[:, level - 1]  # every member agrees (nested by construction)
+        parents.append(parent)
+        levels.append(np.full(k, level, dtype=np.int64))
+        offset += k
+    return Decomposition(
+        gaussian_nodes=nodes,
+        level_scales=[scales[i] for i in kept],
+        level_labels=[labels[picked[i]] for i in kept],
+        level_values=[values[picked[i]] for i in kept],
+        parents=np.concatenate(parents),
+        levels=np.concatenate(levels),
+        thresholds=[cuts[i] for i in kept],
+        candidates=[
+            {"scale_label": labels[picked[i]], "nodes": counts[i], "cut": cuts[i], "kept": i in kept}
+            for i in range(len(picked))
+        ],
+    )

@@ -1,0 +1,93 @@
+"""Queries answered by whole nodes of the run's hierarchy (``--mode node``; ``n2f2 decompose``
+writes the hierarchy, :mod:`n2f2.hierarchy`).
+
+Each node is scored by the one relevancy of n2f2 (:mod:`n2f2.field.relevancy`) of its embedding,
+the mean of its Gaussians' features at its own level's scale. Nodes are ranked by the
+relevancy's argument, the margin ``phi^ . t - max_c phi^ . c`` (relevancy is
+``sigmoid(10 margin)``, so the order is the same, but the margin does not saturate at 1 in
+float32 as the relevancy of related captions does). The answer is the best node, and beside it
+every node **of the same level** whose margin is at least :data:`INSTANCE_SHARE` of the best's:
+instances of one thing (several cookies) were trained towards one teacher embedding, so their
+margins match the best's to within the field's noise, while other nodes of that level score
+clearly lower. The answer's Gaussians are the
+union of its nodes' Gaussians; its 2D map is their rendered coverage (the fraction of each
+pixel's colour they give), so the evaluation scores it with the unchanged protocol. A small
+second term (:data:`TIE_WEIGHT` times the rendered :func:`gaussian_scores`) orders the pixels
+the answer does not cover by their own node's margin at the answer's level, so a ranking metric
+(average precision) sees more than the answer's footprint; it stays below any covered pixel's
+value, so the protocol's threshold still cuts the coverage."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..field.relevancy import RELEVANCY_SCALE
+from ..hierarchy.nodes import node_margins
+
+INSTANCE_SHARE = 0.9  # a node joins the answer with >= 90 % of the best node's margin
+TIE_WEIGHT = 0.01  # weight of the uncovered pixels' ordering term in a node answer's map
+
+
+@dataclass
+class NodeAnswer:
+    """One query's answer: its nodes (the best first), their level, and every node's relevancy."""
+
+    nodes: list[int]  # global node ids, best first
+    level: int
+    margin: Tensor  # [K] every node's relevancy margin for the query
+
+    @property
+    def relevancy(self) -> Tensor:  # [K]
+        return torch.sigmoid(self.margin * RELEVANCY_SCALE)
+
+
+def choose_nodes(
+    margin: Tensor,  # [K] relevancy margin of every node for one query
+    levels: np.ndarray,  # [K] each node's level
+) -> NodeAnswer:
+    """The best node and the other instances at its level (see the module docstring)."""
+    best = int(torch.argmax(margin))
+    level = int(levels[best])
+    top = float(margin[best])
+    same = torch.from_numpy(levels == level)
+    keep = same & (margin >= INSTANCE_SHARE * top) if top > 0 else torch.zeros_like(same)
+    others = [int(k) for k in torch.nonzero(keep).squeeze(1) if int(k) != best]
+    others.sort(key=lambda k: -float(margin[k]))
+    return NodeAnswer([best, *others], level, margin)
+
+
+def gaussian_scores(
+    gaussian_nodes: np.ndarray,  # [N, L]
+    answer: NodeAnswer,
+) -> Tensor:  # -> [N] in [0, 1]: each Gaussian's node margin at the answer's level, min-max scaled
+    level_nodes = torch.from_numpy(gaussian_nodes[:, answer.level].astype(np.int64))
+    m = answer.margin[level_nodes]
+    return (m - m.min()) / (m.max() - m.min()).clamp_min(1e-12)
+
+
+def answer_mask(
+    gaussian_nodes: np.ndarray,  # [N, L] node of every Gaussian at every level
+    answer: NodeAnswer,
+) -> Tensor:  # -> [N] bool, the answer's Gaussians
+    return torch.from_numpy(np.isin(gaussian_nodes[:, answer.level], answer.nodes))
+
+
+@dataclass
+class NodeCache:
+    """The node mode's score cache: the points are the hierarchy's nodes (their relevancy is
+    per node); ``camera`` is the view whose coverage maps are rendered (None over the Gaussians)."""
+
+    embeddings: Tensor  # [K, E] node embeddings
+    negatives: Tensor  # [C, E]
+    labels: list[str]  # the hierarchy's levels (their scale labels)
+    camera: object = None
+
+    def relevancy(self, texts: Tensor) -> Tensor:  # texts [Q, E] -> [1, Q, K]
+        return torch.sigmoid(self.margins(texts) * RELEVANCY_SCALE)[None]
+
+    def margins(self, texts: Tensor) -> Tensor:  # texts [Q, E] -> [Q, K]
+        return node_margins(self.embeddings, texts, self.negatives)
