@@ -146,11 +146,13 @@ def register_sfm(subparsers: argparse._SubParsersAction) -> None:
     add_config_options(p, SfmSettings, ["max_image_size"], field_defaults=True)
     p.add_argument(
         "--force",
-        "--overwrite",  # the earlier name, kept as an alias
         dest="overwrite",
         action="store_true",
         help="replace a finished result in DATA made from other photos or settings",
     )
+    # The earlier name of --force (every other command says --force): still accepted for one
+    # release, no longer listed.
+    p.add_argument("--overwrite", dest="overwrite", action="store_true", help=argparse.SUPPRESS)
     p.add_argument(
         "--keep-partial",
         action="store_true",

@@ -295,6 +295,19 @@ def _pair_batches(num_images: int, matcher: str, overlap: int, block: int = 50) 
     return [b for b in batches if b]
 
 
+def _models_text(registered: list[int]) -> str:
+    """What the map stage found, for its progress line: ``[84, 2]`` gives "2 models, 84 and 2
+    photos registered (the largest is kept)"."""
+    if not registered:
+        return "no model"
+    counts = [str(n) for n in registered]
+    listed = counts[0] if len(counts) == 1 else ", ".join(counts[:-1]) + " and " + counts[-1]
+    photos = "photo" if registered == [1] else "photos"
+    if len(registered) == 1:
+        return f"1 model, {listed} {photos} registered"
+    return f"{len(registered)} models, {listed} {photos} registered (the largest is kept)"
+
+
 class _Stages:
     """Runs the pycolmap stages in ``work`` with one settings object; records timings."""
 
@@ -315,10 +328,11 @@ class _Stages:
         self.progress, self.log = progress, log
         self.timings: dict[str, float] = {}
 
-    def _bar(self, total: Optional[int], desc: str):
+    def _bar(self, total: Optional[int], desc: str, unit: str):
         from tqdm import tqdm
 
-        return tqdm(total=total, desc=desc, unit="", leave=False, disable=not self.progress)
+        # A named unit: tqdm writes the rate as "1.02s/photo" (an empty one gives "1.02s/]").
+        return tqdm(total=total, desc=desc, unit=unit, leave=False, disable=not self.progress)
 
     def extract(self, shared_camera: bool) -> float:
         """SIFT features of every photo, in chunks so that progress can be shown. Returns
@@ -334,7 +348,7 @@ class _Stages:
         options.sift.domain_size_pooling = s.domain_size_pooling
         mode = pc.CameraMode.SINGLE if shared_camera else pc.CameraMode.PER_IMAGE
         chunk = max(8, 4 * (os.cpu_count() or 1))
-        with self._bar(len(self.names), "sfm: extracting features") as bar:
+        with self._bar(len(self.names), "sfm: extracting features", "photo") as bar:
             for start in range(0, len(self.names), chunk):
                 batch = self.names[start : start + chunk]
                 pc.extract_features(
@@ -388,7 +402,7 @@ class _Stages:
         """Match batches of image index pairs, one pycolmap call each, to show progress."""
         pc = self.pycolmap
         pair_file = self.work / "pairs.txt"
-        with self._bar(sum(len(b) for b in batches), "sfm: matching pairs") as bar:
+        with self._bar(sum(len(b) for b in batches), "sfm: matching pairs", "pair") as bar:
             for batch in batches:
                 pair_file.write_text("".join(f"{self.names[i]} {self.names[j]}\n" for i, j in batch))
                 pairing = pc.ImportedPairingOptions()
@@ -410,7 +424,7 @@ class _Stages:
         options.mapper.init_min_num_inliers = s.init_min_num_inliers
         sparse = self.work / "sparse"
         sparse.mkdir(parents=True, exist_ok=True)
-        with self._bar(len(self.names), "sfm: registering photos") as bar:
+        with self._bar(len(self.names), "sfm: registering photos", "photo") as bar:
             models = pc.incremental_mapping(
                 self.database, self.photos, sparse, options=options, next_image_callback=lambda: bar.update(1)
             )
@@ -570,7 +584,7 @@ def _pose(
         models = stages.timed(
             "map",
             stages.map,
-            lambda m: "models of " + ", ".join(str(r.num_reg_images()) for _, r in m) + " photos" if m else "no model",
+            lambda m: _models_text([r.num_reg_images() for _, r in m]),
         )
         registered = models[0][1].num_reg_images() if models else 0
         if 2 * registered < len(names):

@@ -100,7 +100,14 @@ def _register_render(subparsers) -> None:
         metavar=("X", "Y", "Z"),
         help="world up vector (default 0 -1 0: COLMAP worlds, whose cameras look down +z with y down)",
     )
-    p.add_argument("--size", type=positive_int, nargs=2, default=(512, 384), metavar=("W", "H"), help="image size")
+    p.add_argument(
+        "--size",
+        type=positive_int,
+        nargs=2,
+        default=(512, 384),
+        metavar=("W", "H"),
+        help="image width and height in pixels (default 512 384)",
+    )
     p.add_argument("--fov", type=positive_float, default=50.0, help="horizontal field of view in degrees (default 50)")
     p.add_argument(
         "--background",

@@ -174,23 +174,37 @@ def build_blend_cache(
 
     crows, gids, weights, offsets, sizes = [], [], [], [], []
     total_rows, total_nnz, nbytes = 0, 0, 0
-    for k, cam in enumerate(tqdm(cameras, desc="blend weights", disable=not progress, leave=False)):
-        pix, gid, wt = view_blend_weights(geometry, cam)
-        order = torch.argsort(pix, stable=True)
-        counts = torch.bincount(pix, minlength=cam.width * cam.height)
-        crows.append(torch.cumsum(counts, 0) + total_nnz)
-        gids.append(gid[order].to(torch.int32))
-        weights.append(wt[order].float())
-        offsets.append(total_rows)
-        sizes.append((cam.height, cam.width))
-        total_rows += cam.width * cam.height
-        total_nnz += int(pix.numel())
-        nbytes += int(pix.numel()) * 8 + cam.width * cam.height * 8
-        if nbytes / (k + 1) * len(cameras) > max_bytes:
-            raise MemoryError(
-                f"blend-weight cache would need ~{nbytes / (k + 1) * len(cameras) / 2**20:.0f} MB "
-                f"(limit {max_bytes / 2**20:.0f} MB)"
-            )
+    # The bar opens once the first view's projection fits in max_bytes: a cache that does not
+    # fit (most real scenes at the default limit) is given up after one view, and a bar opened
+    # before it would be left at 0% (in a log, for good). Closed however the loop ends.
+    bar = None
+    try:
+        for k, cam in enumerate(cameras):
+            pix, gid, wt = view_blend_weights(geometry, cam)
+            order = torch.argsort(pix, stable=True)
+            counts = torch.bincount(pix, minlength=cam.width * cam.height)
+            crows.append(torch.cumsum(counts, 0) + total_nnz)
+            gids.append(gid[order].to(torch.int32))
+            weights.append(wt[order].float())
+            offsets.append(total_rows)
+            sizes.append((cam.height, cam.width))
+            total_rows += cam.width * cam.height
+            total_nnz += int(pix.numel())
+            nbytes += int(pix.numel()) * 8 + cam.width * cam.height * 8
+            if nbytes / (k + 1) * len(cameras) > max_bytes:
+                raise MemoryError(
+                    f"blend-weight cache would need ~{nbytes / (k + 1) * len(cameras) / 2**20:.0f} MB "
+                    f"(limit {max_bytes / 2**20:.0f} MB)"
+                )
+            if bar is None:  # starts at the view just done (its rate counts the views after it)
+                bar = tqdm(
+                    total=len(cameras), initial=1, desc="blend weights", unit="view", disable=not progress, leave=False
+                )
+            else:
+                bar.update(1)
+    finally:
+        if bar is not None:
+            bar.close()
     device = geometry["means"].device
     crow = (
         torch.cat([torch.zeros(1, dtype=torch.long, device=device)] + crows)

@@ -1,0 +1,191 @@
+"""``n2f2 decompose``: the hierarchy of a field with known clusters is the known tree, nesting
+holds by construction, per-view node id maps equal a brute-force render, the PLY round trip keeps
+the node properties, and a run without a field is refused with one line."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+from n2f2.field.variants import VARIANTS
+from n2f2.hierarchy.build import DecomposeConfig, choose_levels, decompose
+
+
+def _known_field(per_part: int = 20, noise: float = 0.01, seed: int = 0):
+    """A nested field of D = 8, k = 2 (prefixes 2, 4, 6, 8) with W = I: at prefix 2 three groups
+    (directions 120 degrees apart), at prefix 4 two objects per group, at prefix 6 two parts per
+    object, and nothing more at prefix 8. Returns theta [N, 8], W [8, 8] and the true labels of
+    each Gaussian per level (group, object, part)."""
+    g = torch.Generator().manual_seed(seed)
+    rows, labels = [], []
+    for grp in range(3):
+        angle = 2 * np.pi * grp / 3
+        for obj in range(2):
+            for part in range(2):
+                t = torch.zeros(per_part, 8)
+                t[:, 0], t[:, 1] = float(np.cos(angle)), float(np.sin(angle))
+                t[:, 2 + obj] = 1.0  # the object's own direction at prefix 4
+                t[:, 4 + part] = 1.0  # the part's at prefix 6
+                rows.append(t + noise * torch.randn(per_part, 8, generator=g))
+                labels += [(grp, 2 * grp + obj, 4 * grp + 2 * obj + part)] * per_part
+    return torch.cat(rows), torch.eye(8), np.array(labels)
+
+
+def _same_partition(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether labelings ``a`` and ``b`` [N] group the items alike (up to renaming)."""
+    pairs = set(zip(a.tolist(), b.tolist()))
+    return len(pairs) == len(set(a.tolist())) == len(set(b.tolist()))
+
+
+def test_a_field_with_known_clusters_gives_the_known_tree():
+    theta, W, truth = _known_field()
+    dec = decompose(theta, W, VARIANTS["nested"], 2, DecomposeConfig())
+    assert dec.level_labels == ["d=2", "d=4", "d=8"]  # d=6 groups as d=8 does: the finer one is kept
+    assert [int((dec.levels == lv).sum()) for lv in range(3)] == [3, 6, 12]
+    for level in range(3):
+        assert _same_partition(dec.gaussian_nodes[:, level], truth[:, level]), level
+    # Nesting: every node's Gaussians lie in its parent; ids are global, coarsest level first.
+    for level in range(1, 3):
+        child, parent = dec.gaussian_nodes[:, level], dec.gaussian_nodes[:, level - 1]
+        assert (dec.parents[child] == parent).all()
+    assert (dec.parents[dec.levels == 0] == -1).all()
+    assert sorted(np.unique(dec.gaussian_nodes).tolist()) == list(range(dec.num_nodes))
+
+
+def test_nesting_holds_by_construction_on_noise():
+    """A field of pure noise still gives a tree whose every node lies in one parent."""
+    g = torch.Generator().manual_seed(1)
+    theta = torch.randn(600, 16, generator=g)
+    dec = decompose(theta, torch.randn(12, 16, generator=g), VARIANTS["nested"], 1, DecomposeConfig(max_levels=6))
+    assert 1 <= dec.num_levels <= 6
+    for level in range(1, dec.num_levels):
+        child, parent = dec.gaussian_nodes[:, level], dec.gaussian_nodes[:, level - 1]
+        for node in np.unique(child):
+            assert len(np.unique(parent[child == node])) == 1
+
+
+def test_the_levels_are_where_the_grouping_changes_most():
+    # Node counts of 7 candidates, coarse to fine (nested, so equal counts are equal groupings).
+    counts = [1, 3, 3, 6, 7, 24, 25]
+    # Distinct groupings: indices 0, 2, 3, 4, 5, 6; the single node goes; growth over the next
+    # coarser kept one: 3 (idx 2, from 1), 2 (3), 7/6 (4), 24/7 (5), 25/24 (6).
+    assert choose_levels(counts, 6) == [2, 3, 4, 5, 6]
+    assert choose_levels(counts, 2) == [2, 5]
+    assert choose_levels([1, 1], 6) == [1]
+
+
+def test_levels_field_is_coarse_first():
+    levels = VARIANTS["levels"]
+    assert levels.coarse_to_fine_labels(12) == ["group", "object", "part"]
+    assert levels.coarse_to_fine(12) == [(0, 4), (4, 8), (8, 12)]
+    assert VARIANTS["nested"].coarse_to_fine_values(12, 3) == [0.875, 0.625, 0.375, 0.125]
+
+
+def test_node_id_maps_equal_a_brute_force_render():
+    from n2f2.hierarchy.views import node_id_maps, node_id_maps_reference
+    from n2f2.render.reference import rasterize_reference, random_scene
+
+    (means, quats, scales, opac, _), cam = random_scene(400, 24, 1, seed=3)
+    g = SimpleNamespace(means=means, quats=quats, scales=scales, opacities=opac)
+    rng = np.random.default_rng(0)
+    coarse = rng.integers(0, 5, size=400)
+    nodes = np.stack([coarse, 5 + 3 * coarse + rng.integers(0, 3, size=400)], axis=1)  # 5 + 15 nodes
+    fast = node_id_maps(g, nodes, cam, channels=4)  # several passes of 4 channels
+    ref = node_id_maps_reference(g, nodes, cam)
+    assert fast.shape == ref.shape == (2, 24, 24) and fast.dtype == np.int32
+    for level in range(2):
+        # Pixels whose two best nodes are within float rounding of each other may go either way.
+        ids = torch.from_numpy(nodes[:, level])
+        uniq = torch.unique(ids)
+        cov = rasterize_reference(means, quats, scales, opac, (ids[:, None] == uniq[None]).float(), cam).features
+        top2 = cov.topk(2, dim=-1).values
+        clear = (top2[..., 0] - top2[..., 1] > 1e-4).numpy()
+        assert clear.mean() > 0.9
+        assert (fast[level][clear] == ref[level][clear]).all()
+        assert set(np.unique(ref[level])) <= set(uniq.tolist()) | {-1}
+
+
+@pytest.fixture(scope="module")
+def demo_run(trained_run):
+    return trained_run.run_dir
+
+
+@pytest.fixture(scope="module")
+def decomposed(trained_run, tmp_path_factory):
+    """The shared demo run decomposed with two views and a vocabulary."""
+    from n2f2.cli import main
+
+    out = tmp_path_factory.mktemp("decomposition")
+    vocab = out.parent / "vocab.txt"
+    vocab.write_text("teapot\n# a comment\n\nlid of the teapot\nbag of cookies\n")
+    assert main(["decompose", str(trained_run.run_dir), "--out", str(out), "--vocabulary", str(vocab),
+                 "--views", "frame_00001", "frame_00002", "--quiet"]) == 0
+    return out, trained_run.scene_dir
+
+
+def test_the_folder_holds_a_consistent_tree(decomposed, demo_run):
+    from n2f2.gaussians import read_ply
+    from n2f2.hierarchy.files import read_ply_nodes, read_tree
+
+    out, _ = decomposed
+    n = read_ply(demo_run / "gaussians.ply").num
+    tree = read_tree(out, num_gaussians=n)
+    assert tree.gaussian_nodes.shape == (n, tree.num_levels) and 1 <= tree.num_levels <= 6
+    nodes = tree.tree["nodes"]
+    for k, rec in enumerate(nodes):
+        assert rec["id"] == k and rec["gaussians"] == int((tree.gaussian_nodes[:, rec["level"]] == k).sum())
+        assert rec["text"] in ("teapot", "lid of the teapot", "bag of cookies") and 0 < rec["relevancy"] < 1
+        lo, hi = np.array(rec["box"])
+        assert (lo <= np.array(rec["centroid"])).all() and (np.array(rec["centroid"]) <= hi).all()
+    # The PLY round trip keeps the node properties, coarsest first.
+    assert (read_ply_nodes(out / "decomposition.ply") == tree.gaussian_nodes).all()
+    assert read_ply(out / "decomposition.ply").num == n  # still an INRIA-layout PLY
+
+
+def test_the_views_equal_a_render_of_the_node_ids(decomposed, demo_run):
+    from n2f2.data import load_scene
+    from n2f2.gaussians import read_ply
+    from n2f2.hierarchy.files import read_tree
+    from n2f2.hierarchy.views import node_id_maps
+
+    out, scene_dir = decomposed
+    levels = np.load(out / "views" / "frame_00002" / "levels.npy")
+    scene = load_scene(scene_dir)
+    g = read_ply(demo_run / "gaussians.ply")
+    tree = read_tree(out)
+    assert levels.shape == (tree.num_levels, scene.cameras[1].height, scene.cameras[1].width)
+    assert (levels == node_id_maps(g, tree.gaussian_nodes, scene.cameras[1])).all()
+    for level in range(tree.num_levels):  # the ids shown at a level are that level's nodes
+        shown = set(np.unique(levels[level]).tolist()) - {-1}
+        assert shown <= set(np.nonzero(tree.levels == level)[0].tolist())
+        assert (out / "views" / "frame_00002" / f"level_{level}.png").is_file()
+
+
+def test_a_node_query_answers_with_whole_nodes(decomposed, demo_run, tmp_path):
+    from n2f2.cli import main
+    from n2f2.hierarchy.files import read_tree
+
+    out, _ = decomposed
+    q = tmp_path / "q"
+    assert main(["query", str(demo_run), "lid of the teapot", "--mode", "node", "--decomposition", str(out),
+                 "--views", "0", "--out", str(q), "--path", "--quiet"]) == 0
+    answer = json.loads((q / "query.json").read_text())["nodes"]["lid of the teapot"]
+    tree = read_tree(out)
+    assert [p["node"] for p in answer["path"]] == tree.path(answer["nodes"][0])
+    assert all(tree.tree["nodes"][k]["level"] == answer["level"] for k in answer["nodes"])
+
+
+def test_decompose_refuses_a_run_without_a_field(tmp_path, demo_run, capsys):
+    from n2f2.cli import main
+
+    run = tmp_path / "run"
+    shutil.copytree(demo_run, run, ignore=shutil.ignore_patterns("field.pt", "checkpoint.pt"))
+    assert main(["decompose", str(run), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no field.pt" in err[0] and str(run) in err[0]
+    assert not (run / "decomposition").exists()
