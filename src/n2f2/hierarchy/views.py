@@ -43,7 +43,8 @@ def node_id_maps(
     out = np.full((gaussian_nodes.shape[1], H, W_), -1, dtype=np.int32)
     if idx.numel() == 0:
         return out
-    sub = [t[idx.to(t.device)] for t in (means, quats, scales, opac)]
+    sel = idx.to(means.device)
+    s_means, s_quats, s_scales, s_opac = means[sel], quats[sel], scales[sel], opac[sel]
     for level in range(gaussian_nodes.shape[1]):
         ids = torch.from_numpy(gaussian_nodes[idx.numpy(), level].astype(np.int64))
         visible = torch.unique(ids)
@@ -51,8 +52,8 @@ def node_id_maps(
         best_node = torch.full((H, W_), -1, dtype=torch.long)
         for a in range(0, visible.numel(), channels):
             block = visible[a : a + channels]
-            feats = _indicators(ids, block).to(sub[0])
-            cov = rasterize(*sub, feats, camera).features.cpu()  # [H, W, c]
+            feats = _indicators(ids, block).to(s_means)
+            cov = rasterize(s_means, s_quats, s_scales, s_opac, feats, camera).features.cpu()  # [H, W, c]
             value, arg = cov.max(dim=-1)
             better = value > best  # ties keep the earlier (smaller) id
             best = torch.where(better, value, best)

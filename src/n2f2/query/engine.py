@@ -729,6 +729,7 @@ class QueryEngine:
 
         answers, masks = self._node_maps(cache, emb)
         g = self.gaussians
+        assert cache.camera is not None  # render_view gives the node cache its view's camera
         out = emb.new_empty(len(emb), height, width)
         for q, (answer, mask) in enumerate(zip(answers, masks)):
             feats = torch.stack([mask.float(), gaussian_scores(self.tree.gaussian_nodes, answer)], dim=1)

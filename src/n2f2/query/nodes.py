@@ -20,11 +20,13 @@ value, so the protocol's threshold still cuts the coverage."""
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 import torch
 from torch import Tensor
 
+from ..cameras import Camera
 from ..field.relevancy import RELEVANCY_SCALE
 from ..hierarchy.nodes import node_margins
 
@@ -84,7 +86,7 @@ class NodeCache:
     embeddings: Tensor  # [K, E] node embeddings
     negatives: Tensor  # [C, E]
     labels: list[str]  # the hierarchy's levels (their scale labels)
-    camera: object = None
+    camera: Optional[Camera] = None
 
     def relevancy(self, texts: Tensor) -> Tensor:  # texts [Q, E] -> [1, Q, K]
         return torch.sigmoid(self.margins(texts) * RELEVANCY_SCALE)[None]
