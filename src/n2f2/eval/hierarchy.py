@@ -2,8 +2,8 @@
 ``n2f2 decompose RUN --out DECOMP`` writes) against a generated scene's ground-truth part /
 object / group regions, beside a 2D-only baseline that sees each image alone.
 
-The decomposition is read here as plain JSON + numpy (the evaluation stage does not import the
-package that builds it):
+It reads only what the evaluation needs of the decomposition (its file names and format from
+:mod:`n2f2.hierarchy.files`), so a tree without embeddings can be scored:
 
 * ``DECOMP/tree.json`` (``n2f2-tree-v1``): ``num_levels`` and ``nodes`` (global ``id``,
   ``parent`` (null at level 0, the coarsest), ``level``, ...);
@@ -44,10 +44,11 @@ import numpy as np
 
 from ..config import option
 from ..errors import InputError
+from ..hierarchy.files import FORMAT as TREE_FORMAT
+from ..hierarchy.files import LEVELS_NAME, NODES_NAME, TREE_NAME, view_folder
 from ..validate import positive_float, positive_int
 
 FORMAT = "n2f2-eval-hierarchy-v1"
-TREE_FORMAT = "n2f2-tree-v1"
 JSON_NAME = "eval_hierarchy.json"
 MD_NAME = "eval_hierarchy.md"
 PLOT_NAME = "eval_hierarchy.png"
@@ -144,7 +145,7 @@ def _load_json(path: Path, what: str) -> dict:
 def read_tree(decomp: Path, run_dir: Path) -> dict:
     """``DECOMP/tree.json``, checked: the format, ``num_levels`` >= 1, and nodes with int ids
     and levels in range. Missing: one line saying how to make it."""
-    path = decomp / "tree.json"
+    path = decomp / TREE_NAME
     if not path.is_file():
         raise InputError(decomp, f"no tree.json here: run `n2f2 decompose {run_dir} --out {decomp}` first")
     tree = _load_json(path, "hierarchy tree")
@@ -162,7 +163,7 @@ def read_tree(decomp: Path, run_dir: Path) -> dict:
 
 def read_gaussian_nodes(decomp: Path, num_levels: int) -> np.ndarray:  # [N, L] int
     """``DECOMP/gaussian_nodes.npy``: integer ids [N, num_levels]."""
-    path = decomp / "gaussian_nodes.npy"
+    path = decomp / NODES_NAME
     ids = _load_npy(path, "node ids of the Gaussians")
     if ids.ndim != 2 or ids.shape[1] != num_levels or not np.issubdtype(ids.dtype, np.integer):
         raise InputError(path, f"expected int node ids [N, {num_levels}], got {ids.dtype} {ids.shape}")
@@ -171,7 +172,7 @@ def read_gaussian_nodes(decomp: Path, num_levels: int) -> np.ndarray:  # [N, L] 
 
 def read_view_levels(decomp: Path, stem: str, num_levels: int) -> np.ndarray:  # [L, H, W] int
     """``DECOMP/views/<stem>/levels.npy``: integer node ids [num_levels, H, W]."""
-    path = decomp / "views" / stem / "levels.npy"
+    path = view_folder(decomp, stem) / LEVELS_NAME
     ids = _load_npy(path, "node ids of the view")
     if ids.ndim != 3 or ids.shape[0] != num_levels or not np.issubdtype(ids.dtype, np.integer):
         raise InputError(path, f"expected int node ids [{num_levels}, H, W], got {ids.dtype} {ids.shape}")
@@ -419,7 +420,7 @@ def check_inputs(run_dir: Path, decomp: Path, labels: Path) -> HierarchyInputs:
     tree = read_tree(decomp, run_dir)
     nodes = read_gaussian_nodes(decomp, tree["num_levels"])
     gt = read_ground_truth(labels)
-    views = [s for s in gt.stems if (decomp / "views" / s / "levels.npy").is_file()]
+    views = [s for s in gt.stems if (view_folder(decomp, s) / LEVELS_NAME).is_file()]
     if not views:
         raise InputError(
             decomp / "views",

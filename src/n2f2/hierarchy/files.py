@@ -34,6 +34,12 @@ PLY_NAME = "decomposition.ply"
 VIEWS_NAME = "views"
 RESULT_NAMES = (TREE_NAME, NODES_NAME, EMBEDDINGS_NAME, PLY_NAME, VIEWS_NAME)
 PLY_PREFIX = "node_"
+LEVELS_NAME = "levels.npy"
+
+
+def view_folder(root: str | Path, stem: str) -> Path:
+    """``DIR/views/<image stem>``: a view's ``levels.npy`` and its PNGs."""
+    return Path(root) / VIEWS_NAME / stem
 
 
 def tree_record(

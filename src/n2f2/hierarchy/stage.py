@@ -150,13 +150,13 @@ def _write_views(out: Path, scene, views: list[int], gaussians, gaussian_nodes: 
     from tqdm import tqdm
 
     from ..io import make_dirs, write_npy, write_png
-    from .files import VIEWS_NAME
+    from .files import LEVELS_NAME, view_folder
     from .views import node_id_maps, palette
 
     for i in tqdm(views, desc="views", unit="view", disable=not progress, leave=False):
-        folder = out / VIEWS_NAME / Path(scene.image_names[i]).stem
+        folder = view_folder(out, Path(scene.image_names[i]).stem)
         make_dirs(folder)
         maps = node_id_maps(gaussians, gaussian_nodes, scene.cameras[i])
-        write_npy(folder / "levels.npy", maps)
+        write_npy(folder / LEVELS_NAME, maps)
         for level, ids in enumerate(maps):
             write_png(folder / f"level_{level}.png", palette(ids))
