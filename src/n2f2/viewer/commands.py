@@ -76,12 +76,16 @@ def launch(
     warm: bool = True,
     full_res: bool = False,
     box_size: Any = None,
+    decomposition: Optional[str | Path] = None,
 ) -> RunningViewer:
     """Load the run once and start the 3D viewer on ``port`` and (unless ``api_port`` is None)
     the JSON API on ``api_port``; returns when both accept connections. Port 0 = any free port.
     Views render at the downscale the run was trained at, or at the images' size with ``full_res``.
     ``box_size``: the protocol's mean filter (pixels or "scaled"; None: LangSplat's 30 px, as
-    ``n2f2 query``'s) of the masks, the localisation and explicit mode's scale choice."""
+    ``n2f2 query``'s) of the masks, the localisation and explicit mode's scale choice.
+    ``decomposition``: the run's hierarchy (``n2f2 decompose``'s folder; None: RUN/decomposition
+    when it exists), for the 3D viewer's hierarchy panel and the node mode; one given here must
+    read back, or the viewer does not start."""
     import viser
 
     from ..errors import InputError
@@ -89,8 +93,12 @@ def launch(
     from .server import Viewer, api_server
     from .splats import SplatViewer
 
-    engine = QueryEngine.from_run(run_dir, scene=scene, full_res=full_res, config=QueryConfig(box_size=box_size))
+    config = QueryConfig(box_size=box_size, decomposition=None if decomposition is None else str(decomposition))
+    engine = QueryEngine.from_run(run_dir, scene=scene, full_res=full_res, config=config)
     viewer = Viewer(engine, limits or ViewerLimits())
+    if decomposition is not None and viewer.tree is None:
+        _ = engine.tree  # the InputError saying what is missing
+        raise InputError(Path(decomposition), viewer.tree_error or "cannot read the hierarchy")
     api = thread = None
     if api_port is not None:
         api = api_server(viewer, host=host, port=api_port)
@@ -136,7 +144,10 @@ def _cmd_view(args: argparse.Namespace) -> int:
         export_dir=args.export_dir,
         full_res=args.full_res,
         box_size=args.box_size,
+        decomposition=args.decomposition,
     )
+    if running.viewer.tree_error:
+        print(f"warning: the run's hierarchy is not offered: {running.viewer.tree_error}")
     print(
         f"n2f2 viewer: 3D view on {running.url}"
         + ("" if running.api_url is None else f"; JSON API and 2D page on {running.api_url}")
@@ -153,7 +164,7 @@ def _cmd_view(args: argparse.Namespace) -> int:
 
 
 def register(subparsers) -> None:
-    from ..query.commands import add_full_res_option, box_size_arg
+    from ..query.commands import add_decomposition_option, add_full_res_option, box_size_arg
 
     p = subparsers.add_parser(
         "view",
@@ -161,7 +172,9 @@ def register(subparsers) -> None:
         description="Serve the run's Gaussians as splats in the browser (viser, --port): click a "
         "camera frustum to jump to a training view, type queries to recolour the Gaussians "
         "by relevancy or dim everything outside the selection, render the current view's "
-        "2D relevancy / mask / localisation on the server, export the selection as PLY. "
+        "2D relevancy / mask / localisation on the server, export the selection as PLY; with the run's "
+        "hierarchy (n2f2 decompose), colour the Gaussians by node per level, click one for its path, "
+        "export a node. "
         "Beside it, on --api-port, the JSON API (POST /api/query, /api/render, "
         "/api/selection; GET /api/scene) and the 2D page at /.",
     )
@@ -179,6 +192,7 @@ def register(subparsers) -> None:
     p.add_argument("--host", default=HOST, help=f"bind address of both (default: {HOST}, this machine only)")
     p.add_argument("--scene", default=None, help="scene folder, if not the one recorded in the run")
     add_full_res_option(p)
+    add_decomposition_option(p)  # the hierarchy panel and the node mode
     p.add_argument("--export-dir", default=None, help="where 'Export selection' writes (default: the run folder)")
     cache_mb = field_default(ViewerLimits, "render_cache_bytes") / 2**20
     p.add_argument(

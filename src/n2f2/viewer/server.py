@@ -6,7 +6,8 @@ API (all JSON; errors are ``{"error": "..."}`` with a 4xx/5xx status, never a tr
   limits.
 * ``POST /api/render`` ``{"camera": CAMERA}`` -> ``{"rgb_png": base64, "width", "height",
   "cached", "timing_ms"}``.
-* ``POST /api/query`` ``{"queries": [str, ...], "camera": CAMERA, "mode": "composite"|"explicit"}``
+* ``POST /api/query`` ``{"queries": [str, ...], "camera": CAMERA, "mode": MODE}`` (MODE: one of
+  ``/api/scene``'s ``modes``, default composite; ``node`` only when the run has a hierarchy)
   -> ``{"rgb_png", "width", "height", "mode", "box_size", "timing_ms", "results": [{"query",
   "max_relevancy", "localization": [x, y], "mask_area", "mask_png", "overlay_png",
   "relevancy_png", "chosen_scale"}]}``, and ``"warning"`` in a result whose relevancy is flat over
@@ -19,7 +20,8 @@ API (all JSON; errors are ``{"error": "..."}`` with a 4xx/5xx status, never a tr
   pixels: ``QueryConfig.box_size`` of the engine, LangSplat's 30 by default, as ``n2f2 query``).
   ``mask_png`` is the protocol's segmentation mask as a white-on-transparent PNG;
   ``overlay_png`` / ``relevancy_png`` are ``n2f2 query``'s heatmap (:mod:`n2f2.query.outputs`)
-  over the RGB / alone.
+  over the RGB / alone. In mode ``node`` a result also holds ``nodes`` (the answer's node ids,
+  the best first) and ``level``, and its map is their rendered coverage.
 * ``POST /api/selection`` ``{"query": str, "mode": ..., "threshold": float|null}`` -> the selected
   Gaussians as an INRIA 3DGS PLY (``application/octet-stream``), count in ``X-Selected-Gaussians``.
 
@@ -54,11 +56,12 @@ from fastapi import Request  # module level: FastAPI resolves the handlers' stri
 from ..cameras import Camera, look_at
 from ..errors import InputError, N2F2Error
 from ..heap import return_freed_blocks
+from ..query.modes import QUERY_MODES
 from .cache import ByteLRU, compact_tensors, tensor_bytes
 from .settings import API_PORT, HOST, ViewerLimits
 
 STATIC_DIR = Path(__file__).parent / "static"
-VIEWER_MODES = ("composite", "explicit")
+VIEWER_MODES = tuple(m.name for m in QUERY_MODES.values() if m.viewer)  # what the viewers can offer
 
 
 class ApiError(Exception):
@@ -161,11 +164,26 @@ class Viewer:
         if self.scene is None:
             raise InputError(getattr(engine, "run_dir", None), "the viewer needs the run's scene (its cameras)")
         self.orbit = OrbitFrame.from_cameras(list(self.scene.cameras))
-        self.modes = tuple(m for m in VIEWER_MODES if m in engine.modes())
+        self.tree, self.tree_error = self._read_tree()
+        self.modes = tuple(
+            m for m in VIEWER_MODES if m in engine.modes() and (self.tree is not None or not QUERY_MODES[m].needs_tree)
+        )
         self.lock = threading.Lock()
         # The field's W is shared by every cache (and the engine): it is not a render's cost.
         self._shared = frozenset({engine.W.untyped_storage().data_ptr()}) if hasattr(engine, "W") else frozenset()
         self._renders = ByteLRU(limits.render_cache_bytes, lambda cache: tensor_bytes(cache, exclude=self._shared))
+
+    def _read_tree(self) -> tuple[Any, Optional[str]]:
+        """(the run's hierarchy, None) when it has one that reads back; (None, why not) when its
+        folder is stale or broken; (None, None) without one. Read once, here: the node mode and
+        the 3D viewer's hierarchy panel are offered only with a tree."""
+        tree_dir = getattr(self.engine, "_tree_dir", lambda: None)()
+        if tree_dir is None:
+            return None, None
+        try:
+            return self.engine.tree, None
+        except InputError as e:
+            return None, str(e)
 
     def box_pixels(self, width: int) -> int:
         """The protocol's mean-filter size in pixels for a render ``width`` pixels wide."""
@@ -233,6 +251,13 @@ class Viewer:
         if mode not in VIEWER_MODES:
             raise ApiError(422, f"unknown mode {mode!r}: use one of {', '.join(VIEWER_MODES)}")
         if mode not in self.modes:
+            if QUERY_MODES[mode].needs_tree:
+                raise ApiError(
+                    422,
+                    self.tree_error
+                    or f"mode {mode!r} needs the run's hierarchy: run `n2f2 decompose RUN` first "
+                    "(or give `n2f2 view --decomposition DIR`)",
+                )
             raise ApiError(422, f"mode {mode!r} is not available for this field")
         return mode
 
@@ -269,8 +294,15 @@ class Viewer:
         finish one after another: with two holds (render, then query) every queued render ran
         before any query, and all 50 requests of a burst finished together at its end. The PNG
         encoding runs outside the lock."""
-        cache, result = self.query_view(key, view, texts, mode)
-        return cache, self._results(cache, texts, result)
+        with self.lock:
+            cache, _ = self._render_locked(key, view, mode)
+            result = self.engine.query(cache, texts, mode=mode)
+            # Node mode: which nodes answered (cheap: one score per node).
+            answers = self.engine.node_answers(texts) if QUERY_MODES[mode].needs_tree else []
+        results = self._results(cache, texts, result)
+        for rec, answer in zip(results, answers):
+            rec["nodes"], rec["level"] = answer.nodes, answer.level
+        return cache, results
 
     def _results(self, view_cache: Any, texts: list[str], result: Any) -> list[dict]:
         """Per query: the protocol's mask and localization and the heatmap overlay, the same

@@ -36,6 +36,10 @@ relevancy over the Gaussians does in the status text.
 "Export selection" writes the selected Gaussians as an INRIA PLY (and a
 JSON of the query, mode, threshold and count) into the export folder given on the command line
 (default: the run folder); the file name comes from the queries, never from a typed path.
+
+When the run has a hierarchy (``n2f2 decompose``; ``n2f2 view --decomposition DIR``), the
+"Hierarchy" folder colours the Gaussians by their node at a chosen level, shows the path of a
+clicked Gaussian up to the root and exports a node (:mod:`n2f2.viewer.hierarchy`).
 """
 
 from __future__ import annotations
@@ -53,7 +57,6 @@ import numpy as np
 
 from ..cameras import Camera
 from ..errors import InputError
-from ..query.modes import QUERY_MODES
 from .splat_colors import (
     SELECTION_THRESHOLD,
     dimmed,
@@ -177,8 +180,8 @@ class SplatViewer:
         run_dir = getattr(self.engine, "run_dir", None)
         self.export_dir = Path(export_dir) if export_dir is not None else Path(run_dir or ".")
         self.scene = viewer.scene
-        # 3D queries need no image: "levels" fields (the 3-level baseline) work here too.
-        self.modes = [m.name for m in QUERY_MODES.values() if m.viewer and m.name in self.engine.modes()]
+        # The viewers' modes this run answers (node only with a hierarchy that reads back).
+        self.modes = list(viewer.modes)
         self.up = scene_up(self.scene, viewer.orbit.up)
         self._work = threading.Lock()  # one recolour / query at a time
         self._gen_lock = threading.Lock()
@@ -200,9 +203,14 @@ class SplatViewer:
         self._alpha_words = self._base_words & np.uint32(0xFF000000)  # [N] uint32, opacity byte only
         self._dim_words: Optional[np.ndarray] = None  # [N] uint32, every Gaussian dimmed
         self.shown = "rgb"
+        self.hierarchy: Any = None  # the HierarchyPanel when the run has a hierarchy
         self._add_frustums()
         self._set_initial_camera()
         self._add_gui(warm)
+        if viewer.tree is not None:
+            from .hierarchy import HierarchyPanel
+
+            self.hierarchy = HierarchyPanel(self, viewer.tree)
         if warm:
             threading.Thread(target=self._warm, name="n2f2-warm", daemon=True).start()
         else:
@@ -364,6 +372,8 @@ class SplatViewer:
             result = self.engine.query_gaussians(texts, mode)
         rel = result.relevancy.float().cpu().numpy()
         self.query = QueryState(texts, mode, rel, result.chosen_labels, time.perf_counter() - t0)
+        if self.hierarchy is not None:
+            self.hierarchy.hide()  # the answer's colours, not the nodes'
         if self.gui_display.value == "rgb":
             self._quiet = True  # the dropdown's callback runs here, synchronously: skip it
             try:
@@ -373,6 +383,9 @@ class SplatViewer:
         return self.recolour(t0=t0)
 
     def colors(self) -> np.ndarray:  # [N] uint32 RGBA words for the current display
+        nodes = self.hierarchy.colors() if self.hierarchy is not None else None
+        if nodes is not None:
+            return nodes
         q = self.query
         display = self.gui_display.value
         if q is None or display == "rgb":
@@ -389,6 +402,8 @@ class SplatViewer:
         t1 = time.perf_counter()
         words = self.colors()
         display = self.gui_display.value if self.query is not None else "rgb"
+        if self.hierarchy is not None and self.hierarchy.showing:
+            display = "nodes"
         buf = self._base.copy()
         buf[:, 7] = words
         t2 = time.perf_counter()

@@ -84,7 +84,24 @@ function parseQueries() {
 }
 
 function currentMode() {
-  return document.querySelector("input[name=mode]:checked").value;
+  const checked = document.querySelector("input[name=mode]:checked");
+  return checked ? checked.value : undefined;
+}
+
+// One radio button per mode the run answers (/api/scene): node only when it has a hierarchy.
+function addModes(modes) {
+  const box = $("modes");
+  box.innerHTML = "";
+  modes.forEach((mode, i) => {
+    const label = document.createElement("label");
+    const input = document.createElement("input");
+    input.type = "radio";
+    input.name = "mode";
+    input.value = mode;
+    input.checked = mode === "composite" || (i === 0 && !modes.includes("composite"));
+    label.append(input, ` ${mode}`);
+    box.appendChild(label);
+  });
 }
 
 async function runQuery() {
@@ -108,9 +125,10 @@ async function runQuery() {
         `<div class="warning"></div>`;
       div.querySelector(".title").textContent = r.query;
       div.querySelector("img").src = "data:image/png;base64," + r.overlay_png;
+      const nodes = r.nodes ? ` · nodes ${r.nodes.join(", ")} (level ${r.level})` : "";
       div.querySelector(".stats").textContent =
         `max ${r.max_relevancy.toFixed(3)} · mask ${r.mask_area} px · at (${r.localization.join(", ")})` +
-        ` · scale ${r.chosen_scale ?? "composite"}`;
+        ` · scale ${r.chosen_scale ?? "composite"}${nodes}`;
       // A flat relevancy map carries no signal: the server says so, and so does the page.
       div.querySelector(".warning").textContent = r.warning ? `warning: ${r.warning}` : "";
       div.onclick = () => drawMain(data.rgb_png, r.overlay_png, r.mask_png, r.localization);
@@ -179,6 +197,7 @@ async function init() {
     return;
   }
   $("encoder").textContent = `text encoder: ${state.scene.encoder}`;
+  addModes(state.scene.modes);
   for (const v of state.scene.views) {
     const opt = document.createElement("option");
     opt.value = v.index;
