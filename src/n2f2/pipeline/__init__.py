@@ -1,7 +1,9 @@
 """The pipeline layer between the stages and the command line: the content-keyed stage cache
 (:mod:`.cache`), the named presets of every stage's settings (:mod:`.presets`), ``n2f2 run`` /
 ``demo`` (:mod:`.run`, each stage through its own runner, e.g. :func:`n2f2.gaussians.stage.run_fit`)
-and ``run-many`` (:mod:`.many`); their options are in :mod:`.commands`."""
+and ``run-many`` (:mod:`.many`), with the checks before their first stage (:mod:`.preflight`) and
+each stage's expected time (:mod:`.estimate`), which ``n2f2 doctor`` prints (:mod:`.doctor`); their
+options are in :mod:`.commands`."""
 
 from __future__ import annotations
 

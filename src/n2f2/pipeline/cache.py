@@ -54,6 +54,7 @@ class StageCache:
     run_dir: Path
     records: dict = field(default_factory=dict)
     ran: list = field(default_factory=list)  # stages run (not skipped) by this process
+    expected: dict = field(default_factory=dict)  # {stage: seconds} estimated before the run (.estimate)
 
     @classmethod
     def open(cls, run_dir: Path) -> "StageCache":
@@ -93,5 +94,7 @@ class StageCache:
         write_json(self.run_dir / STAGES_FILE, self.records)
         commit_outputs()  # a finished stage stays, whatever happens to the later ones
         self.ran.append(name)
-        log(f"[{name}] done in {self.records[name]['seconds']:.1f} s")
+        guess = self.expected.get(name)
+        beside = "" if guess is None else f" (expected ~{guess:.0f} s)" if guess >= 1 else f" (expected ~{guess:.1f} s)"
+        log(f"[{name}] done in {self.records[name]['seconds']:.1f} s{beside}")
         return True

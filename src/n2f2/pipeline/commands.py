@@ -1,5 +1,5 @@
-"""``n2f2 run``, ``n2f2 run-many`` and ``n2f2 demo``: the command-line side of the pipeline
-(options, checks, printing); the work is in :mod:`.run` and :mod:`.many`."""
+"""``n2f2 run``, ``n2f2 run-many``, ``n2f2 demo`` and ``n2f2 doctor``: the command-line side of the
+pipeline (options, checks, printing); the work is in :mod:`.run`, :mod:`.many` and :mod:`.doctor`."""
 
 from __future__ import annotations
 
@@ -52,7 +52,8 @@ def _add_run_options(p: argparse.ArgumentParser, per_scene_inputs: bool = True) 
         choices=ENCODER_NAMES,
         default=None,
         help="encoder (default: captions = ground-truth captions embedded by all-MiniLM-L6-v2, an "
-        "offline stand-in for CLIP, on the demo scene; else clip). With --langsplat-features: "
+        "offline stand-in for CLIP, with the demo scene's ground-truth segmenter; else clip). "
+        "With --langsplat-features: "
         "the text encoder the features are aligned with (default: the one an n2f2 export "
         "recorded in DIR/encoder.json, else clip)",
     )
@@ -139,6 +140,13 @@ def _cmd_run(args: argparse.Namespace) -> int:
         + (f"; evaluation: {result['eval']}" if result["eval"] else "")
     )
     return 0
+
+
+def _cmd_doctor(args: argparse.Namespace) -> int:
+    from .doctor import run_doctor
+
+    out = Path(args.out) if args.out else None
+    return run_doctor(_run_options(args, Path(args.data), out or Path(".")), out_given=out is not None)
 
 
 def _cmd_run_many(args: argparse.Namespace) -> int:
@@ -252,6 +260,21 @@ def register(subparsers) -> None:
     r.add_argument("--out", required=True, metavar="DIR", help="run folder")
     _add_run_options(r)
     r.set_defaults(func=_cmd_run)
+
+    d = subparsers.add_parser(
+        "doctor",
+        help="check what `run` needs (scene, models, machine, output folder) and estimate each stage's time",
+        description="Print, one line each, what `n2f2 run DATA` with the same options would check and expect, "
+        "running and writing nothing: the scene's size, every model the stages load (found, and where, or "
+        "the command that gets it), the CPU, torch's threads and CUDA, the output folder (--out; its "
+        "up-to-date stages are left out, as run skips them), and the expected time of each stage from the "
+        "scene's size and the machine's measured speed. Exit status 0 when everything needed is present, "
+        "2 otherwise.",
+    )
+    d.add_argument("data", metavar="DATA", help="scene folder or folder of photos, as for `run`")
+    d.add_argument("--out", metavar="DIR", default=None, help="the run folder (checked, not created)")
+    _add_run_options(d)
+    d.set_defaults(func=_cmd_doctor)
 
     m = subparsers.add_parser(
         "run-many",

