@@ -189,3 +189,23 @@ def test_decompose_refuses_a_run_without_a_field(tmp_path, demo_run, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "no field.pt" in err[0] and str(run) in err[0]
     assert not (run / "decomposition").exists()
+
+
+def test_a_node_answer_climbs_to_the_whole_and_keeps_its_instances():
+    from n2f2.query.nodes import INSTANCE_SHARE, choose_nodes
+
+    # Tree: 0 -> (1, 2); 1 -> (3, 4); 2 -> (5, 6, 7). Levels 0, 1, 2.
+    levels = np.array([0, 1, 1, 2, 2, 2, 2, 2])
+    parents = np.array([-1, 0, 0, 1, 1, 2, 2, 2])
+    # "table": a patch (3) matches best, its parent (1) nearly as well, the root far less.
+    margin = torch.tensor([0.05, 0.95 * 0.5, 0.0, 0.5, 0.1, 0.0, 0.0, 0.0])
+    a = choose_nodes(margin, levels, parents)
+    assert (a.nodes, a.level) == ([1], 1)
+    # "lid": the part (6) beats its parent (2) clearly: the part stays; its sibling 7 scores
+    # within INSTANCE_SHARE of it (a second instance) and joins, 5 does not.
+    margin = torch.tensor([0.0, 0.0, 0.2, 0.0, 0.0, 0.3, 0.6, INSTANCE_SHARE * 0.6 + 1e-3])
+    a = choose_nodes(margin, levels, parents)
+    assert (a.nodes, a.level) == ([6, 7], 2)
+    # No node above the negatives: the best node alone.
+    a = choose_nodes(torch.full((8,), -0.2), levels, parents)
+    assert len(a.nodes) == 1

@@ -714,10 +714,11 @@ class QueryEngine:
         """Per query its nodes of the run's hierarchy (:func:`n2f2.query.nodes.choose_nodes`)."""
         cache = self._node_cache(None)
         margins = cache.margins(self.encode(check_texts(texts))).cpu()  # [Q, K]
-        return [choose_nodes(m, self.tree.levels) for m in margins]
+        return [choose_nodes(m, self.tree.levels, self.tree.parents) for m in margins]
 
     def _node_maps(self, cache: NodeCache, emb: Tensor) -> tuple[list[NodeAnswer], list[Tensor]]:
-        answers = [choose_nodes(m, self.tree.levels) for m in cache.margins(emb).cpu()]
+        tree = self.tree
+        answers = [choose_nodes(m, tree.levels, tree.parents) for m in cache.margins(emb).cpu()]
         return answers, [answer_mask(self.tree.gaussian_nodes, a).to(self.device) for a in answers]
 
     def _view_node(

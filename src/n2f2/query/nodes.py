@@ -5,8 +5,11 @@ Each node is scored by the one relevancy of n2f2 (:mod:`n2f2.field.relevancy`) o
 the mean of its Gaussians' features at its own level's scale. Nodes are ranked by the
 relevancy's argument, the margin ``phi^ . t - max_c phi^ . c`` (relevancy is
 ``sigmoid(10 margin)``, so the order is the same, but the margin does not saturate at 1 in
-float32 as the relevancy of related captions does). The answer is the best node, and beside it
-every node **of the same level** whose margin is at least :data:`INSTANCE_SHARE` of the best's:
+float32 as the relevancy of related captions does). The answer is the best node, replaced by its
+parent for as long as the parent's margin is at least :data:`INSTANCE_SHARE` of the best's (a
+patch of a large surface matches "table" as well as the whole table does, and the whole is the
+answer), and beside it every node **of the same level** whose margin is at least
+:data:`INSTANCE_SHARE` of its own:
 instances of one thing (several cookies) were trained towards one teacher embedding, so their
 margins match the best's to within the field's noise, while other nodes of that level score
 clearly lower. The answer's Gaussians are the
@@ -50,13 +53,19 @@ class NodeAnswer:
 def choose_nodes(
     margin: Tensor,  # [K] relevancy margin of every node for one query
     levels: np.ndarray,  # [K] each node's level
+    parents: np.ndarray,  # [K] each node's parent, -1 at level 0
 ) -> NodeAnswer:
-    """The best node and the other instances at its level (see the module docstring)."""
+    """The best node, raised to its ancestors while they answer as well, and the other instances
+    at its level (see the module docstring)."""
     best = int(torch.argmax(margin))
-    level = int(levels[best])
     top = float(margin[best])
+    if top > 0:  # a piece of a large thing (a patch of the table) gives way to the whole of it
+        while parents[best] >= 0 and float(margin[int(parents[best])]) >= INSTANCE_SHARE * top:
+            best = int(parents[best])
+    level = int(levels[best])
+    ref = float(margin[best])
     same = torch.from_numpy(levels == level)
-    keep = same & (margin >= INSTANCE_SHARE * top) if top > 0 else torch.zeros_like(same)
+    keep = same & (margin >= INSTANCE_SHARE * ref) if ref > 0 else torch.zeros_like(same)
     others = [int(k) for k in torch.nonzero(keep).squeeze(1) if int(k) != best]
     others.sort(key=lambda k: -float(margin[k]))
     return NodeAnswer([best, *others], level, margin)
