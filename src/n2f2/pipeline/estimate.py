@@ -79,7 +79,18 @@ SEGMENTER_S_PER_IMAGE = {  # encoder + mask decoder (1,024 prompts) + post-proce
     "sam2": 26.8,  # SAM 2.1 tiny 2.6 + 22.0 + 2.2 (large: ~95 s)
 }
 CLIP_S_PER_SEGMENT = 0.234  # CLIP ViT-B/16 crop + image model
-SEGMENTS_PER_IMAGE = 100  # a real SAM's masks kept on a photo (docs/measurements.md); classical similar
+SEGMENTS_PER_IMAGE = 100  # a real SAM's masks kept on a photo (docs/measurements.md)
+# The classical segmenter's segments grow with the image: 24 a photo on the plush-dog photos at
+# 185 x 123 (--downscale 4, bank.json of a run on 21 of them); taken as proportional to the
+# pixels, at most SAM's count.
+CLASSICAL_SEGMENTS_PER_PIXEL = 24 / (185 * 123)
+
+
+def segments_per_image(segmenter: object, pixels: float) -> int:
+    """The segments CLIP embeds per image: SAM's kept masks, or the classical segmenter's."""
+    if segmenter == "classical":
+        return max(1, min(SEGMENTS_PER_IMAGE, round(CLASSICAL_SEGMENTS_PER_PIXEL * pixels)))
+    return SEGMENTS_PER_IMAGE
 
 
 # ----------------------------------------------------------------------------- the machine
@@ -296,8 +307,9 @@ def _segments_estimate(opt, size: SceneSize, speed: Speed) -> StageEstimate:
         per_image = SEGMENTER_S_PER_PIXEL.get(opt.segmenter, LIFT_S_PER_PIXEL) * size.pixels / speed.mixed
         per_image, what = per_image + (0.0 if opt.segmenter == "ground-truth" else lift), str(opt.segmenter)
     if opt.langsplat_features is None and opt.encoder == "clip":
-        per_image += CLIP_S_PER_SEGMENT * SEGMENTS_PER_IMAGE / speed.arithmetic
-        what += f" + CLIP on ~{SEGMENTS_PER_IMAGE} segments an image"
+        count = segments_per_image(opt.segmenter, size.pixels)
+        per_image += CLIP_S_PER_SEGMENT * count / speed.arithmetic
+        what += f" + CLIP on ~{count} segments an image"
     elif opt.langsplat_features is None:
         what += f" + {opt.encoder}"
     return StageEstimate("segments", fixed + size.views * per_image, f"{size.views} images, {what}")
