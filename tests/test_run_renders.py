@@ -227,3 +227,28 @@ def test_query_and_view_commands_take_full_res(trained_run, downscaled_run, tmp_
         with pytest.raises(KeyboardInterrupt):
             commands.launch(downscaled_run, full_res=full_res)
         assert seen["full_res"] is full_res
+
+
+def test_a_run_trained_without_missing_images_renders_its_own_views(trained_run, tmp_path):
+    """A run trained with --skip-missing records it, so its query engine (and the hierarchy)
+    load the scene the same way instead of refusing the missing image."""
+    from n2f2.errors import InputError
+    from n2f2.train.runs import load_run_scene
+
+    scene = tmp_path / "scene"
+    shutil.copytree(trained_run.scene_dir, scene)
+    missing = sorted((scene / "images").iterdir())[0]
+    missing.unlink()
+    run, bank, ply = tmp_path / "run", tmp_path / "bank", _fit_dir(trained_run) / "gaussians.ply"
+    assert main(["segments", str(scene), "--gaussians", str(ply), "--segmenter", "ground-truth",
+                 "--encoder", "captions", "--out", str(bank), "--skip-missing", "--quiet"]) == 0
+    assert main(["train", str(scene), "--gaussians", str(ply),
+                 "--segments", str(bank), "--out", str(run), "--iterations", "2",
+                 "--dim", "8", "--plane-resolution", "8", "--plane-channels", "4", "--hidden", "16",
+                 "--skip-missing", "--quiet"]) == 0
+    meta = torch.load(run / "field.pt", weights_only=False, map_location="cpu")["meta"]
+    assert meta["skip_missing"] is True
+    loaded = load_run_scene(run, meta, None)
+    assert len(loaded.cameras) == trained_run.num_views - 1
+    with pytest.raises(InputError):
+        load_run_scene(run, {**meta, "skip_missing": False}, None)

@@ -13,7 +13,7 @@ from ..errors import InputError
 def load_run_scene(run_dir: Path, meta: dict, scene: Optional[Union[str, Path]], full_res: bool = False) -> Any:
     """The scene a run was trained on: ``scene`` if given, else the path its metadata records;
     at the downscale the training recorded (runs from before it was recorded: 1), or 1 with
-    ``full_res``."""
+    ``full_res``; without its missing images when the training went without them."""
     from ..data import load_scene
 
     if scene is None:
@@ -34,4 +34,5 @@ def load_run_scene(run_dir: Path, meta: dict, scene: Optional[Union[str, Path]],
     if not path.is_dir():
         raise InputError(path, "scene folder does not exist")
     downscale = 1.0 if full_res else float(meta.get("downscale", 1.0) or 1.0)
-    return load_scene(path, downscale=downscale)
+    # A run trained with --skip-missing renders the views it was trained on.
+    return load_scene(path, downscale=downscale, skip_missing=bool(meta.get("skip_missing", False)))

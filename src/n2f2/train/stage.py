@@ -109,6 +109,7 @@ def run_train(job: TrainJob, log: Log = print) -> dict:
         resume=job.resume,
         progress=job.progress,
         callback=job.callback,
+        skip_missing=job.skip_missing,
         paths={
             "scene": str(Path(job.data).resolve()),
             "gaussians": str(gpath.resolve()),

@@ -158,6 +158,7 @@ def train_field(
     paths: Optional[dict] = None,  # {"scene", "gaussians", "bank"}: recorded in meta
     progress: bool = True,
     callback: Optional[Callable[[int, float], None]] = None,  # after each step: (step, loss)
+    skip_missing: bool = False,  # the scene was loaded without its missing images: so is it for renders
 ) -> dict:
     """Optimise the nested feature field; writes ``field.pt``, ``checkpoint.pt`` and
     ``train_report.json`` in ``out_dir`` and returns the report."""
@@ -190,6 +191,7 @@ def train_field(
         "encoder_spec": getattr(bank, "encoder_spec", None),
         "scene": paths.get("scene") or str(getattr(scene, "root", "")),
         "downscale": float(getattr(scene, "downscale", 1.0)),  # as loaded: renders of the run use it too
+        "skip_missing": bool(skip_missing),
         "gaussians": paths.get("gaussians"),
         "bank": bank_path,
         "scene_extent": extent,
