@@ -149,22 +149,27 @@ class CountCalls:
         return scene, _Source(source, hook), depth
 
 
-def _setup(scene: Path, teacher: str, clip: Path) -> SegmentsSetup:
+def _job(scene: Path, teacher: str, clip: Path):
+    """The bank job `n2f2 segments` makes of the test's flags (its lift settings are the preset's)."""
     from n2f2.segments.commands import job_from_args
-    from n2f2.segments.stage import setup_of
 
     args = build_parser().parse_args(_segments_args(scene, Path("unused"), teacher, clip))
-    return setup_of(job_from_args(args, segmenter=args.segmenter, encoder=args.encoder, sam_model=args.sam_model))
+    return job_from_args(args, segmenter=args.segmenter, encoder=args.encoder, sam_model=args.sam_model)
 
 
-def _build_with(setup, out: Path) -> dict:
+def _setup(scene: Path, teacher: str, clip: Path) -> SegmentsSetup:
+    from n2f2.segments.stage import setup_of
+
+    return setup_of(_job(scene, teacher, clip))
+
+
+def _build_with(setup, out: Path, lift) -> dict:
     from n2f2.distributed import RayExecutor
     from n2f2.segments.bank import build_bank
-    from n2f2.segments.lifting import LiftSettings
 
     scene, source, depth = setup.setup.build()
     with RayExecutor() as executor:
-        return build_bank(scene, source, depth, out, depth_source="gt", lift=LiftSettings(), progress=False,
+        return build_bank(scene, source, depth, out, depth_source="gt", lift=lift, progress=False,
                           executor=executor, worker_setup=setup)
 
 
@@ -179,7 +184,7 @@ def test_ray_bank_equals_serial_bank(ray_instance, scenes, serial_banks, teacher
 def test_a_killed_worker_is_retried_and_the_bank_is_the_same(ray_instance, scenes, serial_banks, tmp_path):
     marker = tmp_path / "killed"
     setup = KillOnce(_setup(scenes["alpha"], "ground-truth", scenes["clip"]), str(marker), victim=2)
-    _build_with(setup, tmp_path / "bank")
+    _build_with(setup, tmp_path / "bank", _job(scenes["alpha"], "ground-truth", scenes["clip"]).lift)
     assert marker.is_file()  # a worker really died on image 2
     assert int(marker.read_text()) != os.getpid()  # ... and it was not this process
     assert_same_bank(serial_banks["ground-truth"], tmp_path / "bank")
@@ -187,16 +192,17 @@ def test_a_killed_worker_is_retried_and_the_bank_is_the_same(ray_instance, scene
 
 def test_an_interrupted_run_redoes_only_the_missing_images(ray_instance, scenes, serial_banks, tmp_path):
     base = _setup(scenes["alpha"], "ground-truth", scenes["clip"])
+    lift = _job(scenes["alpha"], "ground-truth", scenes["clip"]).lift
     out, calls = tmp_path / "bank", tmp_path / "calls"
     (calls / "first").mkdir(parents=True)
     with pytest.raises(RuntimeError, match="crash at image 3"):
-        _build_with(CountCalls(base, str(calls / "first"), crash_at=3), out)
+        _build_with(CountCalls(base, str(calls / "first"), crash_at=3), out, lift)
     stems = [f"frame_{i + 1:05d}" for i in range(VIEWS)]
     kept = {i for i, s in enumerate(stems) if (out / s).is_dir()}
     assert 3 not in kept and not json.loads((out / "bank.json").read_text())["complete"]
 
     (calls / "again").mkdir()
-    report = _build_with(CountCalls(base, str(calls / "again")), out)
+    report = _build_with(CountCalls(base, str(calls / "again")), out, lift)
     computed = [int(p.name.split("-")[0]) for p in (calls / "again").iterdir()]
     assert sorted(computed) == sorted(set(range(VIEWS)) - kept)  # each missing image once, no other
     assert report["timing"]["images_extracted_now"] == VIEWS - len(kept)
