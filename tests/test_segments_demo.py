@@ -25,9 +25,9 @@ def demo(tmp_path_factory):
     scene_dir = root / "scene"
     generate_demo_scene(scene_dir, num_views=8, width=96, height=72, supersample=1, num_points=500,
                         show_progress=False)
-    bank_dir = root / "bank"
+    bank_dir = root / "bank"  # the paper's eigenvalue scales (the cpu preset's default is area)
     rc = main(["segments", str(scene_dir), "--segmenter", "ground-truth", "--encoder", "captions",
-               "--depth-source", "gt", "--out", str(bank_dir), "--quiet"])
+               "--depth-source", "gt", "--scale-measure", "eigenvalue", "--out", str(bank_dir), "--quiet"])
     assert rc == 0
     return scene_dir, bank_dir
 
@@ -94,7 +94,8 @@ def test_downscaled_bank_and_rerun(demo, tmp_path):
     # a rerun of a finished bank skips every image and keeps it readable
     before = (bank_dir / "frame_00001" / "layers.npy").stat().st_mtime_ns
     assert main(["segments", str(scene_dir), "--segmenter", "ground-truth", "--encoder", "captions",
-                 "--depth-source", "gt", "--out", str(bank_dir), "--resume", "--quiet"]) == 0
+                 "--depth-source", "gt", "--scale-measure", "eigenvalue", "--out", str(bank_dir), "--resume",
+                 "--quiet"]) == 0
     assert (bank_dir / "frame_00001" / "layers.npy").stat().st_mtime_ns == before
     out = tmp_path / "half"
     assert main(["segments", str(scene_dir), "--segmenter", "ground-truth", "--encoder", "captions",
