@@ -39,6 +39,7 @@ import torch
 from torch import Tensor
 
 from ..config import option
+from ..validate import positive_int
 
 if TYPE_CHECKING:
     from ..field.variants import FieldVariant
@@ -48,7 +49,9 @@ if TYPE_CHECKING:
 class DecomposeConfig:
     """Settings of :func:`decompose` (``n2f2 decompose``'s options)."""
 
-    max_levels: int = option(6, help="at most this many levels, kept where the grouping changes most")
+    max_levels: int = option(
+        6, help="at most this many levels, kept where the grouping changes most", type=positive_int, metavar="L"
+    )
     atoms_per_gaussian: float = 1 / 12  # k-means atoms: N / 12 ...
     max_atoms: int = 2048  # ... at most this many (average linkage is quadratic in them)
     min_atoms: int = 16

@@ -92,6 +92,13 @@ def run_decompose(job: DecomposeJob, log: Log = print) -> dict:
     if job.views and scene is None:
         raise InputError(run_dir, "the run records no scene folder that exists: pass --scene DATA for --views")
     views = _view_indices(scene, job.views) if job.views else []
+    encoder = None
+    if phrases:  # the text encoder is found (or refused) before anything is replaced
+        from ..segments.encoders import get_encoder
+
+        if not meta.get("encoder_spec"):
+            raise InputError(run_dir / "field.pt", "field metadata names no text encoder: --vocabulary cannot be used")
+        encoder = get_encoder(meta["encoder_spec"], job.device)
     remove_results(out, present)
     t0 = time.perf_counter()
     with torch.no_grad():
@@ -101,11 +108,6 @@ def run_decompose(job: DecomposeJob, log: Log = print) -> dict:
         theta, fld.W, get_variant(str(cfg.get("variant", "nested"))), int(cfg.get("step_size", 1)), job.config
     )
     seconds = time.perf_counter() - t0
-    encoder = None
-    if phrases:
-        from ..segments.encoders import get_encoder
-
-        encoder = get_encoder(meta["encoder_spec"], job.device)
     record = _write(out, run_dir, dec, theta, fld.W, gaussians, phrases, encoder, DEFAULT_NEGATIVES, seconds)
     if views:
         _write_views(out, scene, views, gaussians, dec.gaussian_nodes, job.progress)
