@@ -736,14 +736,17 @@ class QueryEngine:
             feats = torch.stack([mask.float(), gaussian_scores(self.tree.gaussian_nodes, answer)], dim=1)
             cov = rasterize(g.means, g.normalized_quats, g.scales, g.opacities, feats.to(g.means), cache.camera)
             out[q] = cov.features[..., 0] + TIE_WEIGHT * cov.features[..., 1]
-        scores = torch.stack([a.relevancy for a in answers]).to(emb)  # [Q, K]
-        return out, [a.level for a in answers], scores
+        return out, [a.level for a in answers], self._node_scores(answers).to(emb)
 
     def _gaussians_node(self, cache: NodeCache, emb: Tensor) -> Answer:
         """Node mode over the Gaussians: 1 on the answer's Gaussians, else 0."""
         answers, masks = self._node_maps(cache, emb)
         out = torch.stack([m.to(emb) for m in masks])  # [Q, N]
-        return out, [a.level for a in answers], torch.stack([a.relevancy for a in answers]).to(emb)
+        return out, [a.level for a in answers], self._node_scores(answers).to(emb)
+
+    def _node_scores(self, answers: list[NodeAnswer]) -> Tensor:  # -> [Q, L], as other modes' [Q, S]
+        tree = self.tree
+        return torch.stack([a.level_scores(tree.levels, tree.num_levels) for a in answers])
 
     def select(self, text: str, threshold: Optional[float] = None, mode: str = "composite") -> Tensor:
         """Boolean ``[N]`` selection of the Gaussians relevant to ``text``.

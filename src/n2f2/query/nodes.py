@@ -49,6 +49,11 @@ class NodeAnswer:
     def relevancy(self) -> Tensor:  # [K]
         return torch.sigmoid(self.margin * RELEVANCY_SCALE)
 
+    def level_scores(self, levels: np.ndarray, num_levels: int) -> Tensor:  # -> [L]
+        """The best node's relevancy at each level (a mode's per-scale scores)."""
+        rel = self.relevancy
+        return torch.stack([rel[torch.from_numpy(levels == lv)].max() for lv in range(num_levels)])
+
 
 def choose_nodes(
     margin: Tensor,  # [K] relevancy margin of every node for one query
