@@ -154,3 +154,15 @@ def test_one_localisation_rule_for_query_api_and_eval(trained_run, tmp_path, cap
     box = np.array([[ev[0], ev[1], ev[0], ev[1]]], np.float64)
     assert localization_hit(rel, box, view["box_size"])
     assert evaluate_frame_category(rel, np.ones(rel.shape, bool), box, view["box_size"]).hit
+
+
+def test_the_3d_colours_of_a_flat_query_are_on_the_absolute_scale():
+    from n2f2.viewer.splat_colors import heat_index, normalized_relevancy
+
+    flat = np.full((1, 50), 0.5, np.float32)
+    flat[0, ::7] += 2e-4  # rounding noise, below FLAT_RANGE
+    v = normalized_relevancy(flat)
+    assert np.ptp(v) == 0 and v[0] == pytest.approx(0.5, abs=1e-3)  # one colour: turbo's middle
+    assert set(heat_index(flat).tolist()) == {128}
+    real = np.linspace(0.3, 0.7, 50, dtype=np.float32)[None]
+    np.testing.assert_allclose(normalized_relevancy(real), np.linspace(0, 1, 50), atol=1e-6)  # min-max, as before

@@ -72,12 +72,18 @@ def turbo_lut() -> np.ndarray:  # [256, 3] uint8
 def normalized_relevancy(
     relevancy: np.ndarray,  # [Q, N]
 ) -> np.ndarray:  # [N] float32 in [0, 1]
-    """Per query min-max normalised relevancy (a constant query gives 0), maximum over queries."""
+    """Per query min-max normalised relevancy, maximum over queries. A flat query
+    (:func:`n2f2.query.maps.is_flat`) gives its mean relevancy on the absolute 0..1 scale, as the
+    2D heatmaps draw it, not min-max stretched noise."""
+    from ..query.maps import is_flat
+
     rel = np.asarray(relevancy, dtype=np.float32)
     out = np.zeros(rel.shape[1], np.float32)
     for r in rel:
         lo, hi = float(r.min()), float(r.max())
-        if hi > lo:
+        if is_flat(r):
+            np.maximum(out, np.float32(np.clip(r.mean(dtype=np.float64), 0.0, 1.0)), out=out)
+        elif hi > lo:
             np.maximum(out, (r - np.float32(lo)) * np.float32(1.0 / (hi - lo)), out=out)
     return out
 
