@@ -14,23 +14,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import shutil
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
-
-
-def cpu_name() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def grow_run(run: Path, out: Path, count: int, seed: int = 0) -> None:
@@ -71,6 +60,8 @@ def measure(run: Path, out: Path) -> dict:
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     row = json.loads(res.stdout.strip().splitlines()[-1])
     row["process_s"] = time.perf_counter() - t0
+    from n2f2.pipeline.estimate import cpu_name
+
     row["cpu"] = cpu_name()
     return row
 
