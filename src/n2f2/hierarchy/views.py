@@ -86,12 +86,7 @@ def node_id_maps_reference(
 
 
 def palette(ids: np.ndarray) -> np.ndarray:  # int [...] -> uint8 [..., 3]
-    """A stable colour per node id (the golden-ratio hue walk), black for -1."""
-    import colorsys
+    """:func:`n2f2.data.synthetic.contact_sheet.id_colors` as 8-bit RGB, black for -1."""
+    from ..data.synthetic.contact_sheet import id_colors
 
-    uniq = np.unique(ids[ids >= 0])
-    table = {int(k): colorsys.hsv_to_rgb((int(k) * 0.618033988749895) % 1.0, 0.65, 0.95) for k in uniq}
-    rgb = np.zeros((*ids.shape, 3), dtype=np.uint8)
-    for k, c in table.items():
-        rgb[ids == k] = np.round(np.array(c) * 255).astype(np.uint8)
-    return rgb
+    return np.round(id_colors(ids) * 255.0).astype(np.uint8)

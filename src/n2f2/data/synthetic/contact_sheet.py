@@ -10,8 +10,9 @@ import numpy as np
 from ...io import atomic_path
 
 
-def _palette(ids: np.ndarray) -> np.ndarray:
-    """Distinct colours [..., 3] float for region ids (black for -1), stable per id."""
+def id_colors(ids: np.ndarray) -> np.ndarray:
+    """Distinct colours [..., 3] float in [0, 1] for integer ids (black for -1), stable per id:
+    n2f2's one id palette (region ids here, the hierarchy's node ids)."""
     golden = 0.618033988749895
     hue = (np.asarray(ids, dtype=np.float64) * golden + 0.11) % 1.0
     sat = 0.55 + 0.35 * ((np.asarray(ids) * 7) % 3) / 2
@@ -65,7 +66,7 @@ def write_contact_sheet(scene_dir: str | Path, out_png: str | Path, max_views: i
         axes[0, col].set_title(f"{stem} (view {i})", fontsize=6)
         reg = np.load(scene_dir / "regions" / f"{stem}.npy")
         for lv in range(len(levels)):
-            axes[lv + 1, col].imshow(_palette(reg[lv]), interpolation="nearest")
+            axes[lv + 1, col].imshow(id_colors(reg[lv]), interpolation="nearest")
             seen_per_level[lv].update(int(x) for x in np.unique(reg[lv]) if x >= 0)
     for r in range(rows):
         for c in range(len(pick) + 1):
@@ -77,7 +78,7 @@ def write_contact_sheet(scene_dir: str | Path, out_png: str | Path, max_views: i
     for lv in range(len(levels)):
         handles = [
             # matplotlib takes an RGB array as a colour; its ColorType alias lists only tuples and strings.
-            Patch(color=_palette(np.array(rid)), label=by_id[rid]["caption"])  # pyright: ignore[reportArgumentType]
+            Patch(color=id_colors(np.array(rid)), label=by_id[rid]["caption"])  # pyright: ignore[reportArgumentType]
             for rid in sorted(seen_per_level[lv])
         ]
         axes[lv + 1, -1].legend(
