@@ -79,15 +79,29 @@ def negative_max(
     return (features @ negatives.T).mul_(inv_norm).amax(dim=-1, keepdim=True)
 
 
+def relevancy_margins(
+    features: Tensor,  # [..., E] unnormalised language features phi
+    texts: Tensor,  # [Q, E] unit text embeddings of the queries
+    negatives: Tensor,  # [C, E] unit text embeddings of the negative phrases
+) -> Tensor:  # [..., Q] the relevancy's argument phi^ . t - max_c phi^ . c
+    """What the relevancy is the sigmoid of (:func:`relevancy_of_margins`). It orders features
+    as the relevancy does but does not saturate: related captions reach relevancy 1.0 in float32
+    (the hierarchy ranks its nodes and phrases by it)."""
+    inv = inverse_norm(features)
+    return (features @ texts.T).mul_(inv).sub_(negative_max(features, negatives, inv))
+
+
+def relevancy_of_margins(margins: Tensor) -> Tensor:  # [...] -> [...] relevancy in (0, 1)
+    return torch.sigmoid(margins * RELEVANCY_SCALE)
+
+
 def relevancy(
     features: Tensor,  # [..., E] unnormalised language features phi (rendered or per Gaussian)
     texts: Tensor,  # [Q, E] unit text embeddings of the queries
     negatives: Tensor,  # [C, E] unit text embeddings of the negative phrases
 ) -> Tensor:  # [..., Q]
     """Relevancy of every feature for every query (the reference path: normalise, dot, score)."""
-    inv = inverse_norm(features)
-    positive = (features @ texts.T).mul_(inv)
-    return relevancy_from_scores(positive, negative_max(features, negatives, inv), inplace=True)
+    return relevancy_margins(features, texts, negatives).mul_(RELEVANCY_SCALE).sigmoid_()
 
 
 def check_texts(texts: Sequence[str]) -> list[str]:

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..field.relevancy import RELEVANCY_SCALE, inverse_norm, negative_max
+from ..field.relevancy import relevancy_margins, relevancy_of_margins
 from .build import Decomposition, scale_bases
 
 
@@ -60,15 +60,6 @@ def node_geometry(
     return counts, sums / np.maximum(counts, 1)[:, None], lo, hi
 
 
-def node_margins(
-    embeddings: Tensor,  # [K, E] node embeddings
-    texts: Tensor,  # [Q, E] unit text embeddings
-    negatives: Tensor,  # [C, E] unit embeddings of the negative phrases
-) -> Tensor:  # -> [Q, K] relevancy margins, relevancy = sigmoid(RELEVANCY_SCALE * margin)
-    inv = inverse_norm(embeddings)
-    return ((embeddings @ texts.T) * inv - negative_max(embeddings, negatives, inv)).T.contiguous()
-
-
 def best_phrases(
     embeddings: Tensor,  # [K, E] node embeddings
     phrases: Sequence[str],
@@ -76,11 +67,11 @@ def best_phrases(
     negatives: Tensor,  # [C, E] unit embeddings of the relevancy's negative phrases
 ) -> tuple[list[Optional[str]], np.ndarray]:
     """Per node the phrase of highest relevancy and that relevancy ([K]); None / NaN without
-    phrases. Ranked by the margin (:func:`node_margins`): related phrases all reach relevancy 1.0
-    in float32."""
+    phrases. Ranked by the margin (:func:`n2f2.field.relevancy.relevancy_margins`): related
+    phrases all reach relevancy 1.0 in float32."""
     K = embeddings.shape[0]
     if not phrases:
         return [None] * K, np.full(K, np.nan)
-    margin, best = node_margins(embeddings, texts, negatives).max(dim=0)  # [K]
-    rel = torch.sigmoid(margin * RELEVANCY_SCALE)
+    margin, best = relevancy_margins(embeddings, texts, negatives).max(dim=1)  # [K]
+    rel = relevancy_of_margins(margin)
     return [phrases[int(i)] for i in best], rel.numpy().astype(np.float64)

@@ -30,8 +30,7 @@ import torch
 from torch import Tensor
 
 from ..cameras import Camera
-from ..field.relevancy import RELEVANCY_SCALE
-from ..hierarchy.nodes import node_margins
+from ..field.relevancy import relevancy_margins, relevancy_of_margins
 
 INSTANCE_SHARE = 0.9  # a node joins the answer with >= 90 % of the best node's margin
 TIE_WEIGHT = 0.01  # weight of the uncovered pixels' ordering term in a node answer's map
@@ -47,7 +46,7 @@ class NodeAnswer:
 
     @property
     def relevancy(self) -> Tensor:  # [K]
-        return torch.sigmoid(self.margin * RELEVANCY_SCALE)
+        return relevancy_of_margins(self.margin)
 
     def level_scores(self, levels: np.ndarray, num_levels: int) -> Tensor:  # -> [L]
         """The best node's relevancy at each level (a mode's per-scale scores)."""
@@ -103,7 +102,7 @@ class NodeCache:
     camera: Optional[Camera] = None
 
     def relevancy(self, texts: Tensor) -> Tensor:  # texts [Q, E] -> [1, Q, K]
-        return torch.sigmoid(self.margins(texts) * RELEVANCY_SCALE)[None]
+        return relevancy_of_margins(self.margins(texts))[None]
 
     def margins(self, texts: Tensor) -> Tensor:  # texts [Q, E] -> [Q, K]
-        return node_margins(self.embeddings, texts, self.negatives)
+        return relevancy_margins(self.embeddings, texts, self.negatives).T.contiguous()
