@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 from typing import Any, Optional
 
@@ -101,11 +102,11 @@ class LoadedTree:
     def num_levels(self) -> int:
         return int(self.gaussian_nodes.shape[1])
 
-    @property
+    @cached_property
     def levels(self) -> np.ndarray:  # [K] level of each node
         return np.array([n["level"] for n in self.tree["nodes"]], dtype=np.int64)
 
-    @property
+    @cached_property
     def parents(self) -> np.ndarray:  # [K] parent id, -1 at level 0
         return np.array([-1 if n["parent"] is None else n["parent"] for n in self.tree["nodes"]], dtype=np.int64)
 
