@@ -5,6 +5,7 @@ once per test session, through the same CLI commands a user runs."""
 from __future__ import annotations
 
 import os
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -69,3 +70,18 @@ def trained_run(tmp_path_factory) -> TrainedRun:
          "--iterations", 80, "--pixels-per-step", 1024, "--dim", 32, "--plane-resolution", 32,
          "--plane-channels", 8, "--hidden", 64, "--train-on-all", "--quiet")
     return TrainedRun(scene_dir=scene, run_dir=run, bank_dir=bank, num_views=num_views)
+
+
+@pytest.fixture
+def wait():
+    """``wait(predicate, timeout_s, what)``: poll ``predicate`` every 0.1 s until it holds, else
+    fail naming ``what`` (the browser tests wait on pages and websockets)."""
+
+    def wait_until(predicate, timeout: float, what: str) -> None:
+        deadline = time.time() + timeout
+        while not predicate():
+            if time.time() > deadline:
+                raise AssertionError(f"timed out waiting for {what}")
+            time.sleep(0.1)
+
+    return wait_until

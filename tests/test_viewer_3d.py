@@ -427,17 +427,9 @@ def _png(data: bytes) -> np.ndarray:
     return np.asarray(Image.open(io.BytesIO(data)).convert("RGB"), dtype=float)
 
 
-def _wait(predicate, timeout: float, what: str) -> None:
-    deadline = time.time() + timeout
-    while not predicate():
-        if time.time() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(0.1)
-
-
 @pytest.mark.skipif(not Path(CHROMIUM_PATH).exists(),
                     reason="Debian chromium is not installed (apt-get install chromium); .ci/run installs it")
-def test_browser_sees_splats_moves_and_recolours(running, trained_run, tmp_path):
+def test_browser_sees_splats_moves_and_recolours(running, trained_run, tmp_path, wait):
     sync_api = pytest.importorskip("playwright.sync_api")
     shot_dir = Path(os.environ.get("N2F2_SCREENSHOT_DIR", tmp_path))
     shot_dir.mkdir(parents=True, exist_ok=True)
@@ -454,7 +446,7 @@ def test_browser_sees_splats_moves_and_recolours(running, trained_run, tmp_path)
             toast = page.locator(".mantine-Notification-root").filter(has_text="Software WebGL").locator("button")
             if toast.count():
                 toast.first.click(timeout=10_000)
-            _wait(lambda: set(running.viser.get_clients()) - known, 60, "the page's websocket")
+            wait(lambda: set(running.viser.get_clients()) - known, 60, "the page's websocket")
             client = running.viser.get_clients()[max(set(running.viser.get_clients()) - known)]
             # The view region left of the GUI panel.
             clip = {"x": 0, "y": 0, "width": 300, "height": 420}
@@ -465,14 +457,14 @@ def test_browser_sees_splats_moves_and_recolours(running, trained_run, tmp_path)
                 return _png(data)
 
             # Splats arrive: the view is no longer one flat colour.
-            _wait(lambda: shot("viewer3d_0_start").std(axis=(0, 1)).mean() > 15, 90, "splats on screen")
+            wait(lambda: shot("viewer3d_0_start").std(axis=(0, 1)).mean() > 15, 90, "splats on screen")
             first = shot("viewer3d_0_start")
 
             # Move the camera to a training view (what clicking its frustum does).
             s.move_to_view(client, 3)
             target = pose_of(running.viewer.scene.cameras[3])[1]
-            _wait(lambda: np.allclose(client.camera.position, target, atol=1e-3), 30, "the camera move")
-            _wait(lambda: np.abs(shot("viewer3d_1_view3") - first).mean() > 5, 30, "a new picture")
+            wait(lambda: np.allclose(client.camera.position, target, atol=1e-3), 30, "the camera move")
+            wait(lambda: np.abs(shot("viewer3d_1_view3") - first).mean() > 5, 30, "a new picture")
             moved = shot("viewer3d_1_view3")
 
             # Type a query in the page and press the Query button.
@@ -480,9 +472,9 @@ def test_browser_sees_splats_moves_and_recolours(running, trained_run, tmp_path)
             box = page.locator("div.mantine-Flex-root", has=page.locator("label", has_text="Queries"))
             box.locator("input").fill(trained_run.part_query)
             page.get_by_role("button", name="Query", exact=True).click()
-            _wait(lambda: s.query is not None and s.shown == "heatmap", 60, "the query's colours")
+            wait(lambda: s.query is not None and s.shown == "heatmap", 60, "the query's colours")
             assert s.query.texts == [trained_run.part_query]
-            _wait(lambda: np.abs(shot("viewer3d_2_query") - moved).mean() > 5, 30, "recoloured splats")
+            wait(lambda: np.abs(shot("viewer3d_2_query") - moved).mean() > 5, 30, "recoloured splats")
             page.screenshot(path=str(shot_dir / "viewer3d_page.png"))
         finally:
             browser.close()

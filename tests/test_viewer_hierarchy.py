@@ -285,17 +285,9 @@ def test_view_takes_a_decomposition_folder(decomposed_run, trained_run, tmp_path
 
 
 # ----------------------------------------------------------------------------- browser
-def _wait(predicate, timeout: float, what: str) -> None:
-    deadline = time.time() + timeout
-    while not predicate():
-        if time.time() > deadline:
-            raise AssertionError(f"timed out waiting for {what}")
-        time.sleep(0.1)
-
-
 @pytest.mark.skipif(not Path(CHROMIUM_PATH).exists(),
                     reason="Debian chromium is not installed (apt-get install chromium); .ci/run installs it")
-def test_browser_shows_levels_and_a_clicked_path(running, tmp_path):
+def test_browser_shows_levels_and_a_clicked_path(running, tmp_path, wait):
     """In a real page: two levels look different, and a click on the splats (viser's scene
     click, a ray) selects a Gaussian and shows its path in the panel."""
     from io import BytesIO
@@ -317,7 +309,7 @@ def test_browser_shows_levels_and_a_clicked_path(running, tmp_path):
             toast = page.locator(".mantine-Notification-root").filter(has_text="Software WebGL").locator("button")
             if toast.count():  # a DOM click: the page may be too busy drawing for a pointer one
                 toast.first.evaluate("button => button.click()")
-            _wait(lambda: set(running.viser.get_clients()) - known, 60, "the page's websocket")
+            wait(lambda: set(running.viser.get_clients()) - known, 60, "the page's websocket")
             client = running.viser.get_clients()[max(set(running.viser.get_clients()) - known)]
             s.move_to_view(client, 0)
             view = {"x": 0, "y": 0, "width": 400, "height": 640}  # left of the GUI panel
@@ -328,15 +320,15 @@ def test_browser_shows_levels_and_a_clicked_path(running, tmp_path):
                 return np.asarray(Image.open(BytesIO(data)).convert("RGB"), dtype=float)
 
             h.set_level(0)
-            _wait(lambda: shot("hierarchy_level_0").std(axis=(0, 1)).mean() > 15, 90, "splats on screen")
+            wait(lambda: shot("hierarchy_level_0").std(axis=(0, 1)).mean() > 15, 90, "splats on screen")
             time.sleep(1.0)
             coarse = shot("hierarchy_level_0", None)
             h.gui_level.value = h.tree.num_levels - 1
-            _wait(lambda: np.abs(shot("hierarchy_level_finest", None) - coarse).mean() > 2, 30, "the finer colours")
+            wait(lambda: np.abs(shot("hierarchy_level_finest", None) - coarse).mean() > 2, 30, "the finer colours")
             time.sleep(1.0)
             shot("hierarchy_level_finest", None)
             page.mouse.click(200, 320)  # the middle of the view: the scene
-            _wait(lambda: h.gaussian is not None, 30, "a picked Gaussian")
+            wait(lambda: h.gaussian is not None, 30, "a picked Gaussian")
             page.get_by_text(f"Gaussian {h.gaussian:,}").wait_for(timeout=30_000)  # the path, in the page
             page.get_by_role("button", name="Export node").scroll_into_view_if_needed()  # all of it on screen
             time.sleep(1.0)
