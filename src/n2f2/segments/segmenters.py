@@ -146,6 +146,10 @@ class SegmenterKind:
     default_model_id: Optional[str] = None  # Hugging Face id used when no model is given; None = no model
     needs_scene: bool = False  # builds from the scene (ground truth), not from images alone
     description: str = ""  # one line for a command-line help text
+    # For a model-backed kind: what its loader calls the model, and what it offers instead
+    # (as sam.py and sam2.py say when the model is missing).
+    model_name: str = ""
+    alternative: str = ""
 
     def settings_class(self) -> Optional[type]:
         """The settings dataclass (imports its module), or None."""
@@ -193,6 +197,8 @@ SEGMENTERS: dict[str, SegmenterKind] = {
             settings="sam:SamSettings",
             default_model_id="facebook/sam-vit-huge",  # = sam.DEFAULT_SAM_MODEL
             description="SAM automatic masks (paper, default)",
+            model_name="SAM",
+            alternative="--segmenter classical",
         ),
         SegmenterKind(
             "sam2",
@@ -200,6 +206,8 @@ SEGMENTERS: dict[str, SegmenterKind] = {
             settings="sam2:Sam2Settings",
             default_model_id="facebook/sam2.1-hiera-tiny",  # = sam2.DEFAULT_SAM2_MODEL
             description="SAM 2.1 automatic masks, same settings (Hiera-tiny: lighter than SAM ViT-H)",
+            model_name="SAM 2.1",
+            alternative="--segmenter sam or --segmenter classical",
         ),
         SegmenterKind(
             "classical",
@@ -218,13 +226,6 @@ SEGMENTERS: dict[str, SegmenterKind] = {
 SEGMENTER_NAMES = tuple(SEGMENTERS)
 
 
-# What a model-backed segmenter's loader calls its model and offers instead (sam.py, sam2.py).
-SEGMENTER_MODELS = {
-    "sam": ("SAM", "--segmenter classical"),
-    "sam2": ("SAM 2.1", "--segmenter sam or --segmenter classical"),
-}
-
-
 def locate_segmenter_model(name: str, model_id: Optional[str] = None):  # -> Optional[encoders.ModelLocation]
     """The model segmenter ``name`` would load (``model_id``, default its kind's), located
     without loading it (:func:`~.encoders.locate_pretrained`); None for a segmenter without one.
@@ -234,9 +235,8 @@ def locate_segmenter_model(name: str, model_id: Optional[str] = None):  # -> Opt
     kind = SEGMENTERS.get(name)
     if kind is None or kind.default_model_id is None:
         return None
-    what, alternative = SEGMENTER_MODELS[name]
-    found = locate_pretrained(model_id or kind.default_model_id, what)
-    return with_advice(found, kind.default_model_id, "--sam-model", alternative)
+    found = locate_pretrained(model_id or kind.default_model_id, kind.model_name)
+    return with_advice(found, kind.default_model_id, "--sam-model", kind.alternative)
 
 
 def get_segmenter(
