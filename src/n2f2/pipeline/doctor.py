@@ -112,12 +112,15 @@ def _scene_and_stages(opt: RunOptions, out_given: bool, report: _Report) -> list
 
 def _models(opt: RunOptions, stages: list[str], report: _Report) -> None:
     """One line per model the stages load: found (and where) or the problem with its advice."""
+    from ..segments.segmenters import SEGMENTERS
+
     try:
         found = run_models(opt, stages)
     except N2F2Error as e:
         report.problem(f"models: {e}")
         return
-    if "segments" in stages and opt.langsplat_features is None and opt.segmenter in ("ground-truth", "classical"):
+    kind = SEGMENTERS.get(str(opt.segmenter))
+    if "segments" in stages and opt.langsplat_features is None and kind and kind.default_model_id is None:
         report.ok(f"segmenter {opt.segmenter}: no model needed")
     for model in found:
         if model.problem:

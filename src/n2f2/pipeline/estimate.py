@@ -70,26 +70,26 @@ TRAIN_S_PER_PIXEL = 13.3e-6  # a training step per sampled pixel: demo 3000 x 20
 BLEND_S_PER_PIXEL = 4.6e-6  # the blend cache, per training-view pixel: 3.1 s for 35 x 19,200 px
 EVAL_S_PER_PIXEL = 1.8e-5  # a labelled view's pixel in one mode: demo 11 s for 8 views x 4 modes
 LIFT_S_PER_PIXEL = 3.3e-6  # lifting a photo's segments (depth render, record): ~1.2 s at 750 x 500
-SEGMENTER_S_PER_PIXEL = {
-    "ground-truth": 4.6e-6,  # with the captions' MiniLM and the lifting: demo 3.5 s for 40 views
+SEGMENTER_S_PER_PIXEL = {  # besides the lifting
+    "ground-truth": 1.3e-6,  # with the captions' MiniLM: demo 3.5 s for 40 views with the lifting (4.6e-6)
     "classical": 4.4e-6,  # three Felzenszwalb scales
 }
 SEGMENTER_S_PER_IMAGE = {  # encoder + mask decoder (1,024 prompts) + post-processing, any image size
     "sam": 68.8,  # ViT-H 47.1 + 17.8 + 3.9
     "sam2": 26.8,  # SAM 2.1 tiny 2.6 + 22.0 + 2.2 (large: ~95 s)
 }
-CLIP_S_PER_SEGMENT = 0.234  # CLIP ViT-B/16 crop + image model
+ENCODER_S_PER_SEGMENT = {"clip": 0.234}  # CLIP ViT-B/16 crop + image model (captions: in the segmenter's)
 SEGMENTS_PER_IMAGE = 100  # a real SAM's masks kept on a photo (docs/measurements.md)
-# The classical segmenter's segments grow with the image: 24 a photo on the plush-dog photos at
+# Segmenters whose segments grow with the image. Classical: 24 a photo on the plush-dog photos at
 # 185 x 123 (--downscale 4, bank.json of a run on 21 of them); taken as proportional to the
 # pixels, at most SAM's count.
-CLASSICAL_SEGMENTS_PER_PIXEL = 24 / (185 * 123)
+SEGMENTS_PER_PIXEL = {"classical": 24 / (185 * 123)}
 
 
-def segments_per_image(segmenter: object, pixels: float) -> int:
-    """The segments CLIP embeds per image: SAM's kept masks, or the classical segmenter's."""
-    if segmenter == "classical":
-        return max(1, min(SEGMENTS_PER_IMAGE, round(CLASSICAL_SEGMENTS_PER_PIXEL * pixels)))
+def segments_per_image(segmenter: str, pixels: float) -> int:
+    """The segments the encoder embeds per image: SAM's kept masks, or in proportion to the pixels."""
+    if segmenter in SEGMENTS_PER_PIXEL:
+        return max(1, min(SEGMENTS_PER_IMAGE, round(SEGMENTS_PER_PIXEL[segmenter] * pixels)))
     return SEGMENTS_PER_IMAGE
 
 
@@ -304,12 +304,12 @@ def _segments_estimate(opt, size: SceneSize, speed: Speed) -> StageEstimate:
     elif opt.segmenter in SEGMENTER_S_PER_IMAGE:
         per_image, what = SEGMENTER_S_PER_IMAGE[opt.segmenter] / speed.arithmetic + lift, opt.segmenter
     else:
-        per_image = SEGMENTER_S_PER_PIXEL.get(opt.segmenter, LIFT_S_PER_PIXEL) * size.pixels / speed.mixed
-        per_image, what = per_image + (0.0 if opt.segmenter == "ground-truth" else lift), str(opt.segmenter)
-    if opt.langsplat_features is None and opt.encoder == "clip":
-        count = segments_per_image(opt.segmenter, size.pixels)
-        per_image += CLIP_S_PER_SEGMENT * count / speed.arithmetic
-        what += f" + CLIP on ~{count} segments an image"
+        per_image = SEGMENTER_S_PER_PIXEL.get(str(opt.segmenter), 0.0) * size.pixels / speed.mixed + lift
+        what = str(opt.segmenter)
+    if opt.langsplat_features is None and opt.encoder in ENCODER_S_PER_SEGMENT:
+        count = segments_per_image(str(opt.segmenter), size.pixels)
+        per_image += ENCODER_S_PER_SEGMENT[opt.encoder] * count / speed.arithmetic
+        what += f" + {opt.encoder} on ~{count} segments an image"
     elif opt.langsplat_features is None:
         what += f" + {opt.encoder}"
     return StageEstimate("segments", fixed + size.views * per_image, f"{size.views} images, {what}")

@@ -29,15 +29,15 @@ def needs_posing(data: Path) -> bool:
 
 
 def encoder_model_id(opt) -> Optional[str]:
-    """The CLIP model the run's encoder loads (None: the default): ``--clip-model``, else, for
-    LangSplat features an n2f2 export recorded as CLIP, the recorded model."""
-    if opt.model or opt.langsplat_features is None or opt.encoder != "clip":
+    """The model the run's encoder loads (None: its default): ``--clip-model``, else, for
+    LangSplat features that an n2f2 export recorded with the same encoder, the recorded model."""
+    if opt.model or opt.langsplat_features is None:
         return opt.model
     from ..segments.langsplat import recorded_encoder
 
     feats = Path(opt.langsplat_features)
     recorded = recorded_encoder(feats) if feats.is_dir() else None
-    return recorded.get("model_id") if recorded and recorded["name"] == "clip" else None
+    return recorded.get("model_id") if recorded and recorded["name"] == opt.encoder else None
 
 
 def run_models(opt, stages) -> list:  # -> list[encoders.ModelLocation]
