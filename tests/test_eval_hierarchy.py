@@ -139,6 +139,18 @@ def test_nesting_counts_the_planted_violation():
     assert (n["nodes"], n["violations"], n["violating_nodes"], n["empty_nodes"]) == (5, 2, [3, 9], 1)
 
 
+def test_a_node_spanning_two_levels_nests_in_itself():
+    # Gaussians 0-1 in node 0 at both levels (unsplit), 2-3 in node 1, split into 2 and 3.
+    ids = np.array([[0, 0], [0, 0], [1, 2], [1, 3]])
+    tree = {"nodes": [{"id": 0, "parent": None, "level": 0, "last_level": 1},
+                      {"id": 1, "parent": None, "level": 0}, {"id": 2, "parent": 1, "level": 1},
+                      {"id": 3, "parent": 1, "level": 1}]}
+    n = nesting_violations(tree, ids)
+    assert (n["nodes"], n["violations"]) == (2, 0)
+    ids[1, 1] = 2  # Gaussian 1 moves to node 2, whose parent is 1: node 2 no longer nests
+    assert nesting_violations(tree, ids)["violating_nodes"] == [2]
+
+
 def test_evaluation_by_hand(fake, tmp_path):
     run, decomp, scene = fake
     lines = []

@@ -139,6 +139,8 @@ def test_the_folder_holds_a_consistent_tree(decomposed, demo_run):
     nodes = tree.tree["nodes"]
     for k, rec in enumerate(nodes):
         assert rec["id"] == k and rec["gaussians"] == int((tree.gaussian_nodes[:, rec["level"]] == k).sum())
+        for level in range(rec["level"], rec["last_level"] + 1):  # the same Gaussians over its span
+            assert rec["gaussians"] == int((tree.gaussian_nodes[:, level] == k).sum())
         assert rec["text"] in ("teapot", "lid of the teapot", "bag of cookies") and 0 < rec["relevancy"] < 1
         lo, hi = np.array(rec["box"])
         assert (lo <= np.array(rec["centroid"])).all() and (np.array(rec["centroid"]) <= hi).all()
@@ -162,7 +164,8 @@ def test_the_views_equal_a_render_of_the_node_ids(decomposed, demo_run):
     assert (levels == node_id_maps(g, tree.gaussian_nodes, scene.cameras[1])).all()
     for level in range(tree.num_levels):  # the ids shown at a level are that level's nodes
         shown = set(np.unique(levels[level]).tolist()) - {-1}
-        assert shown <= set(np.nonzero(tree.levels == level)[0].tolist())
+        here = (tree.levels <= level) & (level <= tree.last_levels)  # the nodes present at the level
+        assert shown <= set(np.nonzero(here)[0].tolist())
         assert (out / "views" / "frame_00002" / f"level_{level}.png").is_file()
 
 
@@ -177,7 +180,7 @@ def test_a_node_query_answers_with_whole_nodes(decomposed, demo_run, tmp_path):
     answer = json.loads((q / "query.json").read_text())["nodes"]["lid of the teapot"]
     tree = read_tree(out)
     assert [p["node"] for p in answer["path"]] == tree.path(answer["nodes"][0])
-    assert all(tree.tree["nodes"][k]["level"] == answer["level"] for k in answer["nodes"])
+    assert all(tree.levels[k] <= answer["level"] <= tree.last_levels[k] for k in answer["nodes"])
 
 
 def test_decompose_refuses_a_run_without_a_field(tmp_path, demo_run, capsys):
@@ -194,18 +197,50 @@ def test_decompose_refuses_a_run_without_a_field(tmp_path, demo_run, capsys):
 def test_a_node_answer_climbs_to_the_whole_and_keeps_its_instances():
     from n2f2.query.nodes import INSTANCE_SHARE, choose_nodes
 
-    # Tree: 0 -> (1, 2); 1 -> (3, 4); 2 -> (5, 6, 7). Levels 0, 1, 2.
+    # Tree: 0 -> (1, 2); 1 -> (3, 4); 2 -> (5, 6, 7). Levels 0, 1, 2, each node on one level.
     levels = np.array([0, 1, 1, 2, 2, 2, 2, 2])
+    last = levels.copy()
     parents = np.array([-1, 0, 0, 1, 1, 2, 2, 2])
     # "table": a patch (3) matches best, its parent (1) nearly as well, the root far less.
     margin = torch.tensor([0.05, 0.95 * 0.5, 0.0, 0.5, 0.1, 0.0, 0.0, 0.0])
-    a = choose_nodes(margin, levels, parents)
+    a = choose_nodes(margin, levels, last, parents)
     assert (a.nodes, a.level) == ([1], 1)
     # "lid": the part (6) beats its parent (2) clearly: the part stays; its sibling 7 scores
     # within INSTANCE_SHARE of it (a second instance) and joins, 5 does not.
     margin = torch.tensor([0.0, 0.0, 0.2, 0.0, 0.0, 0.3, 0.6, INSTANCE_SHARE * 0.6 + 1e-3])
-    a = choose_nodes(margin, levels, parents)
+    a = choose_nodes(margin, levels, last, parents)
     assert (a.nodes, a.level) == ([6, 7], 2)
     # No node above the negatives: the best node alone.
-    a = choose_nodes(torch.full((8,), -0.2), levels, parents)
+    a = choose_nodes(torch.full((8,), -0.2), levels, last, parents)
     assert len(a.nodes) == 1
+
+
+def test_an_unsplit_node_keeps_its_id_on_the_finer_level():
+    from n2f2.hierarchy.build import node_ids
+
+    # Level 0: {0,1,2,3} {4,5}; level 1: {0,1} {2,3} {4,5} (the second node unsplit);
+    # level 2: {0} {1} {2,3} {4} {5}.
+    kept = [np.array([0, 0, 0, 0, 1, 1]), np.array([0, 0, 1, 1, 2, 2]), np.array([0, 1, 2, 2, 3, 4])]
+    nodes, parents, first, last = node_ids(kept)
+    assert nodes.tolist() == [[0, 2, 4], [0, 2, 5], [0, 3, 3], [0, 3, 3], [1, 1, 6], [1, 1, 7]]
+    assert parents.tolist() == [-1, -1, 0, 0, 2, 2, 1, 1]
+    assert first.tolist() == [0, 0, 1, 1, 2, 2, 2, 2]
+    assert last.tolist() == [0, 1, 1, 2, 2, 2, 2, 2]
+
+
+def test_splinters_join_the_sibling_of_nearest_feature():
+    from n2f2.hierarchy.build import absorb_splinters
+
+    # One scale, W = I, D = 2: one parent; clusters of 10, 10 and 2 Gaussians. The splinter (2)
+    # points at 80 degrees, nearer to the 90-degree cluster than to the 0-degree one.
+    def rows(deg: float, n: int) -> torch.Tensor:
+        r = np.deg2rad(deg)
+        return torch.tensor([[np.cos(r), np.sin(r)]] * n, dtype=torch.float32)
+
+    theta = torch.cat([rows(0, 10), rows(90, 10), rows(80, 2)])
+    labels = np.array([0] * 10 + [1] * 10 + [2] * 2)
+    (out,) = absorb_splinters(theta, [labels], [(0, 2)], [torch.eye(2)], min_size=3, chunk=7)
+    assert out.tolist() == [0] * 10 + [1] * 12
+    # Siblings that are all splinters become one cluster; a lone small cluster stays.
+    (out,) = absorb_splinters(theta, [np.array([0] * 20 + [1, 2])], [(0, 2)], [torch.eye(2)], 30, 7)
+    assert len(set(out.tolist())) == 1

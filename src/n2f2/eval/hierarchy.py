@@ -26,7 +26,8 @@ shows them in percent):
   which its best node is the one it matches most often; averaged over regions. 3D node ids are
   the same in every view, so a hierarchy of the scene (not of each image) scores high.
 * nesting violations: the share of nodes below level 0 whose Gaussians are not all inside their
-  parent's Gaussians (``tree.json`` + ``gaussian_nodes.npy``).
+  parent's Gaussians (``tree.json`` + ``gaussian_nodes.npy``). A node that spans several levels
+  unsplit (the same id in their columns) lies inside itself there.
 * the 2D baseline: multi-scale Felzenszwalb (:class:`~n2f2.segments.segmenters.ClassicalSegmenter`)
   on each evaluated image, the same best IoU over all its segments at all scales. Its ids are
   per image, so its consistency is not defined (null).
@@ -302,7 +303,7 @@ def nesting_violations(
     for level in range(1, gaussian_nodes.shape[1]):
         pairs = np.unique(gaussian_nodes[:, level - 1 : level + 1], axis=0)  # [P, 2] (parent, child)
         for up, node in pairs.tolist():
-            if node >= 0:
+            if node >= 0 and up != node:  # a node spanning both levels is inside itself
                 parents_seen.setdefault(node, set()).add(up)
     checked, empty, bad = 0, 0, []
     for node in tree["nodes"]:

@@ -19,13 +19,22 @@ the hierarchy groups them scale by scale:
    the median plus 3 scaled MADs (the robust outlier rule of segment lifting) of each
    Gaussian's cosine distance to its cluster's mean; two members of one segment can lie up to
    twice that apart. No constant is tuned on a scene.
-4. **Level choice** (:func:`choose_levels`): candidates that group alike (the same number of
+4. **Splinters** (:func:`absorb_splinters`), coarse to fine: a cluster smaller than an average
+   atom (``N / atoms`` Gaussians) is below the resolution of the decomposition (k-means gives
+   such small atoms to Gaussians whose features sit between clusters, mostly at object borders)
+   and joins the sibling whose mean feature is nearest at that scale. Left alone, a large
+   surface loses a few Gaussians at every level and shows as near-identical nodes that a view's
+   best match flips between.
+5. **Level choice** (:func:`choose_levels`): candidates that group alike (the same number of
    nodes as the next coarser one) are dropped, and of the rest at most ``max_levels`` are kept
    where the grouping changes most: the largest ratios of node counts between a candidate and
    the next coarser one.
+6. **Node ids** (:func:`node_ids`): a node is a set of Gaussians. Where a node of one level is
+   not split at the next finer one, the finer level holds the same node (the same id): a node
+   spans the levels ``level .. last_level``.
 
-Nodes carry global ids, coarsest level first; ``gaussian_nodes [N, L]`` gives every Gaussian's
-node at every level, and each node's parent is the node of the level above that holds its
+Nodes carry global ids, coarsest first; ``gaussian_nodes [N, L]`` gives every Gaussian's node at
+every level, and each node's parent is the node of the level above its first one that holds its
 Gaussians (the same for all of them, by construction).
 """
 
@@ -72,7 +81,8 @@ class Decomposition:
     level_labels: list[str]  # [L] the field's names of those scales ("d=16")
     level_values: list[float]  # [L] quantized scale s in [0, 1) at the middle of each level's bin
     parents: np.ndarray  # [K] int64 parent node id, -1 at level 0
-    levels: np.ndarray  # [K] int64 level of each node
+    levels: np.ndarray  # [K] int64 first (coarsest) level of each node
+    last_levels: np.ndarray  # [K] int64 last (finest) level each node spans, unsplit
     thresholds: list[float]  # [L] the cosine distance each level was cut at (2 delta)
     candidates: list[dict] = field(default_factory=list)  # every candidate scale: label, nodes, kept
 
@@ -85,7 +95,8 @@ class Decomposition:
         return int(self.parents.shape[0])
 
     def nodes_at(self, level: int) -> np.ndarray:  # -> [K_l] node ids
-        return np.nonzero(self.levels == level)[0]
+        """The nodes present at ``level`` (the ids of its column of ``gaussian_nodes``)."""
+        return np.nonzero((self.levels <= level) & (level <= self.last_levels))[0]
 
 
 def candidate_scales(variant: "FieldVariant", dim: int, step_size: int) -> list[int]:
@@ -218,6 +229,72 @@ def group_scales(
     return parts[::-1], cuts[::-1]
 
 
+def absorb_splinters(
+    theta: Tensor,  # [N, D]
+    parts: list[np.ndarray],  # [S] of [N] cluster labels, coarse to fine, each nested in the previous
+    scales: list[tuple[int, int]],
+    bases: list[Tensor],
+    min_size: float,
+    chunk: int,
+) -> list[np.ndarray]:  # [S] of [N], still nested
+    """Coarse to fine, every cluster with fewer than ``min_size`` Gaussians joins its sibling
+    (same cluster one scale coarser) of nearest mean feature at this scale; siblings all that
+    small become one. Nesting holds: a cluster only takes a sibling's label, and the clusters
+    of finer scales inside a joined splinter now lie inside the sibling."""
+    out: list[np.ndarray] = []
+    for i, (labels, scale, basis) in enumerate(zip(parts, scales, bases)):
+        ids, local, size = np.unique(labels, return_inverse=True, return_counts=True)
+        up = out[-1] if out else np.zeros_like(labels)  # the (absorbed) coarser partition
+        parent = np.zeros(len(ids), dtype=np.int64)
+        parent[local] = up
+        small = size < min_size
+        target = np.arange(len(ids))
+        if small.any():
+            means, _ = cluster_means(theta, local, scale, basis, chunk)
+            for p in np.unique(parent[small]):
+                family = np.flatnonzero(parent == p)
+                big = family[~small[family]]
+                tiny = family[small[family]]
+                if not len(big):  # every sibling is a splinter: they are one cluster
+                    target[tiny] = tiny[0]
+                    continue
+                target[tiny] = big[(means[tiny] @ means[big].T).argmax(1).numpy()]
+        out.append(target[local])
+    return out
+
+
+def node_ids(
+    kept: list[np.ndarray],  # [L] of [N] cluster labels, coarse to fine, nested
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Global node ids, coarsest first: a cluster with the same Gaussians as its parent (its
+    parent's only child) keeps the parent's id. Returns ``gaussian_nodes [N, L]`` int32 and per
+    node its parent, first level and last level ``[K]`` int64."""
+    n = kept[0].shape[0]
+    nodes = np.empty((n, len(kept)), dtype=np.int32)
+    parents: list[int] = []
+    first: list[int] = []
+    last: list[int] = []
+    for level, labels in enumerate(kept):
+        local = np.unique(labels, return_inverse=True)[1]
+        k = int(local.max()) + 1
+        ids = np.empty(k, dtype=np.int64)
+        if level:
+            up = np.empty(k, dtype=np.int64)
+            up[local] = nodes[:, level - 1]  # every member agrees (nested)
+            children = np.bincount(up, minlength=len(parents))
+        for c in range(k):
+            if level and children[up[c]] == 1:  # unsplit: the same node one level further
+                ids[c] = up[c]
+                last[up[c]] = level
+            else:
+                ids[c] = len(parents)
+                parents.append(int(up[c]) if level else -1)
+                first.append(level)
+                last.append(level)
+        nodes[:, level] = ids[local]
+    return nodes, np.array(parents, dtype=np.int64), np.array(first, dtype=np.int64), np.array(last, dtype=np.int64)
+
+
 def choose_levels(counts: list[int], max_levels: int) -> list[int]:
     """Indices (coarse to fine) of the candidates kept as levels: one candidate per distinct
     grouping (the finest of equal counts: nested partitions with as many nodes are equal), no
@@ -251,29 +328,19 @@ def decompose(
     bases = scale_bases(W, scales)
     atom_of = atoms(theta, scales, bases, config)
     parts, cuts = group_scales(theta, scales, bases, atom_of, config)
-    counts = [int(p.max()) + 1 for p in parts]
+    min_size = theta.shape[0] / (int(atom_of.max()) + 1)  # an average atom
+    parts = absorb_splinters(theta, parts, scales, bases, min_size, config.chunk)
+    counts = [int(np.unique(p).shape[0]) for p in parts]
     kept = choose_levels(counts, config.max_levels)
-    nodes = np.empty((theta.shape[0], len(kept)), dtype=np.int32)
-    parents: list[np.ndarray] = []
-    levels: list[np.ndarray] = []
-    offset = 0
-    for level, i in enumerate(kept):
-        local = np.unique(parts[i], return_inverse=True)[1]
-        nodes[:, level] = local + offset
-        k = int(local.max()) + 1
-        parent = np.full(k, -1, dtype=np.int64)
-        if level:
-            parent[local] = nodes[:, level - 1]  # every member agrees (nested by construction)
-        parents.append(parent)
-        levels.append(np.full(k, level, dtype=np.int64))
-        offset += k
+    nodes, parents, first, last = node_ids([parts[i] for i in kept])
     return Decomposition(
         gaussian_nodes=nodes,
         level_scales=[scales[i] for i in kept],
         level_labels=[labels[picked[i]] for i in kept],
         level_values=[values[picked[i]] for i in kept],
-        parents=np.concatenate(parents),
-        levels=np.concatenate(levels),
+        parents=parents,
+        levels=first,
+        last_levels=last,
         thresholds=[cuts[i] for i in kept],
         candidates=[
             {"scale_label": labels[picked[i]], "nodes": counts[i], "cut": cuts[i], "kept": i in kept}

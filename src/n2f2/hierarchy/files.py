@@ -2,8 +2,10 @@
 only:
 
 * ``tree.json``: format ``n2f2-tree-v1``; the levels (coarsest first: theta dims, scale label,
-  quantized scale, node count, the cut) and one record per node: ``id`` (global, coarsest level
-  first), ``parent`` (null at level 0), ``level``, ``scale``, ``gaussians``, ``centroid``,
+  quantized scale, the count of nodes present, the cut) and one record per node: ``id`` (global,
+  coarsest level first), ``parent`` (null at level 0), ``level`` and ``last_level`` (the levels
+  it spans unsplit: the same id in each of their columns), ``scale`` (of its last level, where
+  its embedding is read), ``gaussians``, ``centroid``,
   ``box`` (``[[min x, y, z], [max x, y, z]]`` of its centres), ``text`` / ``relevancy`` (the
   best phrase of ``--vocabulary``, else null);
 * ``gaussian_nodes.npy``: int32 ``[N, L]``, every Gaussian's node at every level;
@@ -60,7 +62,7 @@ def tree_record(
             "dims": list(dec.level_scales[level]),
             "scale_label": dec.level_labels[level],
             "scale": dec.level_values[level],
-            "nodes": int((dec.levels == level).sum()),
+            "nodes": int(len(dec.nodes_at(level))),
             "cut": dec.thresholds[level],
         }
         for level in range(dec.num_levels)
@@ -70,7 +72,8 @@ def tree_record(
             "id": k,
             "parent": None if dec.parents[k] < 0 else int(dec.parents[k]),
             "level": int(dec.levels[k]),
-            "scale": dec.level_values[int(dec.levels[k])],
+            "last_level": int(dec.last_levels[k]),
+            "scale": dec.level_values[int(dec.last_levels[k])],
             "gaussians": int(counts[k]),
             "centroid": [float(x) for x in centroids[k]],
             "box": [[float(x) for x in lo[k]], [float(x) for x in hi[k]]],
@@ -103,8 +106,12 @@ class LoadedTree:
         return int(self.gaussian_nodes.shape[1])
 
     @cached_property
-    def levels(self) -> np.ndarray:  # [K] level of each node
+    def levels(self) -> np.ndarray:  # [K] first (coarsest) level of each node
         return np.array([n["level"] for n in self.tree["nodes"]], dtype=np.int64)
+
+    @cached_property
+    def last_levels(self) -> np.ndarray:  # [K] last (finest) level each node spans
+        return np.array([n.get("last_level", n["level"]) for n in self.tree["nodes"]], dtype=np.int64)
 
     @cached_property
     def parents(self) -> np.ndarray:  # [K] parent id, -1 at level 0

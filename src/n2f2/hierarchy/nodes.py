@@ -1,5 +1,9 @@
 """What a decomposition knows of each node besides its Gaussians: its language embedding at its
-own level's scale, its size, centroid and box, and the phrase of a vocabulary it matches best.
+own scale, its size, centroid and box, and the phrase of a vocabulary it matches best.
+
+A node's own scale is that of its last (finest) level: the finest scale at which it is still
+whole. At coarser scales of its span the field already reads it as part of what encloses it
+(the teacher trained those scales towards the enclosing segment).
 
 A node's embedding is the mean of its Gaussians' unit features at the level's scale, mapped
 back to the teacher's space: ``mean_i(phi_i / |phi_i|) = W[:, a:b] mean_i(theta_i[a:b] / |phi_i|)``
@@ -35,7 +39,7 @@ def node_embeddings(
             inv = 1.0 / (t @ basis).norm(dim=1, keepdim=True).clamp_min(1e-12)  # 1 / |phi_i|
             sums.index_add_(0, ids[i : i + chunk], t * inv)
         counts = torch.bincount(ids, minlength=dec.num_nodes).clamp_min(1).float()
-        mine = torch.from_numpy(dec.nodes_at(level))
+        mine = torch.from_numpy(np.nonzero(dec.last_levels == level)[0])  # read at its last level
         out[mine] = (sums[mine] / counts[mine, None]) @ W[:, a:b].T
     return out
 
@@ -44,7 +48,8 @@ def node_geometry(
     means: np.ndarray,  # [N, 3] Gaussian centres
     dec: Decomposition,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Per node: Gaussian count [K], centroid [K, 3], box minimum and maximum [K, 3] each."""
+    """Per node: Gaussian count [K], centroid [K, 3], box minimum and maximum [K, 3] each (read
+    at each node's first level; it holds the same Gaussians over its span)."""
     K = dec.num_nodes
     counts = np.zeros(K, np.int64)
     sums = np.zeros((K, 3))
@@ -52,11 +57,13 @@ def node_geometry(
     hi = np.full((K, 3), -np.inf)
     for level in range(dec.num_levels):
         ids = dec.gaussian_nodes[:, level]
+        first = dec.levels[ids] == level  # each node once, at its first level
+        ids, pts = ids[first], means[first]
         counts += np.bincount(ids, minlength=K)
         for axis in range(3):
-            sums[:, axis] += np.bincount(ids, weights=means[:, axis], minlength=K)
-        np.minimum.at(lo, ids, means)
-        np.maximum.at(hi, ids, means)
+            sums[:, axis] += np.bincount(ids, weights=pts[:, axis], minlength=K)
+        np.minimum.at(lo, ids, pts)
+        np.maximum.at(hi, ids, pts)
     return counts, sums / np.maximum(counts, 1)[:, None], lo, hi
 
 

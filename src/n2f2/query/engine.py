@@ -714,11 +714,11 @@ class QueryEngine:
         """Per query its nodes of the run's hierarchy (:func:`n2f2.query.nodes.choose_nodes`)."""
         cache = self._node_cache(None)
         margins = cache.margins(self.encode(check_texts(texts))).cpu()  # [Q, K]
-        return [choose_nodes(m, self.tree.levels, self.tree.parents) for m in margins]
+        return [choose_nodes(m, self.tree.levels, self.tree.last_levels, self.tree.parents) for m in margins]
 
     def _node_maps(self, cache: NodeCache, emb: Tensor) -> tuple[list[NodeAnswer], list[Tensor]]:
         tree = self.tree
-        answers = [choose_nodes(m, tree.levels, tree.parents) for m in cache.margins(emb).cpu()]
+        answers = [choose_nodes(m, tree.levels, tree.last_levels, tree.parents) for m in cache.margins(emb).cpu()]
         return answers, [answer_mask(self.tree.gaussian_nodes, a).to(self.device) for a in answers]
 
     def _view_node(
@@ -746,7 +746,7 @@ class QueryEngine:
 
     def _node_scores(self, answers: list[NodeAnswer]) -> Tensor:  # -> [Q, L], as other modes' [Q, S]
         tree = self.tree
-        return torch.stack([a.level_scores(tree.levels, tree.num_levels) for a in answers])
+        return torch.stack([a.level_scores(tree.levels, tree.last_levels, tree.num_levels) for a in answers])
 
     def select(self, text: str, threshold: Optional[float] = None, mode: str = "composite") -> Tensor:
         """Boolean ``[N]`` selection of the Gaussians relevant to ``text``.

@@ -2,13 +2,14 @@
 writes the hierarchy, :mod:`n2f2.hierarchy`).
 
 Each node is scored by the one relevancy of n2f2 (:mod:`n2f2.field.relevancy`) of its embedding,
-the mean of its Gaussians' features at its own level's scale. Nodes are ranked by the
+the mean of its Gaussians' features at its own scale (:mod:`n2f2.hierarchy.nodes`). Nodes are ranked by the
 relevancy's argument, the margin ``phi^ . t - max_c phi^ . c`` (relevancy is
 ``sigmoid(10 margin)``, so the order is the same, but the margin does not saturate at 1 in
 float32 as the relevancy of related captions does). The answer is the best node, replaced by its
 parent for as long as the parent's margin is at least :data:`INSTANCE_SHARE` of the best's (a
 patch of a large surface matches "table" as well as the whole table does, and the whole is the
-answer), and beside it every node **of the same level** whose margin is at least
+answer), and beside it every node **present at its first level** (a node spans the levels
+``level .. last_level``) whose margin is at least
 :data:`INSTANCE_SHARE` of its own:
 instances of one thing (several cookies) were trained towards one teacher embedding, so their
 margins match the best's to within the field's noise, while other nodes of that level score
@@ -48,19 +49,28 @@ class NodeAnswer:
     def relevancy(self) -> Tensor:  # [K]
         return relevancy_of_margins(self.margin)
 
-    def level_scores(self, levels: np.ndarray, num_levels: int) -> Tensor:  # -> [L]
-        """The best node's relevancy at each level (a mode's per-scale scores)."""
+    def level_scores(self, levels: np.ndarray, last_levels: np.ndarray, num_levels: int) -> Tensor:  # -> [L]
+        """The best relevancy among the nodes present at each level (a mode's per-scale scores)."""
         rel = self.relevancy
-        return torch.stack([rel[torch.from_numpy(levels == lv)].max() for lv in range(num_levels)])
+        return torch.stack([rel[torch.from_numpy(present(levels, last_levels, lv))].max() for lv in range(num_levels)])
+
+
+def present(
+    levels: np.ndarray,  # [K] each node's first level
+    last_levels: np.ndarray,  # [K] each node's last level
+    level: int,
+) -> np.ndarray:  # -> [K] bool, the nodes of that level's column of gaussian_nodes
+    return (levels <= level) & (level <= last_levels)
 
 
 def choose_nodes(
     margin: Tensor,  # [K] relevancy margin of every node for one query
-    levels: np.ndarray,  # [K] each node's level
+    levels: np.ndarray,  # [K] each node's first level
+    last_levels: np.ndarray,  # [K] each node's last level
     parents: np.ndarray,  # [K] each node's parent, -1 at level 0
 ) -> NodeAnswer:
     """The best node, raised to its ancestors while they answer as well, and the other instances
-    at its level (see the module docstring)."""
+    present at its first level (see the module docstring)."""
     best = int(torch.argmax(margin))
     top = float(margin[best])
     if top > 0:  # a piece of a large thing (a patch of the table) gives way to the whole of it
@@ -68,7 +78,7 @@ def choose_nodes(
             best = int(parents[best])
     level = int(levels[best])
     ref = float(margin[best])
-    same = torch.from_numpy(levels == level)
+    same = torch.from_numpy(present(levels, last_levels, level))
     keep = same & (margin >= INSTANCE_SHARE * ref) if ref > 0 else torch.zeros_like(same)
     others = [int(k) for k in torch.nonzero(keep).squeeze(1) if int(k) != best]
     others.sort(key=lambda k: -float(margin[k]))

@@ -110,7 +110,8 @@ def pick_gaussian(
 # ----------------------------------------------------------------------------- paths
 def path_records(tree: Any, node: int) -> list[dict]:
     """``node`` and its ancestors up to the root (``tree.path(node)``, the node first), each as
-    ``{"node", "level", "scale_label", "gaussians", "text", "relevancy"}`` from ``tree.json``."""
+    ``{"node", "level", "last_level", "scale_label", "gaussians", "text", "relevancy"}`` from
+    ``tree.json`` (a node spans the levels ``level .. last_level`` unsplit)."""
     labels = [lv.get("scale_label") for lv in tree.tree["levels"]]
     out = []
     for k in tree.path(int(node)):
@@ -120,6 +121,7 @@ def path_records(tree: Any, node: int) -> list[dict]:
             {
                 "node": int(k),
                 "level": level,
+                "last_level": int(rec.get("last_level", level)),
                 "scale_label": labels[level],
                 "gaussians": int(rec["gaussians"]),
                 "text": rec.get("text"),
@@ -138,9 +140,8 @@ def path_markdown(gaussian: int, records: list[dict]) -> str:
         if r["text"] is not None:
             rel = f" ({r['relevancy']:.3f})" if r["relevancy"] is not None else ""
             text = f" · “{r['text']}”{rel}"
-        lines.append(
-            f"- level {r['level']} ({r['scale_label']}): node **{r['node']}**, {r['gaussians']:,} Gaussians{text}"
-        )
+        span = f"level {r['level']}" if r["last_level"] == r["level"] else f"levels {r['level']}–{r['last_level']}"
+        lines.append(f"- {span} ({r['scale_label']}): node **{r['node']}**, {r['gaussians']:,} Gaussians{text}")
     return "\n".join(lines)
 
 
@@ -152,8 +153,9 @@ def node_mask(tree: Any, node: int) -> np.ndarray:  # -> [N] bool
 
 
 def export_node(engine: Any, tree: Any, node: int, folder: Path) -> tuple[Path, int]:
-    """Write ``node``'s Gaussians as an INRIA PLY ``node_<id>_level_<l>.ply`` in ``folder``, and a
-    JSON beside it (the node, its level, path and text); -> (the PLY's path, Gaussians written).
+    """Write ``node``'s Gaussians as an INRIA PLY ``node_<id>_level_<l>.ply`` in ``folder`` (``l``:
+    its first level), and a JSON beside it (the node, the levels it spans, its path and text);
+    -> (the PLY's path, Gaussians written).
     The file name comes from the node's id, never from anything typed."""
     import torch
 
@@ -169,6 +171,7 @@ def export_node(engine: Any, tree: Any, node: int, folder: Path) -> tuple[Path, 
         {
             "node": node,
             "level": level,
+            "last_level": int(tree.tree["nodes"][node].get("last_level", level)),
             "path": tree.path(node),
             "text": tree.tree["nodes"][node].get("text"),
             "gaussians": n,
