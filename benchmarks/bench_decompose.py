@@ -34,7 +34,7 @@ def grow_run(run: Path, out: Path, count: int, seed: int = 0) -> None:
     reps = -(-count // g.num)
     idx = torch.arange(g.num).repeat(reps)[:count]
     big = g.subset(idx)
-    extent = float((g.means.max(0).values - g.means.min(0).values).norm())
+    extent = float((g.means.max(0).values - g.means.min(0).values).norm().detach())
     gen = torch.Generator().manual_seed(seed)
     with torch.no_grad():
         big.means.add_(torch.randn(big.means.shape, generator=gen) * 0.01 * extent)

@@ -147,7 +147,7 @@ def test_a_clicked_gaussian_shows_its_path_to_the_root(running):
     assert len(lines) == len(path)
     for line, k in zip(lines, path):
         rec = tree.tree["nodes"][k]
-        span = f"level {rec['level']} " if rec["last_level"] == rec["level"] else f"levels {rec['level']}–{rec['last_level']} "
+        span = f"level {rec['level']} " if rec["last_level"] == rec["level"] else f"levels {rec['level']}–{rec['last_level']} ("
         assert f"node **{k}**" in line and span in line
         assert rec["text"] in VOCABULARY and f"“{rec['text']}”" in line
     # While the node colours show, the clicked node keeps its colour and the rest is dimmed.

@@ -110,19 +110,21 @@ def pick_gaussian(
 # ----------------------------------------------------------------------------- paths
 def path_records(tree: Any, node: int) -> list[dict]:
     """``node`` and its ancestors up to the root (``tree.path(node)``, the node first), each as
-    ``{"node", "level", "last_level", "scale_label", "gaussians", "text", "relevancy"}`` from
-    ``tree.json`` (a node spans the levels ``level .. last_level`` unsplit)."""
+    ``{"node", "level", "last_level", "scale_label", "last_scale_label", "gaussians", "text",
+    "relevancy"}`` from ``tree.json`` (a node spans the levels ``level .. last_level`` unsplit)."""
     labels = [lv.get("scale_label") for lv in tree.tree["levels"]]
     out = []
     for k in tree.path(int(node)):
         rec = tree.tree["nodes"][k]
         level = int(rec["level"])
+        last = int(rec.get("last_level", level))
         out.append(
             {
                 "node": int(k),
                 "level": level,
-                "last_level": int(rec.get("last_level", level)),
+                "last_level": last,
                 "scale_label": labels[level],
+                "last_scale_label": labels[last],
                 "gaussians": int(rec["gaussians"]),
                 "text": rec.get("text"),
                 "relevancy": rec.get("relevancy"),
@@ -140,8 +142,10 @@ def path_markdown(gaussian: int, records: list[dict]) -> str:
         if r["text"] is not None:
             rel = f" ({r['relevancy']:.3f})" if r["relevancy"] is not None else ""
             text = f" · “{r['text']}”{rel}"
-        span = f"level {r['level']}" if r["last_level"] == r["level"] else f"levels {r['level']}–{r['last_level']}"
-        lines.append(f"- {span} ({r['scale_label']}): node **{r['node']}**, {r['gaussians']:,} Gaussians{text}")
+        span = f"level {r['level']} ({r['scale_label']})"
+        if r["last_level"] != r["level"]:
+            span = f"levels {r['level']}–{r['last_level']} ({r['scale_label']}–{r['last_scale_label']})"
+        lines.append(f"- {span}: node **{r['node']}**, {r['gaussians']:,} Gaussians{text}")
     return "\n".join(lines)
 
 
