@@ -20,11 +20,10 @@ the hierarchy groups them scale by scale:
    Gaussian's cosine distance to its cluster's mean; two members of one segment can lie up to
    twice that apart. No constant is tuned on a scene.
 4. **Splinters** (:func:`absorb_splinters`), coarse to fine: a cluster smaller than an average
-   atom (``N / atoms`` Gaussians) is below the resolution of the decomposition (k-means gives
-   such small atoms to Gaussians whose features sit between clusters, mostly at object borders)
-   and joins the sibling whose mean feature is nearest at that scale. Left alone, a large
-   surface loses a few Gaussians at every level and shows as near-identical nodes that a view's
-   best match flips between.
+   atom (``N / atoms`` Gaussians) is below the resolution of the decomposition and joins the
+   sibling whose mean feature is nearest at that scale. Left alone, a large surface loses a few
+   Gaussians at every level (the demo's table: 4,660, 4,615, 4,498) and shows as near-identical
+   nodes that a view's best match flips between.
 5. **Level choice** (:func:`choose_levels`): candidates that group alike (the same number of
    nodes as the next coarser one) are dropped, and of the rest at most ``max_levels`` are kept
    where the grouping changes most: the largest ratios of node counts between a candidate and
@@ -242,7 +241,7 @@ def absorb_splinters(
     small become one. Nesting holds: a cluster only takes a sibling's label, and the clusters
     of finer scales inside a joined splinter now lie inside the sibling."""
     out: list[np.ndarray] = []
-    for i, (labels, scale, basis) in enumerate(zip(parts, scales, bases)):
+    for labels, scale, basis in zip(parts, scales, bases):
         ids, local, size = np.unique(labels, return_inverse=True, return_counts=True)
         up = out[-1] if out else np.zeros_like(labels)  # the (absorbed) coarser partition
         parent = np.zeros(len(ids), dtype=np.int64)
