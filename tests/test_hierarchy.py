@@ -19,10 +19,11 @@ from n2f2.hierarchy.build import DecomposeConfig, choose_levels, decompose
 def _known_field(per_part: int = 20, noise: float = 0.01, seed: int = 0):
     """A nested field of D = 8, k = 2 (prefixes 2, 4, 6, 8) with W = I: at prefix 2 three groups
     (directions 120 degrees apart), at prefix 4 two objects per group, at prefix 6 two parts per
-    object, and nothing more at prefix 8. Returns theta [N, 8], W [8, 8] and the true labels of
+    object, and nothing more at prefix 8. Each part is a blob of radius 0.1 around its own point
+    of a 1-unit grid. Returns theta [N, 8], the centres [N, 3], W [8, 8] and the true labels of
     each Gaussian per level (group, object, part)."""
     g = torch.Generator().manual_seed(seed)
-    rows, labels = [], []
+    rows, labels, centres = [], [], []
     for grp in range(3):
         angle = 2 * np.pi * grp / 3
         for obj in range(2):
@@ -33,7 +34,9 @@ def _known_field(per_part: int = 20, noise: float = 0.01, seed: int = 0):
                 t[:, 4 + part] = 1.0  # the part's at prefix 6
                 rows.append(t + noise * torch.randn(per_part, 8, generator=g))
                 labels += [(grp, 2 * grp + obj, 4 * grp + 2 * obj + part)] * per_part
-    return torch.cat(rows), torch.eye(8), np.array(labels)
+                spot = torch.tensor([float(grp), float(obj), float(part)])
+                centres.append(spot + 0.1 * torch.randn(per_part, 3, generator=g))
+    return torch.cat(rows), torch.cat(centres), torch.eye(8), np.array(labels)
 
 
 def _same_partition(a: np.ndarray, b: np.ndarray) -> bool:
@@ -43,8 +46,8 @@ def _same_partition(a: np.ndarray, b: np.ndarray) -> bool:
 
 
 def test_a_field_with_known_clusters_gives_the_known_tree():
-    theta, W, truth = _known_field()
-    dec = decompose(theta, W, VARIANTS["nested"], 2, DecomposeConfig())
+    theta, means, W, truth = _known_field()
+    dec = decompose(theta, means, W, VARIANTS["nested"], 2, DecomposeConfig())
     assert dec.level_labels == ["d=2", "d=4", "d=8"]  # d=6 groups as d=8 does: the finer one is kept
     assert [int((dec.levels == lv).sum()) for lv in range(3)] == [3, 6, 12]
     for level in range(3):
@@ -61,7 +64,9 @@ def test_nesting_holds_by_construction_on_noise():
     """A field of pure noise still gives a tree whose every node lies in one parent."""
     g = torch.Generator().manual_seed(1)
     theta = torch.randn(600, 16, generator=g)
-    dec = decompose(theta, torch.randn(12, 16, generator=g), VARIANTS["nested"], 1, DecomposeConfig(max_levels=6))
+    means = torch.randn(600, 3, generator=g)
+    W = torch.randn(12, 16, generator=g)
+    dec = decompose(theta, means, W, VARIANTS["nested"], 1, DecomposeConfig(max_levels=6))
     assert 1 <= dec.num_levels <= 6
     for level in range(1, dec.num_levels):
         child, parent = dec.gaussian_nodes[:, level], dec.gaussian_nodes[:, level - 1]
@@ -228,19 +233,38 @@ def test_an_unsplit_node_keeps_its_id_on_the_finer_level():
     assert last.tolist() == [0, 1, 1, 2, 2, 2, 2, 2]
 
 
-def test_splinters_join_the_sibling_of_nearest_feature():
+def test_own_shares_by_hand():
+    from n2f2.hierarchy.build import own_shares
+
+    # On a line: 0, 1, 2 (cluster 0), then 10, 10.5 (cluster 1) and 11.2 (cluster 0). The nearest
+    # neighbours are 1, 0 or 2, 1, 10.5, 10, 10.5: cluster 0 keeps 3 of its 4, cluster 1 both.
+    x = np.array([0.0, 1.0, 2.0, 10.0, 10.5, 11.2])
+    shares = own_shares(np.stack([x, 0 * x, 0 * x], 1), np.array([0, 0, 0, 1, 1, 0]))
+    np.testing.assert_allclose(shares, [0.75, 1.0])
+
+
+def test_scattered_splinters_join_the_sibling_of_nearest_feature():
     from n2f2.hierarchy.build import absorb_splinters
 
-    # One scale, W = I, D = 2: one parent; clusters of 10, 10 and 2 Gaussians. The splinter (2)
-    # points at 80 degrees, nearer to the 90-degree cluster than to the 0-degree one.
+    # One scale, W = I, D = 2, one parent. Cluster 0 (0 degrees) fills x in [0, 1), cluster 1
+    # (90 degrees) fills x in [2, 3), both compact. Cluster 2 (80 degrees, nearer to cluster 1 in
+    # feature) is scattered over cluster 0's stretch, cluster 3 (10 degrees, nearer to cluster 0)
+    # over cluster 1's: neither is a piece of its own, so each joins the compact sibling nearest
+    # in feature, not the one it lies in.
     def rows(deg: float, n: int) -> torch.Tensor:
         r = np.deg2rad(deg)
         return torch.tensor([[np.cos(r), np.sin(r)]] * n, dtype=torch.float32)
 
-    theta = torch.cat([rows(0, 10), rows(90, 10), rows(80, 2)])
-    labels = np.array([0] * 10 + [1] * 10 + [2] * 2)
-    (out,) = absorb_splinters(theta, [labels], [(0, 2)], [torch.eye(2)], min_size=3, chunk=7)
-    assert out.tolist() == [0] * 10 + [1] * 12
-    # Siblings that are all splinters become one cluster; a lone small cluster stays.
-    (out,) = absorb_splinters(theta, [np.array([0] * 20 + [1, 2])], [(0, 2)], [torch.eye(2)], 30, 7)
+    theta = torch.cat([rows(0, 20), rows(90, 20), rows(80, 4), rows(10, 4)])
+    x = np.concatenate([np.arange(20) / 20, 2 + np.arange(20) / 20, [0.125, 0.375, 0.625, 0.875],
+                        2 + np.array([0.125, 0.375, 0.625, 0.875])])
+    means = np.stack([x, 0 * x, 0 * x], 1)
+    labels = np.array([0] * 20 + [1] * 20 + [2] * 4 + [3] * 4)
+    (out,) = absorb_splinters(theta, means, [labels], [(0, 2)], [torch.eye(2)], chunk=7)
+    assert out.tolist() == [0] * 20 + [1] * 20 + [1] * 4 + [0] * 4
+    # Two compact pieces stay apart whatever their size; interleaved halves become one cluster.
+    (out,) = absorb_splinters(theta[:40], means[:40], [labels[:40]], [(0, 2)], [torch.eye(2)], chunk=7)
+    assert out.tolist() == labels[:40].tolist()
+    mixed = np.arange(40) % 2
+    (out,) = absorb_splinters(theta[:40], means[:40], [mixed], [(0, 2)], [torch.eye(2)], chunk=7)
     assert len(set(out.tolist())) == 1

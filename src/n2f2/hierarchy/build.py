@@ -19,11 +19,14 @@ the hierarchy groups them scale by scale:
    the median plus 3 scaled MADs (the robust outlier rule of segment lifting) of each
    Gaussian's cosine distance to its cluster's mean; two members of one segment can lie up to
    twice that apart. No constant is tuned on a scene.
-4. **Splinters** (:func:`absorb_splinters`), coarse to fine: a cluster smaller than an average
-   atom (``N / atoms`` Gaussians) is below the resolution of the decomposition and joins the
-   sibling whose mean feature is nearest at that scale. Left alone, a large surface loses a few
-   Gaussians at every level (the demo's table: 4,660, 4,615, 4,498) and shows as near-identical
-   nodes that a view's best match flips between.
+4. **Splinters** (:func:`absorb_splinters`), coarse to fine: a cluster is a node only where it is
+   a piece of space of its own: for most of its Gaussians (more than half), the nearest of
+   their parent's Gaussians is in it. A part, an object or each instance of one (a cookie)
+   is; Gaussians that stray from a surface's feature at one scale are interleaved with the rest
+   of it and join the sibling whose mean feature is nearest. Left alone, such splinters made a
+   large surface lose a few Gaussians at every level (the demo's table: 4,660, 4,615, 4,498)
+   and show as near-identical nodes that a view's best match flips between. Positions are used
+   for this test only: they never split nor join anything on their own.
 5. **Level choice** (:func:`choose_levels`): candidates that group alike (the same number of
    nodes as the next coarser one) are dropped, and of the rest at most ``max_levels`` are kept
    where the grouping changes most: the largest ratios of node counts between a candidate and
@@ -228,36 +231,62 @@ def group_scales(
     return parts[::-1], cuts[::-1]
 
 
+def own_shares(
+    means: np.ndarray,  # [n, 3] the centres of one parent's Gaussians
+    labels: np.ndarray,  # [n] their cluster 0..C-1
+) -> np.ndarray:  # -> [C] each cluster's share of Gaussians whose nearest neighbour is in it
+    """Per cluster, the share of its Gaussians whose nearest other Gaussian (of these) is in the
+    same cluster: near 1 for a compact piece, near its size share for one scattered among the
+    others."""
+    from scipy.spatial import KDTree
+
+    C = int(labels.max()) + 1
+    if len(labels) < 2:
+        return np.ones(C)
+    nn = np.asarray(KDTree(means).query(means, k=2)[1])  # [n, 2] the point itself and its nearest
+    me = np.arange(len(labels))
+    other = np.where(nn[:, 1] == me, nn[:, 0], nn[:, 1])  # a duplicate centre may come first
+    same = labels[other] == labels
+    return np.bincount(labels, weights=same.astype(np.float64), minlength=C) / np.bincount(labels, minlength=C)
+
+
 def absorb_splinters(
     theta: Tensor,  # [N, D]
+    means: np.ndarray,  # [N, 3] Gaussian centres
     parts: list[np.ndarray],  # [S] of [N] cluster labels, coarse to fine, each nested in the previous
     scales: list[tuple[int, int]],
     bases: list[Tensor],
-    min_size: float,
     chunk: int,
 ) -> list[np.ndarray]:  # [S] of [N], still nested
-    """Coarse to fine, every cluster with fewer than ``min_size`` Gaussians joins its sibling
-    (same cluster one scale coarser) of nearest mean feature at this scale; siblings all that
-    small become one. Nesting holds: a cluster only takes a sibling's label, and the clusters
-    of finer scales inside a joined splinter now lie inside the sibling."""
+    """Coarse to fine, every cluster that is not its own piece of space (:func:`own_shares` of at
+    most one half among its parent's Gaussians) joins its sibling of nearest mean feature at this
+    scale that is; siblings none of which is become one cluster. Nesting holds: a cluster only
+    takes a sibling's label, and the clusters of finer scales inside a joined splinter now lie
+    inside the sibling."""
     out: list[np.ndarray] = []
     for labels, scale, basis in zip(parts, scales, bases):
-        ids, local, size = np.unique(labels, return_inverse=True, return_counts=True)
+        ids, local, _ = np.unique(labels, return_inverse=True, return_counts=True)
         up = out[-1] if out else np.zeros_like(labels)  # the (absorbed) coarser partition
         parent = np.zeros(len(ids), dtype=np.int64)
         parent[local] = up
-        small = size < min_size
         target = np.arange(len(ids))
-        if small.any():
-            means, _ = cluster_means(theta, local, scale, basis, chunk)
-            for p in np.unique(parent[small]):
-                family = np.flatnonzero(parent == p)
-                big = family[~small[family]]
-                tiny = family[small[family]]
-                if not len(big):  # every sibling is a splinter: they are one cluster
-                    target[tiny] = tiny[0]
-                    continue
-                target[tiny] = big[(means[tiny] @ means[big].T).argmax(1).numpy()]
+        feats: Optional[Tensor] = None
+        for p in np.unique(parent):
+            family = np.flatnonzero(parent == p)
+            if len(family) < 2:
+                continue
+            members = np.flatnonzero(up == p)
+            rank = np.searchsorted(family, local[members])  # 0..len(family)-1
+            own = own_shares(means[members], rank) > 0.5  # a majority
+            if own.all():
+                continue
+            if not own.any():  # no sibling is a piece of its own: they are one cluster
+                target[family] = family[0]
+                continue
+            if feats is None:
+                feats = cluster_means(theta, local, scale, basis, chunk)[0]
+            stray, kept = family[~own], family[own]
+            target[stray] = kept[(feats[stray] @ feats[kept].T).argmax(1).numpy()]
         out.append(target[local])
     return out
 
@@ -309,6 +338,7 @@ def choose_levels(counts: list[int], max_levels: int) -> list[int]:
 
 def decompose(
     theta: Tensor,  # [N, D] the field's features at the Gaussian centres
+    means: Tensor,  # [N, 3] the Gaussian centres
     W: Tensor,  # [E, D] the field's projection
     variant: "FieldVariant",
     step_size: int,
@@ -327,8 +357,7 @@ def decompose(
     bases = scale_bases(W, scales)
     atom_of = atoms(theta, scales, bases, config)
     parts, cuts = group_scales(theta, scales, bases, atom_of, config)
-    min_size = theta.shape[0] / (int(atom_of.max()) + 1)  # an average atom
-    parts = absorb_splinters(theta, parts, scales, bases, min_size, config.chunk)
+    parts = absorb_splinters(theta, means.detach().double().cpu().numpy(), parts, scales, bases, config.chunk)
     counts = [int(np.unique(p).shape[0]) for p in parts]
     kept = choose_levels(counts, config.max_levels)
     nodes, parents, first, last = node_ids([parts[i] for i in kept])

@@ -105,7 +105,12 @@ def run_decompose(job: DecomposeJob, log: Log = print) -> dict:
         theta = gaussian_features(fld, gaussians.means).float().cpu()
     cfg = meta.get("config", {})
     dec = decompose(
-        theta, fld.W, get_variant(str(cfg.get("variant", "nested"))), int(cfg.get("step_size", 1)), job.config
+        theta,
+        gaussians.means,
+        fld.W,
+        get_variant(str(cfg.get("variant", "nested"))),
+        int(cfg.get("step_size", 1)),
+        job.config,
     )
     seconds = time.perf_counter() - t0
     record = _write(out, run_dir, dec, theta, fld.W, gaussians, phrases, encoder, DEFAULT_NEGATIVES, seconds)

@@ -753,10 +753,13 @@ class QueryEngine:
 
         ``threshold`` is an absolute relevancy; ``None`` applies the evaluation protocol's rule
         to the Gaussians' relevancy (min-max normalise, map to [-1, 1], clip, ``> 0.4``; no box
-        filter since Gaussians have no pixel grid)."""
+        filter since Gaussians have no pixel grid), or for a mode that answers with a set (node)
+        takes that set: min-max of an answer that holds every Gaussian would select none."""
         rel = self.query_gaussians([text], mode).relevancy[0]
         if threshold is not None:
             return rel >= float(threshold)
+        if get_mode(mode).answers_sets:
+            return rel > 0.5
 
         norm = normalized_for_threshold(rel.float().cpu().numpy())
         return torch.from_numpy(norm > LANGSPLAT_THRESHOLD).to(rel.device)

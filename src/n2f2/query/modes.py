@@ -65,6 +65,7 @@ class QueryMode:
     paper: bool = False  # one of the paper's modes (its Table 3): the bench report's columns and curves
     viewer: bool = False  # offered by the viewers
     needs_tree: bool = False  # answers from the run's hierarchy (`n2f2 decompose`), on any variant
+    answers_sets: bool = False  # its answer over the Gaussians is a set (1 in it, 0 out): selected as it is
 
     def __post_init__(self) -> None:
         if self.choice not in CHOICES:
@@ -170,6 +171,7 @@ NODE = QueryMode(
     "_gaussians_node",
     viewer=True,
     needs_tree=True,
+    answers_sets=True,
 )
 
 # The registry: mode name -> its mode. Order = the order of help texts, choices and reports.
