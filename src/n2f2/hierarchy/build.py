@@ -265,7 +265,7 @@ def absorb_splinters(
     inside the sibling."""
     out: list[np.ndarray] = []
     for labels, scale, basis in zip(parts, scales, bases):
-        ids, local, _ = np.unique(labels, return_inverse=True, return_counts=True)
+        ids, local = np.unique(labels, return_inverse=True)
         up = out[-1] if out else np.zeros_like(labels)  # the (absorbed) coarser partition
         parent = np.zeros(len(ids), dtype=np.int64)
         parent[local] = up
