@@ -2,15 +2,14 @@
 writes the hierarchy, :mod:`n2f2.hierarchy`).
 
 Each node is scored by the one relevancy of n2f2 (:mod:`n2f2.field.relevancy`) of its embedding,
-the mean of its Gaussians' features at its own scale (:mod:`n2f2.hierarchy.nodes`). Nodes are ranked by the
-relevancy's argument, the margin ``phi^ . t - max_c phi^ . c`` (relevancy is
+the mean of its Gaussians' features at its own scale (:mod:`n2f2.hierarchy.nodes`). Nodes are
+ranked by the relevancy's argument, the margin ``phi^ . t - max_c phi^ . c`` (relevancy is
 ``sigmoid(10 margin)``, so the order is the same, but the margin does not saturate at 1 in
 float32 as the relevancy of related captions does). The answer is the best node, replaced by its
 parent for as long as the parent's margin is at least :data:`INSTANCE_SHARE` of the best's (a
 patch of a large surface matches "table" as well as the whole table does, and the whole is the
 answer), and beside it every node **present at its first level** (a node spans the levels
-``level .. last_level``) whose margin is at least
-:data:`INSTANCE_SHARE` of its own:
+``level .. last_level``) whose margin is at least :data:`INSTANCE_SHARE` of its own:
 instances of one thing (several cookies) were trained towards one teacher embedding, so their
 margins match the best's to within the field's noise, while other nodes of that level score
 clearly lower. The answer's Gaussians are the
