@@ -4,6 +4,7 @@ once per test session, through the same CLI commands a user runs."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import time
 from dataclasses import dataclass
@@ -85,3 +86,34 @@ def wait():
             time.sleep(0.1)
 
     return wait_until
+
+
+@pytest.fixture
+def viewer_page(wait):
+    """``with viewer_page(running, width, height, ready) as (page, client)``: the 3D viewer that
+    ``running`` serves, open in headless Chromium once the text ``ready`` shows, its software
+    WebGL toast closed, and the page's viser client (the browser tests' common opening)."""
+
+    @contextlib.contextmanager
+    def open_page(running, width: int, height: int, ready: str):
+        sync_api = pytest.importorskip("playwright.sync_api")
+        from n2f2.viewer.browser import launch_chromium
+
+        known = set(running.viser.get_clients())
+        with sync_api.sync_playwright() as p:
+            browser = launch_chromium(p)
+            try:
+                page = browser.new_page(viewport={"width": width, "height": height})  # software WebGL: small is fast
+                page.goto(running.url)
+                page.wait_for_selector(f"text={ready}", timeout=120_000)
+                # Headless Chromium renders WebGL in software; viser says so in a toast. Closed by
+                # a DOM click: the page may be too busy drawing for a pointer one.
+                toast = page.locator(".mantine-Notification-root").filter(has_text="Software WebGL").locator("button")
+                if toast.count():
+                    toast.first.evaluate("button => button.click()")
+                wait(lambda: set(running.viser.get_clients()) - known, 60, "the page's websocket")
+                yield page, running.viser.get_clients()[max(set(running.viser.get_clients()) - known)]
+            finally:
+                browser.close()
+
+    return open_page

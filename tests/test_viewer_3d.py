@@ -18,7 +18,7 @@ import pytest
 pytest.importorskip("viser")
 pytest.importorskip("fastapi")
 
-from n2f2.viewer.browser import CHROMIUM_PATH, launch_chromium  # noqa: E402
+from n2f2.viewer.browser import CHROMIUM_PATH  # noqa: E402
 from n2f2.viewer.cache import ByteLRU, compact_tensors, tensor_bytes  # noqa: E402
 from n2f2.viewer.server import Viewer, ViewerLimits, create_app  # noqa: E402
 from n2f2.viewer.splat_colors import heat_colors, selection_mask, splat_colors, splat_covariances  # noqa: E402
@@ -429,53 +429,38 @@ def _png(data: bytes) -> np.ndarray:
 
 @pytest.mark.skipif(not Path(CHROMIUM_PATH).exists(),
                     reason="Debian chromium is not installed (apt-get install chromium); .ci/run installs it")
-def test_browser_sees_splats_moves_and_recolours(running, trained_run, tmp_path, wait):
-    sync_api = pytest.importorskip("playwright.sync_api")
+def test_browser_sees_splats_moves_and_recolours(running, trained_run, tmp_path, wait, viewer_page):
     shot_dir = Path(os.environ.get("N2F2_SCREENSHOT_DIR", tmp_path))
     shot_dir.mkdir(parents=True, exist_ok=True)
     s = running.splats
     s.gui_display.value = "rgb"
-    known = set(running.viser.get_clients())
-    with sync_api.sync_playwright() as p:
-        browser = launch_chromium(p)
-        try:
-            page = browser.new_page(viewport={"width": 640, "height": 420})  # software WebGL: small is fast
-            page.goto(running.url)
-            page.wait_for_selector("text=Queries", timeout=120_000)
-            # Headless Chromium renders WebGL in software; viser says so in a toast: close it.
-            toast = page.locator(".mantine-Notification-root").filter(has_text="Software WebGL").locator("button")
-            if toast.count():
-                toast.first.click(timeout=10_000)
-            wait(lambda: set(running.viser.get_clients()) - known, 60, "the page's websocket")
-            client = running.viser.get_clients()[max(set(running.viser.get_clients()) - known)]
-            # The view region left of the GUI panel.
-            clip = {"x": 0, "y": 0, "width": 300, "height": 420}
+    with viewer_page(running, 640, 420, "Queries") as (page, client):
+        # The view region left of the GUI panel.
+        clip = {"x": 0, "y": 0, "width": 300, "height": 420}
 
-            def shot(name: str) -> np.ndarray:
-                data = page.screenshot(clip=clip)
-                (shot_dir / f"{name}.png").write_bytes(data)
-                return _png(data)
+        def shot(name: str) -> np.ndarray:
+            data = page.screenshot(clip=clip)
+            (shot_dir / f"{name}.png").write_bytes(data)
+            return _png(data)
 
-            # Splats arrive: the view is no longer one flat colour.
-            wait(lambda: shot("viewer3d_0_start").std(axis=(0, 1)).mean() > 15, 90, "splats on screen")
-            first = shot("viewer3d_0_start")
+        # Splats arrive: the view is no longer one flat colour.
+        wait(lambda: shot("viewer3d_0_start").std(axis=(0, 1)).mean() > 15, 90, "splats on screen")
+        first = shot("viewer3d_0_start")
 
-            # Move the camera to a training view (what clicking its frustum does).
-            s.move_to_view(client, 3)
-            target = pose_of(running.viewer.scene.cameras[3])[1]
-            wait(lambda: np.allclose(client.camera.position, target, atol=1e-3), 30, "the camera move")
-            wait(lambda: np.abs(shot("viewer3d_1_view3") - first).mean() > 5, 30, "a new picture")
-            moved = shot("viewer3d_1_view3")
+        # Move the camera to a training view (what clicking its frustum does).
+        s.move_to_view(client, 3)
+        target = pose_of(running.viewer.scene.cameras[3])[1]
+        wait(lambda: np.allclose(client.camera.position, target, atol=1e-3), 30, "the camera move")
+        wait(lambda: np.abs(shot("viewer3d_1_view3") - first).mean() > 5, 30, "a new picture")
+        moved = shot("viewer3d_1_view3")
 
-            # Type a query in the page and press the Query button.
-            s.query = None
-            box = page.locator("div.mantine-Flex-root", has=page.locator("label", has_text="Queries"))
-            box.locator("input").fill(trained_run.part_query)
-            page.get_by_role("button", name="Query", exact=True).click()
-            wait(lambda: s.query is not None and s.shown == "heatmap", 60, "the query's colours")
-            assert s.query.texts == [trained_run.part_query]
-            wait(lambda: np.abs(shot("viewer3d_2_query") - moved).mean() > 5, 30, "recoloured splats")
-            page.screenshot(path=str(shot_dir / "viewer3d_page.png"))
-        finally:
-            browser.close()
+        # Type a query in the page and press the Query button.
+        s.query = None
+        box = page.locator("div.mantine-Flex-root", has=page.locator("label", has_text="Queries"))
+        box.locator("input").fill(trained_run.part_query)
+        page.get_by_role("button", name="Query", exact=True).click()
+        wait(lambda: s.query is not None and s.shown == "heatmap", 60, "the query's colours")
+        assert s.query.texts == [trained_run.part_query]
+        wait(lambda: np.abs(shot("viewer3d_2_query") - moved).mean() > 5, 30, "recoloured splats")
+        page.screenshot(path=str(shot_dir / "viewer3d_page.png"))
     assert np.abs(_png((shot_dir / "viewer3d_2_query.png").read_bytes()) - moved).mean() > 5

@@ -19,7 +19,7 @@ pytest.importorskip("fastapi")
 
 from n2f2.errors import InputError  # noqa: E402
 from n2f2.hierarchy.views import palette  # noqa: E402
-from n2f2.viewer.browser import CHROMIUM_PATH, launch_chromium  # noqa: E402
+from n2f2.viewer.browser import CHROMIUM_PATH  # noqa: E402
 from n2f2.viewer.hierarchy import path_records, pick_gaussian, whitening  # noqa: E402
 
 VOCABULARY = ("teapot", "lid of the teapot", "red mug", "bag of cookies", "plate")
@@ -147,7 +147,9 @@ def test_a_clicked_gaussian_shows_its_path_to_the_root(running):
     assert len(lines) == len(path)
     for line, k in zip(lines, path):
         rec = tree.tree["nodes"][k]
-        span = f"level {rec['level']} " if rec["last_level"] == rec["level"] else f"levels {rec['level']}–{rec['last_level']} ("
+        span = f"level {rec['level']} "
+        if rec["last_level"] != rec["level"]:
+            span = f"levels {rec['level']}–{rec['last_level']} ("
         assert f"node **{k}**" in line and span in line
         assert rec["text"] in VOCABULARY and f"“{rec['text']}”" in line
     # While the node colours show, the clicked node keeps its colour and the rest is dimmed.
@@ -294,52 +296,38 @@ def test_view_takes_a_decomposition_folder(decomposed_run, trained_run, tmp_path
 # ----------------------------------------------------------------------------- browser
 @pytest.mark.skipif(not Path(CHROMIUM_PATH).exists(),
                     reason="Debian chromium is not installed (apt-get install chromium); .ci/run installs it")
-def test_browser_shows_levels_and_a_clicked_path(running, tmp_path, wait):
+def test_browser_shows_levels_and_a_clicked_path(running, tmp_path, wait, viewer_page):
     """In a real page: two levels look different, and a click on the splats (viser's scene
     click, a ray) selects a Gaussian and shows its path in the panel."""
     from io import BytesIO
 
     from PIL import Image
 
-    sync_api = pytest.importorskip("playwright.sync_api")
     shot_dir = Path(os.environ.get("N2F2_SCREENSHOT_DIR", tmp_path))
     shot_dir.mkdir(parents=True, exist_ok=True)
     s, h = running.splats, running.splats.hierarchy
     h.select(None)
-    known = set(running.viser.get_clients())
-    with sync_api.sync_playwright() as p:
-        browser = launch_chromium(p)
-        try:
-            page = browser.new_page(viewport={"width": 800, "height": 640})  # software WebGL: small is fast
-            page.goto(running.url)
-            page.wait_for_selector("text=Granularity", timeout=120_000)
-            toast = page.locator(".mantine-Notification-root").filter(has_text="Software WebGL").locator("button")
-            if toast.count():  # a DOM click: the page may be too busy drawing for a pointer one
-                toast.first.evaluate("button => button.click()")
-            wait(lambda: set(running.viser.get_clients()) - known, 60, "the page's websocket")
-            client = running.viser.get_clients()[max(set(running.viser.get_clients()) - known)]
-            s.move_to_view(client, 0)
-            view = {"x": 0, "y": 0, "width": 400, "height": 640}  # left of the GUI panel
+    with viewer_page(running, 800, 640, "Granularity") as (page, client):
+        s.move_to_view(client, 0)
+        view = {"x": 0, "y": 0, "width": 400, "height": 640}  # left of the GUI panel
 
-            def shot(name: str, clip=view) -> np.ndarray:
-                data = page.screenshot(clip=clip) if clip else page.screenshot()
-                (shot_dir / f"{name}.png").write_bytes(data)
-                return np.asarray(Image.open(BytesIO(data)).convert("RGB"), dtype=float)
+        def shot(name: str, clip=view) -> np.ndarray:
+            data = page.screenshot(clip=clip) if clip else page.screenshot()
+            (shot_dir / f"{name}.png").write_bytes(data)
+            return np.asarray(Image.open(BytesIO(data)).convert("RGB"), dtype=float)
 
-            h.set_level(0)
-            wait(lambda: shot("hierarchy_level_0").std(axis=(0, 1)).mean() > 15, 90, "splats on screen")
-            time.sleep(1.0)
-            coarse = shot("hierarchy_level_0", None)
-            h.gui_level.value = h.tree.num_levels - 1
-            wait(lambda: np.abs(shot("hierarchy_level_finest", None) - coarse).mean() > 2, 30, "the finer colours")
-            time.sleep(1.0)
-            shot("hierarchy_level_finest", None)
-            page.mouse.click(200, 320)  # the middle of the view: the scene
-            wait(lambda: h.gaussian is not None, 30, "a picked Gaussian")
-            page.get_by_text(f"Gaussian {h.gaussian:,}").wait_for(timeout=30_000)  # the path, in the page
-            page.get_by_role("button", name="Export node").scroll_into_view_if_needed()  # all of it on screen
-            time.sleep(1.0)
-            shot("hierarchy_path", None)
-        finally:
-            browser.close()
+        h.set_level(0)
+        wait(lambda: shot("hierarchy_level_0").std(axis=(0, 1)).mean() > 15, 90, "splats on screen")
+        time.sleep(1.0)
+        coarse = shot("hierarchy_level_0", None)
+        h.gui_level.value = h.tree.num_levels - 1
+        wait(lambda: np.abs(shot("hierarchy_level_finest", None) - coarse).mean() > 2, 30, "the finer colours")
+        time.sleep(1.0)
+        shot("hierarchy_level_finest", None)
+        page.mouse.click(200, 320)  # the middle of the view: the scene
+        wait(lambda: h.gaussian is not None, 30, "a picked Gaussian")
+        page.get_by_text(f"Gaussian {h.gaussian:,}").wait_for(timeout=30_000)  # the path, in the page
+        page.get_by_role("button", name="Export node").scroll_into_view_if_needed()  # all of it on screen
+        time.sleep(1.0)
+        shot("hierarchy_path", None)
     assert h.node is not None and f"node **{h.node}**" in h.gui_path.content
