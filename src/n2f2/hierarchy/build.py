@@ -98,7 +98,15 @@ class Decomposition:
 
     def nodes_at(self, level: int) -> np.ndarray:  # -> [K_l] node ids
         """The nodes present at ``level`` (the ids of its column of ``gaussian_nodes``)."""
-        return np.nonzero((self.levels <= level) & (level <= self.last_levels))[0]
+        return np.nonzero(present(self.levels, self.last_levels, level))[0]
+
+
+def present(
+    levels: np.ndarray,  # [K] each node's first level
+    last_levels: np.ndarray,  # [K] each node's last level
+    level: int,
+) -> np.ndarray:  # -> [K] bool, the nodes of that level's column of gaussian_nodes
+    return (levels <= level) & (level <= last_levels)
 
 
 def candidate_scales(variant: "FieldVariant", dim: int, step_size: int) -> list[int]:

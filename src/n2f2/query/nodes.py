@@ -31,6 +31,7 @@ from torch import Tensor
 
 from ..cameras import Camera
 from ..field.relevancy import relevancy_margins, relevancy_of_margins
+from ..hierarchy.build import present
 
 INSTANCE_SHARE = 0.9  # a node joins the answer with >= 90 % of the best node's margin
 TIE_WEIGHT = 0.01  # weight of the uncovered pixels' ordering term in a node answer's map
@@ -52,14 +53,6 @@ class NodeAnswer:
         """The best relevancy among the nodes present at each level (a mode's per-scale scores)."""
         rel = self.relevancy
         return torch.stack([rel[torch.from_numpy(present(levels, last_levels, lv))].max() for lv in range(num_levels)])
-
-
-def present(
-    levels: np.ndarray,  # [K] each node's first level
-    last_levels: np.ndarray,  # [K] each node's last level
-    level: int,
-) -> np.ndarray:  # -> [K] bool, the nodes of that level's column of gaussian_nodes
-    return (levels <= level) & (level <= last_levels)
 
 
 def choose_nodes(
