@@ -8,7 +8,8 @@ from pathlib import Path
 from ..config import add_config_options, config_overrides
 from ..validate import add_device_option
 from .build import DecomposeConfig
-from .stage import ALL_VIEWS, DEFAULT_OUT, DecomposeJob, run_decompose
+from .files import DEFAULT_OUT
+from .stage import ALL_VIEWS, DecomposeJob, run_decompose
 
 
 def register(subparsers) -> None:

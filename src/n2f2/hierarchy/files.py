@@ -30,6 +30,7 @@ from ..errors import InputError
 from .build import Decomposition
 
 FORMAT = "n2f2-tree-v1"
+DEFAULT_OUT = "decomposition"  # RUN/decomposition: where decompose writes and node queries look by default
 TREE_NAME = "tree.json"
 NODES_NAME = "gaussian_nodes.npy"
 EMBEDDINGS_NAME = "node_embeddings.npy"

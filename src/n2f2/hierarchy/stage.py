@@ -15,10 +15,10 @@ import numpy as np
 
 from ..errors import InputError
 from .build import DecomposeConfig
+from .files import DEFAULT_OUT
 
 Log = Callable[[str], None]
 ALL_VIEWS = "all"
-DEFAULT_OUT = "decomposition"  # RUN/decomposition, where node queries look by default
 
 
 @dataclass

@@ -329,10 +329,18 @@ class QueryEngine:
 
     def _tree_dir(self) -> Optional[Path]:
         """The hierarchy's folder (QueryConfig.decomposition, else RUN/decomposition) if it holds one."""
-        root = Path(self.config.decomposition) if self.config.decomposition else None
-        if root is None and self.run_dir is not None:
-            root = self.run_dir / "decomposition"
-        return root if root is not None and (root / "tree.json").is_file() else None
+        from ..hierarchy.files import TREE_NAME
+
+        root = self._tree_root()
+        return root if root is not None and (root / TREE_NAME).is_file() else None
+
+    def _tree_root(self) -> Optional[Path]:
+        """Where the hierarchy is looked for: QueryConfig.decomposition, else RUN/decomposition."""
+        from ..hierarchy.files import DEFAULT_OUT
+
+        if self.config.decomposition:
+            return Path(self.config.decomposition)
+        return self.run_dir / DEFAULT_OUT if self.run_dir is not None else None
 
     @property
     def tree(self) -> Any:  # n2f2.hierarchy.LoadedTree
@@ -342,10 +350,8 @@ class QueryEngine:
 
             root = self._tree_dir()
             if root is None:
-                where = self.config.decomposition or (
-                    self.run_dir / "decomposition" if self.run_dir else "RUN/decomposition"
-                )
-                raise InputError(Path(where), "mode 'node' needs the run's hierarchy: run `n2f2 decompose RUN` first")
+                where = self._tree_root() or Path("RUN/decomposition")
+                raise InputError(where, "mode 'node' needs the run's hierarchy: run `n2f2 decompose RUN` first")
             self._tree = read_tree(root, num_gaussians=int(self.gaussians.means.shape[0]))
         return self._tree
 
