@@ -268,3 +268,41 @@ def test_scattered_splinters_join_the_sibling_of_nearest_feature():
     mixed = np.arange(40) % 2
     (out,) = absorb_splinters(theta[:40], means[:40], [mixed], [(0, 2)], [torch.eye(2)], chunk=7)
     assert len(set(out.tolist())) == 1
+
+
+def test_a_node_is_read_over_the_scales_where_it_is_whole_at_its_finest():
+    from n2f2.hierarchy.build import node_ids, whole_scales
+
+    # Four candidates at field scales 0, 1, 3 and 7 of 8; the third (scale 3) is not kept as a
+    # level but splits {4, 5}. Levels: {0..3} {4,5} | {0,1} {2,3} {4,5} | singletons.
+    parts = [np.array([0, 0, 0, 0, 1, 1]), np.array([0, 0, 1, 1, 2, 2]), np.array([0, 0, 1, 1, 2, 3]),
+             np.array([0, 1, 2, 3, 4, 5])]
+    kept = [0, 1, 3]
+    nodes, _, _, last = node_ids([parts[i] for i in kept])
+    assert last.tolist() == [0, 1, 1, 1, 2, 2, 2, 2, 2, 2]  # node 1 = {4, 5} spans levels 0-1
+    reads = whole_scales(parts, [0, 1, 3, 7], kept, nodes, last, 8)
+    # Node 0 splits at the next candidate (scale 1); node 1 = {4, 5} at the unkept one (scale 3);
+    # {0, 1} and {2, 3} only at the finest candidate (scale 7); the leaves run to the field's end.
+    assert reads.tolist() == [[0, 1], [1, 3], [1, 7], [1, 7]] + [[7, 8]] * 6
+
+
+@pytest.mark.parametrize("variant, step", [("nested", 2), ("nested", 1), ("levels", 1)])
+def test_node_embeddings_equal_the_mean_unit_feature_over_gaussians_and_scales(variant, step):
+    from n2f2.hierarchy.nodes import node_embeddings
+
+    theta, means, _, _ = _known_field(per_part=6, noise=0.05)
+    theta = torch.cat([theta, 0.3 * theta.flip(1)[:, :4]], 1)  # D = 12: the levels variant's 3 blocks of 4
+    W = torch.randn(10, 12, generator=torch.Generator().manual_seed(3))
+    dec = decompose(theta, means, W, VARIANTS[variant], step, DecomposeConfig())
+    assert dec.field_scales == VARIANTS[variant].coarse_to_fine(12, step)
+    emb = node_embeddings(theta, W, dec, chunk=17)
+    # Reference: every Gaussian's feature at every scale of the node, formed and normalised one by one.
+    for k in range(dec.num_nodes):
+        members = theta[torch.from_numpy(dec.gaussian_nodes[:, dec.last_levels[k]] == k)].double()
+        feats = []
+        for s in range(*dec.reads[k]):
+            a, b = dec.field_scales[s]
+            for t in members:
+                phi = W[:, a:b].double() @ t[a:b]
+                feats.append(phi / phi.norm())
+        torch.testing.assert_close(emb[k].double(), torch.stack(feats).mean(0), rtol=1e-4, atol=1e-5)

@@ -34,6 +34,9 @@ the hierarchy groups them scale by scale:
 6. **Node ids** (:func:`node_ids`): a node is a set of Gaussians. Where a node of one level is
    not split at the next finer one, the finer level holds the same node (the same id): a node
    spans the levels ``level .. last_level``.
+7. **Reads** (:func:`whole_scales`): per node, the field's scales at which it is whole at its
+   finest, from its last level's scale up to the first finer candidate that splits it; its
+   embedding is read over them (:mod:`.nodes`).
 
 Nodes carry global ids, coarsest first; ``gaussian_nodes [N, L]`` gives every Gaussian's node at
 every level, and each node's parent is the node of the level above its first one that holds its
@@ -86,6 +89,9 @@ class Decomposition:
     levels: np.ndarray  # [K] int64 first (coarsest) level of each node
     last_levels: np.ndarray  # [K] int64 last (finest) level each node spans, unsplit
     thresholds: list[float]  # [L] the cosine distance each level was cut at (2 delta)
+    field_scales: list[tuple[int, int]]  # [S] theta dims [start, end) of every scale of the field, coarse to fine
+    field_labels: list[str]  # [S] their names
+    reads: np.ndarray  # [K, 2] int64 [first, end) indices into field_scales: where each node is read (whole_scales)
     candidates: list[dict] = field(default_factory=list)  # every candidate scale: label, nodes, kept
 
     @property
@@ -331,6 +337,33 @@ def node_ids(
     return nodes, np.array(parents, dtype=np.int64), np.array(first, dtype=np.int64), np.array(last, dtype=np.int64)
 
 
+def whole_scales(
+    parts: list[np.ndarray],  # [C] of [N] candidate partitions, coarse to fine, nested
+    picked: list[int],  # [C] each candidate's index among the field's scales
+    kept: list[int],  # [L] the candidates kept as levels
+    nodes: np.ndarray,  # [N, L] global node ids
+    last: np.ndarray,  # [K] each node's last level
+    num_scales: int,  # S, the field's scales
+) -> np.ndarray:  # -> [K, 2] int64 [first, end) field scale indices
+    """Per node, the field's scales at which it is whole at its finest: from its last level's
+    scale up to, not including, the first finer candidate that splits its Gaussians (to the
+    field's finest scale when none does). Its embedding is read over them (:mod:`.nodes`)."""
+    out = np.zeros((last.shape[0], 2), dtype=np.int64)
+    for level, first in enumerate(kept):
+        waiting = last == level  # [K] nodes whose end is not found yet
+        out[waiting] = (picked[first], num_scales)
+        col = nodes[:, level].astype(np.int64)
+        for c in range(first + 1, len(parts)):
+            if not waiting.any():
+                break
+            width = int(parts[c].max()) + 1
+            pairs = np.unique(col * width + parts[c])  # the (node, cluster) pairs present
+            split = np.bincount(pairs // width, minlength=last.shape[0]) > 1
+            out[waiting & split, 1] = picked[c]
+            waiting &= ~split
+    return out
+
+
 def choose_levels(counts: list[int], max_levels: int) -> list[int]:
     """Indices (coarse to fine) of the candidates kept as levels: one candidate per distinct
     grouping (the finest of equal counts: nested partitions with as many nodes are equal), no
@@ -369,6 +402,7 @@ def decompose(
     counts = [int(np.unique(p).shape[0]) for p in parts]
     kept = choose_levels(counts, config.max_levels)
     nodes, parents, first, last = node_ids([parts[i] for i in kept])
+    reads = whole_scales(parts, picked, kept, nodes, last, len(all_scales))
     return Decomposition(
         gaussian_nodes=nodes,
         level_scales=[scales[i] for i in kept],
@@ -378,6 +412,9 @@ def decompose(
         levels=first,
         last_levels=last,
         thresholds=[cuts[i] for i in kept],
+        field_scales=list(all_scales),
+        field_labels=list(labels),
+        reads=reads,
         candidates=[
             {"scale_label": labels[picked[i]], "nodes": counts[i], "cut": cuts[i], "kept": i in kept}
             for i in range(len(picked))

@@ -4,8 +4,9 @@ only:
 * ``tree.json``: format ``n2f2-tree-v1``; the levels (coarsest first: theta dims, scale label,
   quantized scale, the count of nodes present, the cut) and one record per node: ``id`` (global,
   coarsest level first), ``parent`` (null at level 0), ``level`` and ``last_level`` (the levels
-  it spans unsplit: the same id in each of their columns), ``scale`` (of its last level, where
-  its embedding is read), ``gaussians``, ``centroid``,
+  it spans unsplit: the same id in each of their columns), ``scale`` (of its last level),
+  ``read_scales`` (the first and last of the field's scales its embedding is the mean over,
+  :mod:`.nodes`), ``gaussians``, ``centroid``,
   ``box`` (``[[min x, y, z], [max x, y, z]]`` of its centres), ``text`` / ``relevancy`` (the
   best phrase of ``--vocabulary``, else null);
 * ``gaussian_nodes.npy``: int32 ``[N, L]``, every Gaussian's node at every level;
@@ -75,6 +76,7 @@ def tree_record(
             "level": int(dec.levels[k]),
             "last_level": int(dec.last_levels[k]),
             "scale": dec.level_values[int(dec.last_levels[k])],
+            "read_scales": [dec.field_labels[int(dec.reads[k, 0])], dec.field_labels[int(dec.reads[k, 1]) - 1]],
             "gaussians": int(counts[k]),
             "centroid": [float(x) for x in centroids[k]],
             "box": [[float(x) for x in lo[k]], [float(x) for x in hi[k]]],

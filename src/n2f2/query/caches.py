@@ -13,9 +13,10 @@ from typing import Protocol, Sequence, Union
 import torch
 from torch import Tensor
 
+from ..field.prefix import prefix_sq_norms, to_blocks
 from ..field.relevancy import inverse_norm, inverse_norm_from_sq, relevancy_from_scores
 from ..segments.bins import supervised_dims
-from .composite import prefix_dot, prefix_margin_at, prefix_margin_max, prefix_sq_norms, prefix_terms, to_blocks
+from .composite import prefix_dot, prefix_margin_at, prefix_margin_max, prefix_terms
 from .soft import SOFT_TEMPERATURE, soft_combine, soft_weights, weighed_scales
 
 

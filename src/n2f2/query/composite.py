@@ -45,6 +45,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..field.prefix import prefix_sq_norms, to_blocks
 from ..field.relevancy import NORM_EPS
 
 # Canonical phrases of paper Eq. 6 ("object", "stuff", "thing", "part", "texture").
@@ -53,17 +54,6 @@ PAPER_TEMPERATURE = 1.0  # T of Eq. 6 in the paper
 # Composite weightings (see the module docstring): "unit", n2f2's default, and Eq. 6 ("eq6").
 COMPOSITE_WEIGHTS: tuple[str, ...] = ("unit", "eq6")
 DEFAULT_WEIGHTS = "unit"
-
-
-def to_blocks(
-    theta: Tensor,  # [P, D] features, one row per point
-    step: int = 1,
-) -> Tensor:  # [S, k, P] contiguous, S = floor(D / k); dims past S k are dropped
-    """Block layout of prefix computations: dimension ``j`` goes to block ``j // k``, points
-    last, so scale sums are batched matmuls whose results are already ``[S, C, P]``."""
-    P, D = theta.shape
-    S = D // step
-    return theta[:, : S * step].T.reshape(S, step, P).contiguous()
 
 
 def prefix_dot(
@@ -79,26 +69,6 @@ def prefix_dot(
     S, k, _ = blocks.shape
     d = directions[: S * k].reshape(S, k, -1).transpose(1, 2)  # [S, C, k]
     return torch.bmm(d, blocks).cumsum_(dim=0)  # [S, C, P]
-
-
-def prefix_sq_norms(
-    blocks: Tensor,  # [S, k, P] features in block layout
-    gram: Tensor,  # [D, D] W^T W (only the first S k rows / columns are used)
-) -> Tensor:  # [S, P] |phi_{d_s}|^2
-    """Squared norms of all prefix features ``|W[:, :d] theta[:d]|^2`` for the scales
-    ``d_s = (s + 1) k``, without forming any ``E``-dimensional vector.
-
-    ``|phi_d|^2 = sum_{j <= d} theta_j (2 sum_{i < j} G_ji theta_i + G_jj theta_j)`` with
-    ``G = W^T W`` (the recurrence ``n_d = n_{d-1} + 2 theta_d G[d, :d] theta[:d] + G_dd theta_d^2``):
-    the inner sums for all ``j`` are one ``[D, D] x [D, P]`` matmul, the outer sum a cumulative
-    sum. Clamped at 0 against rounding."""
-    S, k, P = blocks.shape
-    n = S * k
-    g = gram[:n, :n]
-    theta = blocks.reshape(n, P)  # [D', P] dimension-major
-    inner = torch.tril(g, diagonal=-1) @ theta  # [D', P]: sum_{i<j} G_ji theta_i
-    terms = theta * (2.0 * inner + torch.diagonal(g)[:, None] * theta)  # [D', P]
-    return terms.reshape(S, k, P).sum(dim=1).cumsum_(dim=0).clamp_(min=0.0)
 
 
 def canonical_scores(

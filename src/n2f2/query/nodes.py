@@ -2,7 +2,7 @@
 writes the hierarchy, :mod:`n2f2.hierarchy`).
 
 Each node is scored by the one relevancy of n2f2 (:mod:`n2f2.field.relevancy`) of its embedding,
-the mean of its Gaussians' features at its own scale (:mod:`n2f2.hierarchy.nodes`). Nodes are
+the mean of its Gaussians' unit features over its own scales (:mod:`n2f2.hierarchy.nodes`). Nodes are
 ranked by the relevancy's argument, the margin ``phi^ . t - max_c phi^ . c`` (relevancy is
 ``sigmoid(10 margin)``, so the order is the same, but the margin does not saturate at 1 in
 float32 as the relevancy of related captions does). The answer is the best node, replaced by its
