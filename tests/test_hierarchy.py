@@ -149,6 +149,7 @@ def test_the_folder_holds_a_consistent_tree(decomposed, demo_run):
         assert rec["text"] in ("teapot", "lid of the teapot", "bag of cookies") and 0 < rec["relevancy"] < 1
         lo, hi = np.array(rec["box"])
         assert (lo <= np.array(rec["centroid"])).all() and (np.array(rec["centroid"]) <= hi).all()
+    assert tree.tree["settings"]["seed"] == 0 and tree.tree["settings"]["max_levels"] == 6
     # The PLY round trip keeps the node properties, coarsest first.
     assert (read_ply_nodes(out / "decomposition.ply") == tree.gaussian_nodes).all()
     assert read_ply(out / "decomposition.ply").num == n  # still an INRIA-layout PLY
@@ -306,3 +307,16 @@ def test_node_embeddings_equal_the_mean_unit_feature_over_gaussians_and_scales(v
                 phi = W[:, a:b].double() @ t[a:b]
                 feats.append(phi / phi.norm())
         torch.testing.assert_close(emb[k].double(), torch.stack(feats).mean(0), rtol=1e-4, atol=1e-5)
+
+
+def test_candidate_scales_are_half_octaves_of_the_ladder():
+    from n2f2.hierarchy.build import candidate_scales
+
+    nested = VARIANTS["nested"]
+    # 128 prefixes: round(2^(j/2)) for j = 0..14, repeats once; the indices are 0-based.
+    dims = [i + 1 for i in candidate_scales(nested, 128, 1)]
+    assert dims == [1, 2, 3, 4, 6, 8, 11, 16, 23, 32, 45, 64, 91, 128]
+    assert [i + 1 for i in candidate_scales(nested, 128, 1, per_octave=1)] == [1, 2, 4, 8, 16, 32, 64, 128]
+    # Step 4 of D = 48: 12 scales (d = 4 .. 48), the finest always a candidate.
+    assert [nested.coarse_to_fine(48, 4)[i][1] for i in candidate_scales(nested, 48, 4)] == [4, 8, 12, 16, 24, 32, 44, 48]
+    assert candidate_scales(nested, 8, 1) == list(range(8))  # at most 8 scales: all of them

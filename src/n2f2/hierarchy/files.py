@@ -1,7 +1,8 @@
 """The files of a decomposition folder (``n2f2 decompose RUN --out DIR``), written and read here
 only:
 
-* ``tree.json``: format ``n2f2-tree-v1``; the levels (coarsest first: theta dims, scale label,
+* ``tree.json``: format ``n2f2-tree-v1``; the run, the Gaussian count, the seconds taken, the
+  ``settings`` (:class:`.build.DecomposeConfig`); the levels (coarsest first: theta dims, scale label,
   quantized scale, the count of nodes present, the cut) and one record per node: ``id`` (global,
   coarsest level first), ``parent`` (null at level 0), ``level`` and ``last_level`` (the levels
   it spans unsplit: the same id in each of their columns), ``scale`` (of its last level),

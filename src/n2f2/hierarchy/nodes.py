@@ -13,9 +13,9 @@ composite embedding of :mod:`n2f2.query.composite`, restricted to the node's own
 
 so nodes are scored against text by the one relevancy of n2f2 (:mod:`n2f2.field.relevancy`), as
 every Gaussian is. Read at its last level's scale alone, node answers scored 4.7 points of mIoU
-lower (mean of two seeds on each generated layout, ``docs/measurements.md``, "The scene's
-hierarchy"): the tea set of the tabletop splits at the next candidate (``d = 8``) and, read at
-``d = 4`` alone, matches "table" best; over ``d = 4 .. 7`` it answers "tea set"."""
+lower (doubling candidates, two fields of each generated layout; ``docs/measurements.md``, "The
+scene's hierarchy"): the tabletop's tea set split at the next candidate (``d = 8``) and, read
+at ``d = 4`` alone, matched "table" best; over ``d = 4 .. 7`` it answers "tea set"."""
 
 from __future__ import annotations
 

@@ -6,6 +6,7 @@ prints the summary line."""
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -113,7 +114,8 @@ def run_decompose(job: DecomposeJob, log: Log = print) -> dict:
         job.config,
     )
     seconds = time.perf_counter() - t0
-    record = _write(out, run_dir, dec, theta, fld.W, gaussians, phrases, encoder, DEFAULT_NEGATIVES, seconds)
+    settings = dataclasses.asdict(job.config)
+    record = _write(out, run_dir, dec, theta, fld.W, gaussians, phrases, encoder, DEFAULT_NEGATIVES, seconds, settings)
     if views:
         _write_views(out, scene, views, gaussians, dec.gaussian_nodes, job.progress)
     counts = ", ".join(str(lv["nodes"]) for lv in record["levels"])
@@ -125,7 +127,9 @@ def run_decompose(job: DecomposeJob, log: Log = print) -> dict:
     return record
 
 
-def _write(out: Path, run_dir: Path, dec, theta, W, gaussians, phrases, encoder, negatives, seconds: float) -> dict:
+def _write(
+    out: Path, run_dir: Path, dec, theta, W, gaussians, phrases, encoder, negatives, seconds: float, settings: dict
+) -> dict:
     """tree.json, gaussian_nodes.npy, node_embeddings.npy and decomposition.ply."""
     import torch
 
@@ -142,7 +146,12 @@ def _write(out: Path, run_dir: Path, dec, theta, W, gaussians, phrases, encoder,
         labels, rel = best_phrases(emb, phrases, texts, negs)
     else:
         labels, rel = best_phrases(emb, [], torch.zeros(0), torch.zeros(0))
-    meta = {"run": str(run_dir.resolve()), "num_gaussians": int(dec.gaussian_nodes.shape[0]), "seconds": seconds}
+    meta = {
+        "run": str(run_dir.resolve()),
+        "num_gaussians": int(dec.gaussian_nodes.shape[0]),
+        "seconds": seconds,
+        "settings": settings,
+    }
     record = tree_record(dec, counts, centroids, lo, hi, labels, rel, meta)
     write_json(out / TREE_NAME, record)
     write_npy(out / NODES_NAME, dec.gaussian_nodes)
