@@ -320,3 +320,19 @@ def test_candidate_scales_are_half_octaves_of_the_ladder():
     # Step 4 of D = 48: 12 scales (d = 4 .. 48), the finest always a candidate.
     assert [nested.coarse_to_fine(48, 4)[i][1] for i in candidate_scales(nested, 48, 4)] == [4, 8, 12, 16, 24, 32, 44, 48]
     assert candidate_scales(nested, 8, 1) == list(range(8))  # at most 8 scales: all of them
+
+
+def test_kmeans_pp_seeds_one_centre_in_each_far_apart_blob():
+    from n2f2.hierarchy.build import kmeans_pp
+
+    # Four blobs, 1e-3 wide, at the corners of a square of side 10, the first holding 170 of the
+    # 200 points: random seeding would mostly put two or more centres in it; D^2 seeding cannot
+    # (a point of a seeded blob weighs ~1e-6 against ~100 for a point of an unseeded one).
+    g = torch.Generator().manual_seed(0)
+    corners = torch.tensor([[0.0, 0.0], [10.0, 0.0], [0.0, 10.0], [10.0, 10.0]])
+    sizes = [170, 10, 10, 10]
+    points = torch.cat([c + 1e-3 * torch.randn(n, 2, generator=g) for c, n in zip(corners, sizes)])
+    blob = np.repeat(np.arange(4), sizes)
+    for seed in range(5):
+        picked = kmeans_pp(points, 4, torch.Generator().manual_seed(seed))
+        assert sorted(blob[picked.numpy()].tolist()) == [0, 1, 2, 3], seed

@@ -163,6 +163,30 @@ def unit_features(
     return z / z.norm(dim=1, keepdim=True).clamp_min(1e-12)
 
 
+def kmeans_pp(
+    points: Tensor,  # [n, q]
+    num: int,
+    gen: torch.Generator,
+) -> Tensor:  # -> [num] int64 indices of the initial centres
+    """k-means++ seeding (Arthur and Vassilvitskii, 2007): each next centre is a point drawn with
+    probability proportional to its squared distance to the nearest centre so far, so that no
+    region of feature space is left without a centre (random points from the sample seeded
+    small surfaces and parts poorly: lounge parts 74.1 against 76.0, three k-means seeds)."""
+    sq = points.square().sum(1)  # [n]
+
+    def dist2(i: int) -> Tensor:  # [n] squared distances to point i, |p|^2 - 2 p.c + |c|^2 (a matvec)
+        return (sq - 2.0 * (points @ points[i]) + sq[i]).clamp_min_(0.0)
+
+    first = int(torch.randint(points.shape[0], (1,), generator=gen))
+    picked = [first]
+    d2 = dist2(first)  # [n] squared distance to the nearest centre
+    for _ in range(num - 1):
+        i = int(torch.multinomial(d2 + 1e-30, 1, generator=gen))
+        picked.append(i)
+        d2 = torch.minimum(d2, dist2(i))
+    return torch.tensor(picked, dtype=torch.long)
+
+
 def atoms(
     theta: Tensor,  # [N, D]
     scales: list[tuple[int, int]],
@@ -170,7 +194,8 @@ def atoms(
     config: DecomposeConfig,
 ) -> np.ndarray:  # -> [N] int64 atom of each Gaussian, 0..A-1
     """k-means over the concatenated unit features of every candidate scale (each scale weighted
-    equally), on ``basis_dims`` principal components; fitted on a sample, then all assigned."""
+    equally), on ``basis_dims`` principal components, seeded by :func:`kmeans_pp`; fitted on a
+    sample, then all assigned."""
     n = theta.shape[0]
     num = int(np.clip(round(n * config.atoms_per_gaussian), config.min_atoms, config.max_atoms))
     num = min(num, n)
@@ -187,7 +212,7 @@ def atoms(
     _, _, V = torch.linalg.svd(X - mean, full_matrices=False)
     P = V[:q].T  # [sum d, q]
     Y = (X - mean) @ P
-    centres = Y[torch.randperm(Y.shape[0], generator=gen)[:num]].clone()
+    centres = Y[kmeans_pp(Y, num, gen)].clone()
     for _ in range(config.kmeans_iterations):
         assign = torch.cdist(Y, centres).argmin(1)
         sums = torch.zeros_like(centres).index_add_(0, assign, Y)
