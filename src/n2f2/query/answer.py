@@ -203,7 +203,7 @@ def node_paths(engine: Any, texts: list[str]) -> dict[str, dict]:
                 {
                     "node": node,
                     "level": rec["level"],
-                    "last_level": rec.get("last_level", rec["level"]),
+                    "last_level": int(tree.last_levels[node]),
                     "gaussians": rec["gaussians"],
                     "text": rec.get("text"),
                     "best_query": texts[best],

@@ -117,7 +117,7 @@ def path_records(tree: Any, node: int) -> list[dict]:
     for k in tree.path(int(node)):
         rec = tree.tree["nodes"][k]
         level = int(rec["level"])
-        last = int(rec.get("last_level", level))
+        last = int(tree.last_levels[k])
         out.append(
             {
                 "node": int(k),
@@ -175,7 +175,7 @@ def export_node(engine: Any, tree: Any, node: int, folder: Path) -> tuple[Path, 
         {
             "node": node,
             "level": level,
-            "last_level": int(tree.tree["nodes"][node].get("last_level", level)),
+            "last_level": int(tree.last_levels[node]),
             "path": tree.path(node),
             "text": tree.tree["nodes"][node].get("text"),
             "gaussians": n,
