@@ -207,3 +207,38 @@ def test_cli_runs_and_refuses_in_one_line(fake, tmp_path, capsys):
 
     assert cli_main(["eval-hierarchy", str(run), str(decomp), "--labels", str(run)]) == 2
     assert "no ground-truth regions" in capsys.readouterr().err
+
+
+def test_a_ground_truth_bank_scores_as_the_labels_do(trained_run, tmp_path):
+    """--segments BANK: on a bank of the ground-truth segmenter the segments are the labelled
+    regions, so every view's (pixels, best IoU) pairs equal the --labels evaluation's; kinds are
+    the thirds of each segment's quantised scale, and consistency is not defined."""
+    from n2f2.segments.bank import SegmentBank
+
+    run, scene, bank = trained_run.run_dir, trained_run.scene_dir, trained_run.bank_dir
+    decomp = tmp_path / "dec"
+    assert cli_main(["decompose", str(run), "--out", str(decomp), "--views", "all", "--quiet"]) == 0
+    by_labels = evaluate_hierarchy(run, decomp, scene, out=tmp_path / "l", log=lambda s: None)
+    lines = []
+    by_bank = evaluate_hierarchy(run, decomp, segments=bank, out=tmp_path / "s", log=lines.append)
+    assert by_bank["regions"] == "segments" and by_labels["regions"] == "labels"
+    assert by_bank["kinds"] == ["small", "medium", "large"]
+    views = by_labels["views"]["evaluated"]
+    assert views and set(views) <= set(by_bank["views"]["evaluated"])
+    for stem in views:
+        want = sorted((r["pixels"], round(r["best_iou"], 12)) for r in by_labels["per_view"][stem]["regions"])
+        got = sorted((r["pixels"], round(r["best_iou"], 12)) for r in by_bank["per_view"][stem]["regions"])
+        assert got == want, stem
+    sb = SegmentBank.open(bank)
+    ids = [r["region"] for v in by_bank["per_view"].values() for r in v["regions"]]
+    assert len(ids) == len(set(ids))  # one id per segment of a view, none shared between views
+    for stem, view in by_bank["per_view"].items():
+        q = sb.record(sb.index(stem)).quantized
+        for r in view["regions"]:
+            s = int(r["name"].rsplit(" ", 1)[1])  # "<stem> segment <s>"
+            assert r["name"].startswith(stem)
+            assert r["kind"] == ("small" if q[s] < 1 / 3 else "medium" if q[s] < 2 / 3 else "large")
+    assert by_bank["hierarchy"]["consistency"]["regions"] == 0
+    md = (tmp_path / "s" / "eval_hierarchy.md").read_text()
+    assert "segments of the segment bank" in md and "not ground truth" in md
+    assert len(lines) == 1 and "| small" not in lines[0] and lines[0].startswith("eval-hierarchy:")

@@ -139,12 +139,22 @@ def register_eval_hierarchy(subparsers) -> None:
         "ground-truth region (part, object, group) with any node at any level of the hierarchy, and with any "
         "segment of a 2D-only baseline (multi-scale Felzenszwalb on the image); the cross-view consistency of "
         "the best nodes and the share of nodes not nested in their parent (tree.json, gaussian_nodes.npy). "
+        "With --segments BANK in place of --labels, the regions are the segments the field was trained on "
+        "(for captures without ground truth). "
         "Writes OUT/eval_hierarchy.json (every number), OUT/eval_hierarchy.md and OUT/eval_hierarchy.png.",
     )
     h.add_argument("run_dir", metavar="RUN", help="the trained run that was decomposed")
     h.add_argument("decomp", metavar="DECOMP", help="the `n2f2 decompose RUN --out DECOMP` folder (tree.json, ...)")
-    h.add_argument(
-        "--labels", required=True, metavar="SCENE", help="generated scene with ground truth (regions/, regions.json)"
+    truth = h.add_mutually_exclusive_group(required=True)
+    truth.add_argument(
+        "--labels", default=None, metavar="SCENE", help="generated scene with ground truth (regions/, regions.json)"
+    )
+    truth.add_argument(
+        "--segments",
+        default=None,
+        metavar="BANK",
+        help="instead of ground truth, the segment bank the field was trained on (`n2f2 segments`; its "
+        "segments by scale: small, medium, large): for captures without ground truth",
     )
     h.add_argument("--out", default=None, metavar="DIR", help="output folder (default DECOMP/eval_hierarchy)")
     add_config_options(h, HierarchyEvalSettings, field_defaults=True)
@@ -156,7 +166,15 @@ def run_eval_hierarchy(args: argparse.Namespace) -> int:
     from .hierarchy import HierarchyEvalSettings, evaluate_hierarchy
 
     settings = HierarchyEvalSettings(min_pixels=args.min_pixels, baseline_scales=tuple(args.baseline_scales))
-    evaluate_hierarchy(args.run_dir, args.decomp, args.labels, out=args.out, settings=settings, force=args.force)
+    evaluate_hierarchy(
+        args.run_dir,
+        args.decomp,
+        args.labels,
+        segments=args.segments,
+        out=args.out,
+        settings=settings,
+        force=args.force,
+    )
     return 0
 
 

@@ -13,7 +13,10 @@ It reads only what the evaluation needs of the decomposition (its file names and
 
 The ground truth is a generated scene (``n2f2 demo``): ``SCENE/regions/<stem>.npy`` int32
 [3, H, W] region ids per level (part, object, group; -1 none), ``SCENE/regions.json`` and the
-images ``SCENE/images/<stem>.png``. Every view with a region map is a labelled view.
+images ``SCENE/images/<stem>.png``. Every view with a region map is a labelled view. Captures
+without ground truth are scored against the segments the field was trained on instead
+(``--segments BANK``, :class:`BankSegments`): every valid segment of every view is a region,
+its kind the third of the field's scale ladder it was trained at (small, medium, large).
 
 Metrics (IoU, consistency and shares are fractions in [0, 1] in the JSON; the Markdown report
 shows them in percent):
@@ -39,7 +42,7 @@ import json
 from collections import Counter
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Callable, Optional
+from typing import Any, Callable, Optional
 
 import numpy as np
 
@@ -100,12 +103,14 @@ class Match:
 @dataclass
 class GroundTruth:
     """A generated scene's region maps: the kinds (``regions.json`` levels), region entries by
-    id, and the labelled views' stems (those with ``regions/<stem>.npy``)."""
+    id, and the labelled views' stems (those with ``regions/<stem>.npy``). Each row of a region
+    map holds the regions of one kind."""
 
     root: Path
     kinds: list[str]
     regions: dict[int, dict]
     stems: list[str]
+    source: str = "labels"  # what the regions are: "labels" (ground truth) or "segments" (a bank)
 
     def region_map(self, stem: str) -> np.ndarray:  # [K, H, W] int32
         path = self.root / "regions" / f"{stem}.npy"
@@ -114,12 +119,81 @@ class GroundTruth:
             raise InputError(path, f"expected int region ids [{len(self.kinds)}, H, W], got {ids.dtype} {ids.shape}")
         return ids
 
+    def kind_of(self, row: int, region: int) -> int:
+        """The kind (index into ``kinds``) of ``region``, found in row ``row`` of a region map."""
+        return row
+
+    def image_dir(self) -> Path:
+        return self.root / "images"
+
     def image_path(self, stem: str) -> Optional[Path]:
         for suffix in IMAGE_SUFFIXES:
             for name in (stem + suffix, stem + suffix.upper()):
-                if (self.root / "images" / name).is_file():
-                    return self.root / "images" / name
+                if (self.image_dir() / name).is_file():
+                    return self.image_dir() / name
         return None
+
+
+@dataclass
+class BankSegments(GroundTruth):
+    """The segments a field was trained on (a segment bank, ``n2f2 segments``) in place of ground
+    truth, for captures without any: each valid segment is a region, of kind ``small``,
+    ``medium`` or ``large`` by the third of the bank's quantised scale ``s`` in [0, 1) (the
+    scale the field was trained on) it falls in. A region map's rows are the bank's layers (no
+    two segments of a layer overlap); ids are made unique over the views, so cross-view
+    consistency is not defined (no region is seen twice)."""
+
+    offsets: dict[str, int] = field(default_factory=dict)  # stem -> id of its segment 0
+    region_kinds: dict[int, int] = field(default_factory=dict)  # region id -> kind index
+    images: Optional[Path] = None  # the bank's scene images, for the 2D baseline
+    bank: Any = None  # the opened SegmentBank
+    segmenter: str = ""  # the bank's segmenter ("classical" is the 2D baseline's Felzenszwalb)
+
+    def region_map(self, stem: str) -> np.ndarray:  # [L, H, W] int64 global segment ids, -1 = none
+        rec = self.bank.record(self.bank.index(stem))
+        layers = np.asarray(rec.layers).astype(np.int64)
+        keep = np.concatenate([np.asarray(rec.valid, bool), [False]])  # index -1 (none) maps to False
+        return np.where(keep[layers], layers + self.offsets[stem], -1)
+
+    def kind_of(self, row: int, region: int) -> int:
+        return self.region_kinds[region]
+
+    def image_dir(self) -> Path:
+        return self.images if self.images is not None else self.root / "images"
+
+
+SEGMENT_KINDS = ["small", "medium", "large"]  # thirds of a bank segment's quantised scale s
+
+
+def read_bank_segments(path: Path) -> BankSegments:
+    """A segment bank as :class:`BankSegments` (one line naming bank.json for a bank that cannot be read)."""
+    from ..segments.bank import SegmentBank
+
+    bank = SegmentBank.open(path)
+    offsets, kinds, regions = {}, {}, {}
+    next_id = 0
+    for i, stem in enumerate(bank.image_names):
+        rec = bank.record(i)
+        offsets[stem] = next_id
+        for s, q in enumerate(np.asarray(rec.quantized, dtype=np.float64)):
+            if np.isfinite(q):
+                kinds[next_id + s] = min(int(q * len(SEGMENT_KINDS)), len(SEGMENT_KINDS) - 1)
+                regions[next_id + s] = {"name": f"{stem} segment {s}", "scale": float(q)}
+        next_id += rec.num_segments
+    source = bank.meta.get("source")
+    images = Path(source) / "images" if isinstance(source, str) and (Path(source) / "images").is_dir() else None
+    return BankSegments(
+        Path(path),
+        list(SEGMENT_KINDS),
+        regions,
+        list(bank.image_names),
+        "segments",
+        offsets,
+        kinds,
+        images,
+        bank,
+        str(bank.segmenter_spec.get("name", "")),
+    )
 
 
 # ----------------------------------------------------------------------------- readers
@@ -383,7 +457,7 @@ def evaluate_view(
         entry = gt.regions.get(rid, {})
         records.append(
             {
-                "kind": gt.kinds[k],
+                "kind": gt.kinds[gt.kind_of(k, rid)],
                 "region": rid,
                 "name": entry.get("name"),
                 "pixels": pixels,
@@ -414,18 +488,23 @@ class HierarchyInputs:
     skipped: list[str] = field(default_factory=list)
 
 
-def check_inputs(run_dir: Path, decomp: Path, labels: Path) -> HierarchyInputs:
-    """Read and check everything before any output is claimed; each refusal is one line."""
+def check_inputs(
+    run_dir: Path, decomp: Path, labels: Optional[Path], segments: Optional[Path] = None
+) -> HierarchyInputs:
+    """Read and check everything before any output is claimed; each refusal is one line. The
+    regions are the generated scene ``labels``' ground truth, or the segment bank ``segments``."""
+    if (labels is None) == (segments is None):
+        raise InputError(None, "give either the ground truth (--labels SCENE) or a segment bank (--segments BANK)")
     if not run_dir.is_dir():
         raise InputError(run_dir, "not a run folder")
     tree = read_tree(decomp, run_dir)
     nodes = read_gaussian_nodes(decomp, tree["num_levels"])
-    gt = read_ground_truth(labels)
+    gt = read_ground_truth(labels) if labels is not None else read_bank_segments(Path(str(segments)))
     views = [s for s in gt.stems if (view_folder(decomp, s) / LEVELS_NAME).is_file()]
     if not views:
         raise InputError(
             decomp / "views",
-            f"none of the {len(gt.stems)} labelled views of {labels} has views/<stem>/levels.npy; "
+            f"none of the {len(gt.stems)} labelled views of {gt.root} has views/<stem>/levels.npy; "
             f"run `n2f2 decompose {run_dir} --out {decomp} --views all`",
         )
     return HierarchyInputs(run_dir, decomp, tree, nodes, gt, views, [s for s in gt.stems if s not in views])
@@ -452,6 +531,7 @@ def hierarchy_result(inputs: HierarchyInputs, settings: HierarchyEvalSettings) -
         "run": str(inputs.run_dir),
         "decomposition": str(inputs.decomp),
         "labels": str(gt.root),
+        "regions": gt.source,  # "labels": ground truth; "segments": the segment bank's segments
         "units": "best IoU, consistency and shares are fractions in [0, 1]",
         "settings": {**asdict(settings), "baseline_scales": list(settings.baseline_scales)},
         "kinds": gt.kinds,
@@ -478,7 +558,15 @@ def hierarchy_result(inputs: HierarchyInputs, settings: HierarchyEvalSettings) -
         },
         "per_view": per_view,
         "notes": [f"{text} in {n} view{'s' * (n != 1)}" for text, n in notes.items()]
-        + ([f"{len(inputs.skipped)} labelled views without levels.npy skipped"] if inputs.skipped else []),
+        + ([f"{len(inputs.skipped)} labelled views without levels.npy skipped"] if inputs.skipped else [])
+        + (
+            [
+                "the bank's segments come from the classical segmenter, the 2D baseline's own Felzenszwalb: "
+                "the baseline matches them by construction"
+            ]
+            if isinstance(gt, BankSegments) and gt.segmenter == "classical"
+            else []
+        ),
     }
 
 
@@ -500,13 +588,25 @@ def markdown_report(result: dict) -> str:
     c, n = h["consistency"], h["nesting"]
     scales = ", ".join(f"{s:g}" for s in result["settings"]["baseline_scales"])
     level_names = ", ".join(str(lv.get("scale_label", lv.get("level"))) for lv in h["levels"] if isinstance(lv, dict))
+    bank = result.get("regions") == "segments"
+    against = "the segments of the segment bank" if bank else "the ground truth of"
+    region = "segment of the bank" if bank else "ground-truth region"
     lines = [
         "# Hierarchy evaluation",
         "",
-        f"Decomposition `{result['decomposition']}` of run `{result['run']}` against the ground truth of "
+        f"Decomposition `{result['decomposition']}` of run `{result['run']}` against {against} "
         f"`{result['labels']}`: {len(result['views']['evaluated'])} of {result['views']['labelled']} labelled views.",
         "",
-        f"Best IoU (%) of each ground-truth region with at least {result['settings']['min_pixels']} pixels in a view: "
+        *(
+            [
+                "The bank's segments are what the field was trained on, not ground truth; kinds are the thirds "
+                "of their quantised scale s (small < 1/3 <= medium < 2/3 <= large).",
+                "",
+            ]
+            if bank
+            else []
+        ),
+        f"Best IoU (%) of each {region} with at least {result['settings']['min_pixels']} pixels in a view: "
         "with any node at any level of the 3D hierarchy, and with any segment of the 2D baseline "
         f"(Felzenszwalb at scales {scales}); mean over (view, region) pairs.",
         "",
@@ -553,21 +653,28 @@ def write_reports(out: Path, result: dict) -> None:
 def evaluate_hierarchy(
     run_dir: str | Path,
     decomp: str | Path,
-    labels: str | Path,
+    labels: str | Path | None = None,
     *,
+    segments: str | Path | None = None,
     out: str | Path | None = None,
     settings: Optional[HierarchyEvalSettings] = None,
     force: bool = False,
     log: Log = print,
 ) -> dict:
     """Score the decomposition ``decomp`` of ``run_dir`` against the ground truth of the generated
-    scene ``labels`` into ``out`` (default ``DECOMP/eval_hierarchy``); returns the JSON's dict.
-    Inputs are checked before the output folder is claimed, and earlier results are only
+    scene ``labels``, or against the segment bank ``segments`` the field was trained on
+    (:class:`BankSegments`), into ``out`` (default ``DECOMP/eval_hierarchy``); returns the JSON's
+    dict. Inputs are checked before the output folder is claimed, and earlier results are only
     replaced with ``force``."""
     from ..io import claim_out_dir, remove_results
 
     settings = settings or HierarchyEvalSettings()
-    inputs = check_inputs(Path(run_dir), Path(decomp), Path(labels))
+    inputs = check_inputs(
+        Path(run_dir),
+        Path(decomp),
+        None if labels is None else Path(labels),
+        None if segments is None else Path(segments),
+    )
     out = Path(out) if out is not None else Path(decomp) / "eval_hierarchy"
     present = claim_out_dir(out, RESULT_NAMES, force=force, resume_flag=None)
     result = hierarchy_result(inputs, settings)
