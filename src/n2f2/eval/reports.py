@@ -197,8 +197,8 @@ def plot_grouped_bars(
     ax.set_xticklabels(groups, rotation=20, ha="right")
     ax.set_ylabel(ylabel)
     ax.set_title(title)
-    if len(series) > 1:
-        ax.legend(fontsize="small")
+    if len(series) > 1:  # beside the axes, so that it never hides a bar (the saved PNG is cropped to fit)
+        ax.legend(fontsize="small", loc="upper left", bbox_to_anchor=(1.01, 1.0))
     ax.grid(axis="y", alpha=0.3)
     return _save(fig, path)
 
